@@ -1,0 +1,46 @@
+"""The `mapf-fleet` command: one entry point for what `ros2 run/launch/topic echo` and the
+research scripts would do. Sub-commands import their layer lazily, so `mapf-fleet evaluate`
+never loads rclpy and `mapf-fleet demo` never loads torch."""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+# sub-command -> (module, function, one-line help). Each function takes argv (list[str]) and
+# returns an exit code.
+COMMANDS = {
+    "demo": ("mapf_fleet.grid.demo", "main", "grid-world demo with the non-learned policy"),
+    "train": ("mapf_fleet.training.cli", "main", "Ape-X training with both curricula"),
+    "evaluate": ("mapf_fleet.evaluation.cli", "main", "the paper's evaluation protocol"),
+    "render": ("mapf_fleet.evaluation.render", "main", "render one episode as GIF/PNG"),
+    "up": ("mapf_fleet.ros.launcher", "main", "start a simulated (or real-robot) fleet"),
+    "echo": ("mapf_fleet.ros.echo", "main", "print a topic's messages as YAML"),
+    "topics": ("mapf_fleet.ros.echo", "topics_main", "list the fleet's topics"),
+    "node": ("mapf_fleet.ros.run", "main", "run one node, like `ros2 run mapf_fleet <node>`"),
+}
+
+
+def _usage() -> str:
+    lines = ["usage: mapf-fleet <command> [options]", "", "commands:"]
+    for name, (_, _, text) in COMMANDS.items():
+        lines.append(f"  {name:<10} {text}")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help"):
+        print(_usage())
+        return 0
+    name, rest = argv[0], argv[1:]
+    if name not in COMMANDS:
+        print(f"mapf-fleet: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
+        return 2
+    module, func, _ = COMMANDS[name]
+    code = getattr(importlib.import_module(module), func)(rest)
+    return int(code or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
