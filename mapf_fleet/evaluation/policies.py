@@ -1,0 +1,123 @@
+"""What `--checkpoint` names: a checkpoint file, or a reference ("heuristic", "lacam", "pibt").
+
+Decentralized policies (learned, heuristic) implement the batched interface the runner steps:
+`reset(num_envs, num_agents)` then `act(obs (B,N,6,9,9), positions (B,N,2)) -> actions (B,N)`.
+Centralized planners are `planners.ClassicalPlanner` objects, replayed by the runner.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .planners import PLANNER_NAMES
+
+HEURISTIC = "heuristic"
+REFERENCE_NAMES = (HEURISTIC, *PLANNER_NAMES)
+
+
+@dataclass(frozen=True)
+class PolicySpec:
+    """A picklable description of a policy, turned into an object in each worker process."""
+
+    kind: str  # "checkpoint" | "heuristic" | "planner"
+    name: str  # the row label of the tables
+    path: str | None = None  # checkpoint file
+    algorithm: str | None = None  # planner algorithm
+    planner_time_limit: float = 10.0
+    planner_seed: int = 0
+    device: str = "cpu"
+
+    @property
+    def is_planner(self) -> bool:
+        return self.kind == "planner"
+
+
+def parse_policy(arg: str, *, device: str = "cpu", planner_time_limit: float = 10.0, planner_seed: int = 0) -> PolicySpec:
+    """`heuristic`, `lacam`, `pibt`, or a path to a checkpoint file (must exist)."""
+    if arg == HEURISTIC:
+        return PolicySpec("heuristic", "heuristic")
+    if arg in PLANNER_NAMES:
+        return PolicySpec(
+            "planner", arg.upper() if arg == "pibt" else "LaCAM", algorithm=arg,
+            planner_time_limit=planner_time_limit, planner_seed=planner_seed,
+        )
+    path = Path(arg)
+    if not path.is_file():
+        raise FileNotFoundError(f"--checkpoint {arg!r}: no such file (or use one of {', '.join(REFERENCE_NAMES)})")
+    return PolicySpec("checkpoint", path.stem, path=str(path), device=device)
+
+
+def unique_names(specs: list[PolicySpec]) -> list[PolicySpec]:
+    """Row labels must be unique: a checkpoint stem used twice gets its folder name, and any
+    label still repeated gets "#2", "#3"..."""
+    from collections import Counter
+    from dataclasses import replace
+
+    counts = Counter(spec.name for spec in specs)
+    used: set[str] = set()
+    out = []
+    for spec in specs:
+        name = spec.name
+        if counts[name] > 1 and spec.path:
+            name = f"{Path(spec.path).resolve().parent.name}/{spec.name}"
+        base, k = name, 2
+        while name in used:
+            name, k = f"{base}#{k}", k + 1
+        used.add(name)
+        out.append(replace(spec, name=name))
+    return out
+
+
+class HeuristicBatchPolicy:
+    """The non-learned reference (`mapf_fleet.grid.policies.heuristic_policy`), batched."""
+
+    def reset(self, num_envs: int, num_agents: int) -> None:
+        pass
+
+    def act(self, obs: np.ndarray, positions: np.ndarray) -> np.ndarray:
+        from mapf_fleet.grid.policies import heuristic_policy
+
+        batch, agents = obs.shape[:2]
+        return np.asarray(heuristic_policy(obs.reshape(batch * agents, *obs.shape[2:]))).reshape(batch, agents)
+
+
+class CheckpointBatchPolicy:
+    """A learned checkpoint through `mapf_fleet.models.policy.LearnedPolicy`."""
+
+    def __init__(self, path: str, device: str = "cpu"):
+        from mapf_fleet.models.checkpoint import load_checkpoint
+        from mapf_fleet.models.policy import LearnedPolicy
+
+        model, metadata = load_checkpoint(path)
+        padding = (metadata or {}).get("obs_padding", "obstacle")
+        if padding != "obstacle":
+            # The environment pads off-map cells as obstacles (docs/architecture.md); a model
+            # trained with another padding would be evaluated on inputs it never saw.
+            raise ValueError(f"{path}: obs_padding is {padding!r}, the evaluator's environment pads 'obstacle'")
+        self.metadata = metadata
+        self.policy = LearnedPolicy(model, device)
+
+    def reset(self, num_envs: int, num_agents: int) -> None:
+        self.policy.reset(num_envs, num_agents)
+
+    def act(self, obs: np.ndarray, positions: np.ndarray) -> np.ndarray:
+        actions = self.policy.act(obs, positions)
+        if hasattr(actions, "detach"):
+            actions = actions.detach().cpu().numpy()
+        return np.asarray(actions, dtype=np.int64)
+
+
+def build_policy(spec: PolicySpec):
+    """The object the runner steps for `spec` (a batch policy or a ClassicalPlanner)."""
+    if spec.kind == "heuristic":
+        return HeuristicBatchPolicy()
+    if spec.kind == "planner":
+        from .planners import ClassicalPlanner
+
+        return ClassicalPlanner(spec.algorithm, spec.planner_time_limit, spec.planner_seed)
+    if spec.kind == "checkpoint":
+        return CheckpointBatchPolicy(spec.path, spec.device)
+    raise ValueError(f"unknown policy kind {spec.kind!r}")

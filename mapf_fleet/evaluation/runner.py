@@ -1,0 +1,217 @@
+"""Runs policies over scenarios: batched episodes in-process, and `workers` processes in parallel.
+
+Decentralized policies step all episodes of a chunk together (one `act` call on
+(B, N, 6, 9, 9) per step); finished episodes are frozen and only the live ones advance.
+Planners plan each instance and their plans are replayed through the same environment, so
+every policy is measured by the same conflict rules and the same `EpisodeTracker`.
+
+Results do not depend on `workers` or `batch_size`: each episode is independent and the
+chunks are put back in instance order.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .metrics import EpisodeRecord, EpisodeTracker, ScenarioSummary, summarize
+from .policies import PolicySpec, build_policy
+from .protocol import InstanceSet, Scenario
+
+
+@dataclass
+class ScenarioResult:
+    """One cell of the tables: a policy on a scenario."""
+
+    policy: str
+    scenario: Scenario
+    source: str
+    episodes: list[EpisodeRecord]
+    compute_time: float  # seconds spent in the episodes (summed over workers)
+    plan_time: float | None = None  # planners: seconds of planning, summed over instances
+    plan_failures: int = 0  # planners: instances without a plan in the time budget
+    summary: ScenarioSummary = field(init=False)
+
+    def __post_init__(self):
+        self.summary = summarize(self.episodes)
+
+
+def lower_bounds(instances: InstanceSet) -> np.ndarray:
+    """(K,) longest single-agent shortest path of each instance (see metrics)."""
+    from mapf_fleet.grid.heuristic import bfs_distances_many
+
+    bounds = np.zeros(len(instances), dtype=np.int64)
+    for k in range(len(instances)):
+        dist = bfs_distances_many(instances.maps[k], instances.goals[k])  # (N, H, W), to each goal
+        starts = instances.starts[k]
+        d = dist[np.arange(len(starts)), starts[:, 0], starts[:, 1]]
+        if (d < 0).any():
+            i = int(np.argmax(d < 0))
+            raise ValueError(f"instance {k}: agent {i} cannot reach its goal {tuple(instances.goals[k][i])} from {tuple(starts[i])}")
+        bounds[k] = d.max()
+    return bounds
+
+
+def _make_env(instances: InstanceSet, k: int, max_steps: int):
+    from mapf_fleet.grid.env import EnvConfig, MAPFEnv
+
+    return MAPFEnv(instances.instance(k), EnvConfig(max_steps=max_steps))
+
+
+def run_decentralized(policy, instances: InstanceSet, max_steps: int) -> list[EpisodeRecord]:
+    """Step all episodes of `instances` together with a batch policy (reset/act)."""
+    bounds = lower_bounds(instances)
+    envs = [_make_env(instances, k, max_steps) for k in range(len(instances))]
+    obs = np.stack([env.reset() for env in envs]).astype(np.float32)
+    positions = np.stack([np.asarray(env.positions) for env in envs])
+    trackers = [EpisodeTracker(positions[k], instances.goals[k], max_steps, bounds[k]) for k in range(len(envs))]
+    policy.reset(len(envs), instances.starts.shape[1])
+    live = [k for k, t in enumerate(trackers) if not t.done]
+    while live:
+        actions = np.asarray(policy.act(obs, positions))
+        for k in live:
+            step_obs, _, _, info = envs[k].step(actions[k])
+            obs[k] = step_obs
+            positions[k] = envs[k].positions
+            trackers[k].update(positions[k], info["collisions"])
+        live = [k for k in live if not trackers[k].done]
+    return [t.record() for t in trackers]
+
+
+def replay_plan(actions: np.ndarray | None, instances: InstanceSet, k: int, max_steps: int, bound: int) -> EpisodeRecord:
+    """Execute a (T, N) action plan in the environment (stay once it runs out or is None)."""
+    env = _make_env(instances, k, max_steps)
+    env.reset()
+    tracker = EpisodeTracker(np.asarray(env.positions), instances.goals[k], max_steps, bound)
+    stay = np.zeros(instances.starts.shape[1], dtype=np.int64)
+    t = 0
+    while not tracker.done:
+        step_actions = actions[t] if actions is not None and t < len(actions) else stay
+        _, _, _, info = env.step(step_actions)
+        tracker.update(np.asarray(env.positions), info["collisions"])
+        t += 1
+    return tracker.record()
+
+
+def run_planner(planner, instances: InstanceSet, max_steps: int) -> tuple[list[EpisodeRecord], float, int]:
+    from .planners import positions_to_actions
+
+    bounds = lower_bounds(instances)
+    records, plan_time, failures = [], 0.0, 0
+    for k in range(len(instances)):
+        result = planner.plan(instances.maps[k], instances.starts[k], instances.goals[k])
+        plan_time += result.runtime
+        failures += result.positions is None
+        actions = None if result.positions is None else positions_to_actions(result.positions)
+        records.append(replay_plan(actions, instances, k, max_steps, bounds[k]))
+    return records, plan_time, failures
+
+
+# --- jobs, in-process or in worker processes --------------------------------------------------
+
+@dataclass(frozen=True)
+class Job:
+    spec: PolicySpec
+    scenario: Scenario
+    instances: InstanceSet
+    chunk: int  # position of this chunk in the scenario's instance order
+
+
+_POLICY_CACHE: dict[PolicySpec, object] = {}
+
+
+def _init_worker() -> None:
+    # Evaluation never imports rclpy, but a worker must not reach other machines if something does.
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    try:
+        import torch
+
+        torch.set_num_threads(1)
+    except ImportError:
+        pass
+
+
+def run_job(job: Job) -> tuple[list[EpisodeRecord], float, float | None, int]:
+    policy = _POLICY_CACHE.get(job.spec)
+    if policy is None:
+        policy = _POLICY_CACHE[job.spec] = build_policy(job.spec)
+    began = time.perf_counter()
+    if job.spec.is_planner:
+        records, plan_time, failures = run_planner(policy, job.instances, job.scenario.max_steps)
+    else:
+        records, plan_time, failures = run_decentralized(policy, job.instances, job.scenario.max_steps), None, 0
+    return records, time.perf_counter() - began, plan_time, failures
+
+
+def make_jobs(specs: list[PolicySpec], scenarios: list[tuple[Scenario, InstanceSet]], batch_size: int, workers: int) -> list[Job]:
+    """Split each (policy, scenario) into chunks of at most `batch_size` episodes, and into at
+    least `workers` chunks so that every process has work."""
+    if batch_size < 1:
+        raise ValueError(f"--batch-size must be positive, got {batch_size}")
+    jobs = []
+    for spec in specs:
+        for scenario, instances in scenarios:
+            chunks = max(math.ceil(len(instances) / batch_size), min(workers, len(instances)))
+            for c, index in enumerate(np.array_split(np.arange(len(instances)), chunks)):
+                jobs.append(Job(spec, scenario, instances.subset(index), c))
+    return jobs
+
+
+def evaluate(
+    specs: list[PolicySpec],
+    scenarios: list[tuple[Scenario, InstanceSet]],
+    *,
+    workers: int = 1,
+    batch_size: int = 200,
+    progress=None,
+) -> list[ScenarioResult]:
+    """Every policy on every scenario; `progress(done, total, job)` is called after each job."""
+    if workers < 1:
+        raise ValueError(f"--workers must be positive, got {workers}")
+    jobs = make_jobs(specs, scenarios, batch_size, workers)
+    outputs: dict[int, tuple] = {}
+    if workers == 1:
+        _init_worker()
+        for i, job in enumerate(jobs):
+            outputs[i] = run_job(job)
+            if progress:
+                progress(len(outputs), len(jobs), job)
+    else:
+        import multiprocessing
+
+        # Large agent counts first, so the longest jobs do not end up last on one core.
+        order = sorted(range(len(jobs)), key=lambda i: -jobs[i].scenario.num_agents * jobs[i].scenario.max_steps)
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_init_worker) as pool:
+            futures = {pool.submit(run_job, jobs[i]): i for i in order}
+            from concurrent.futures import as_completed
+
+            for future in as_completed(futures):
+                i = futures[future]
+                outputs[i] = future.result()
+                if progress:
+                    progress(len(outputs), len(jobs), jobs[i])
+
+    results = []
+    for spec in specs:
+        for scenario, instances in scenarios:
+            mine = sorted((jobs[i].chunk, outputs[i]) for i in range(len(jobs))
+                          if jobs[i].spec == spec and jobs[i].scenario == scenario)
+            records = [r for _, out in mine for r in out[0]]
+            plan_times = [out[2] for _, out in mine if out[2] is not None]
+            results.append(
+                ScenarioResult(
+                    policy=spec.name,
+                    scenario=scenario,
+                    source=instances.source,
+                    episodes=records,
+                    compute_time=sum(out[1] for _, out in mine),
+                    plan_time=sum(plan_times) if plan_times else None,
+                    plan_failures=sum(out[3] for _, out in mine),
+                )
+            )
+    return results

@@ -1,0 +1,184 @@
+"""BFS distances to a goal over static obstacles and the four heuristic observation channels.
+
+Distances come from scipy's compiled graph search over the 4-connected free cells (one call serves
+all goals of a map); a pure-Python BFS is what made the reference environments reset slowly.
+
+Conventions:
+- `bfs_distances` returns int32 steps to the goal; obstacle cells and free cells that cannot reach
+  the goal hold `UNREACHABLE` (-1).
+- Heuristic channel k (0 up, 1 down, 2 left, 3 right) is 1 at a cell when its neighbour in
+  direction k is a free cell exactly one step closer to the goal (that is what "strictly closer"
+  means with BFS distances). Obstacles, unreachable cells and the goal itself have no bit set.
+- Internally the four channels are packed into one uint8 per cell (bit k = channel k): the
+  environment gathers one byte per FOV cell instead of four, and the cache stays small.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+
+import numpy as np
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import shortest_path
+
+UNREACHABLE = -1
+NUM_HEURISTIC_CHANNELS = 4
+_BIT_WEIGHTS = np.array([1, 2, 4, 8], dtype=np.uint8)
+
+
+def _as_grid(grid) -> np.ndarray:
+    grid = np.asarray(grid)
+    if grid.ndim != 2 or grid.shape[0] == 0 or grid.shape[1] == 0:
+        raise ValueError(f"grid must be a non-empty 2-D array, got shape {grid.shape}")
+    return grid != 0
+
+
+def _as_goals(goals, shape) -> np.ndarray:
+    goals = np.asarray(goals, dtype=np.int64).reshape(-1, 2)
+    h, w = shape
+    bad = (goals[:, 0] < 0) | (goals[:, 0] >= h) | (goals[:, 1] < 0) | (goals[:, 1] >= w)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"goal {tuple(goals[i].tolist())} is outside the {h}x{w} map")
+    return goals
+
+
+def _adjacency(blocked: np.ndarray) -> csr_matrix:
+    """Undirected 4-connected adjacency of the free cells (upper triangle only)."""
+    h, w = blocked.shape
+    free = ~blocked
+    index = np.arange(h * w).reshape(h, w)
+    horizontal = free[:, :-1] & free[:, 1:]
+    vertical = free[:-1, :] & free[1:, :]
+    rows = np.concatenate([index[:, :-1][horizontal], index[:-1, :][vertical]])
+    cols = np.concatenate([index[:, 1:][horizontal], index[1:, :][vertical]])
+    return csr_matrix((np.ones(rows.size, dtype=np.int8), (rows, cols)), shape=(h * w, h * w))
+
+
+def _distances(blocked: np.ndarray, goals: np.ndarray, graph: csr_matrix | None = None) -> np.ndarray:
+    h, w = blocked.shape
+    if goals.shape[0] == 0:
+        return np.empty((0, h, w), dtype=np.int32)
+    if graph is None:
+        graph = _adjacency(blocked)
+    flat = shortest_path(graph, method="D", directed=False, unweighted=True,
+                         indices=goals[:, 0] * w + goals[:, 1])
+    flat = np.atleast_2d(flat)
+    dist = np.where(np.isinf(flat), UNREACHABLE, flat).astype(np.int32).reshape(-1, h, w)
+    # A goal placed on an obstacle is its own isolated node: report nothing as reachable.
+    on_obstacle = blocked[goals[:, 0], goals[:, 1]]
+    dist[on_obstacle] = UNREACHABLE
+    return dist
+
+
+def bfs_distances(grid, goal) -> np.ndarray:
+    """int32 (H, W) BFS steps from every cell to `goal`; `UNREACHABLE` (-1) for obstacles and cells
+    cut off from the goal (and everywhere if the goal itself is an obstacle)."""
+    blocked = _as_grid(grid)
+    return _distances(blocked, _as_goals(goal, blocked.shape))[0]
+
+
+def bfs_distances_many(grid, goals) -> np.ndarray:
+    """int32 (N, H, W): `bfs_distances` for each of the N goals, in one graph search call."""
+    blocked = _as_grid(grid)
+    return _distances(blocked, _as_goals(goals, blocked.shape))
+
+
+def _bits_from_distances(dist: np.ndarray) -> np.ndarray:
+    """Packed heuristic bits (N, H, W) uint8 from distances (N, H, W)."""
+    closer = dist - 1
+    bits = np.zeros(dist.shape, dtype=np.uint8)
+    # neighbour up of (r, c) is (r-1, c): compare dist[r-1] with dist[r] - 1, for r >= 1.
+    up = dist[:, :-1, :]
+    bits[:, 1:, :] |= ((up >= 0) & (up == closer[:, 1:, :])).astype(np.uint8)
+    down = dist[:, 1:, :]
+    bits[:, :-1, :] |= ((down >= 0) & (down == closer[:, :-1, :])).astype(np.uint8) << 1
+    left = dist[:, :, :-1]
+    bits[:, :, 1:] |= ((left >= 0) & (left == closer[:, :, 1:])).astype(np.uint8) << 2
+    right = dist[:, :, 1:]
+    bits[:, :, :-1] |= ((right >= 0) & (right == closer[:, :, :-1])).astype(np.uint8) << 3
+    return bits
+
+
+def unpack_heuristic_bits(bits: np.ndarray) -> np.ndarray:
+    """(..., H, W) packed bits -> (..., 4, H, W) uint8 0/1 channels."""
+    bits = np.asarray(bits, dtype=np.uint8)
+    shifts = np.arange(NUM_HEURISTIC_CHANNELS, dtype=np.uint8).reshape(4, 1, 1)
+    return (bits[..., None, :, :] >> shifts) & 1
+
+
+def pack_heuristic_channels(channels: np.ndarray) -> np.ndarray:
+    """(..., 4, H, W) 0/1 channels -> (..., H, W) packed uint8 bits."""
+    channels = (np.asarray(channels) != 0).astype(np.uint8)
+    return np.tensordot(channels, _BIT_WEIGHTS, axes=([-3], [0])).astype(np.uint8)
+
+
+def heuristic_channels(grid, goal) -> np.ndarray:
+    """uint8 (4, H, W) heuristic channels up/down/left/right for one goal (uncached)."""
+    return unpack_heuristic_bits(_bits_from_distances(bfs_distances(grid, goal)[None]))[0]
+
+
+class HeuristicCache:
+    """Packed heuristic bits keyed by (map bytes, goal), LRU over maps.
+
+    A map's adjacency graph is kept with its entries, and all goals missing for a request are
+    searched in one call. `max_maps` bounds memory: one 80x80 map with 128 goals takes ~0.8 MB.
+    """
+
+    def __init__(self, max_maps: int = 64):
+        if int(max_maps) < 1:
+            raise ValueError(f"max_maps must be >= 1, got {max_maps}")
+        self.max_maps = int(max_maps)
+        self._maps: OrderedDict[tuple, tuple[csr_matrix, dict]] = OrderedDict()
+        self.hits = 0
+        self.misses = 0
+
+    def clear(self) -> None:
+        self._maps.clear()
+        self.hits = self.misses = 0
+
+    def bits(self, grid, goals) -> np.ndarray:
+        """uint8 (N, H, W) packed heuristic bits for each goal of `goals` (N, 2)."""
+        blocked = _as_grid(grid)
+        goals = _as_goals(goals, blocked.shape)
+        key = (blocked.shape, np.packbits(blocked).tobytes())
+        entry = self._maps.get(key)
+        if entry is None:
+            entry = (_adjacency(blocked), {})
+            self._maps[key] = entry
+            while len(self._maps) > self.max_maps:
+                self._maps.popitem(last=False)
+        else:
+            self._maps.move_to_end(key)
+        graph, per_goal = entry
+        goal_keys = [(int(r), int(c)) for r, c in goals]
+        missing = sorted({g for g in goal_keys if g not in per_goal})
+        self.misses += len(missing)
+        self.hits += len(goal_keys) - len(missing)
+        if missing:
+            missing_arr = np.array(missing, dtype=np.int64)
+            computed = _bits_from_distances(_distances(blocked, missing_arr, graph))
+            for g, b in zip(missing, computed):
+                b.setflags(write=False)
+                per_goal[g] = b
+        h, w = blocked.shape
+        out = np.empty((len(goal_keys), h, w), dtype=np.uint8)
+        for i, g in enumerate(goal_keys):
+            out[i] = per_goal[g]
+        return out
+
+    def channels(self, grid, goals) -> np.ndarray:
+        """uint8 (N, 4, H, W) heuristic channels for each goal."""
+        return unpack_heuristic_bits(self.bits(grid, goals))
+
+
+# The process-wide cache used by the environment.
+default_cache = HeuristicCache()
+
+
+def cached_heuristic_bits(grid, goals) -> np.ndarray:
+    return default_cache.bits(grid, goals)
+
+
+def cached_heuristic_channels(grid, goals) -> np.ndarray:
+    return default_cache.channels(grid, goals)

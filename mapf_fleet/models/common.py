@@ -1,0 +1,119 @@
+"""Pieces shared by DHC and DCC: the step result, the dueling head, input checking."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from mapf_fleet.grid.actions import NUM_ACTIONS
+
+from .config import ModelConfig
+
+
+@dataclass
+class StepOutput:
+    """Result of one batched step.
+
+    q: (B, N, 5) Q-values (zero for padded agents).
+    hidden: (B, N, H) the hidden state to carry to the next step: the post-communication
+        hidden (zero for padded agents), as in both reference implementations.
+    comm_mask: (B, N, N) bool, self excluded. DHC: [b, i, j] = j is one of i's partners (i attends
+        to j). DCC: [b, i, j] = i requests from j (j's erasure changed i's greedy action), the
+        orientation of the DCC reference's comm_mask.
+    partners: DHC only: (B, N, k) partner indices, -1 for none.
+    """
+
+    q: torch.Tensor
+    hidden: torch.Tensor
+    comm_mask: torch.Tensor
+    partners: torch.Tensor | None = None
+
+    @property
+    def actions(self) -> torch.Tensor:
+        """Greedy actions (B, N), lowest action index on exact ties (torch.argmax)."""
+        return self.q.argmax(-1)
+
+
+class DuelingHead(nn.Module):
+    """Q = V + A - mean(A) (Wang et al. 2016); attribute names follow the reference code."""
+
+    def __init__(self, hidden_dim: int):
+        super().__init__()
+        self.adv = nn.Linear(hidden_dim, NUM_ACTIONS)
+        self.state = nn.Linear(hidden_dim, 1)
+
+    def forward(self, hidden: torch.Tensor) -> torch.Tensor:
+        adv = self.adv(hidden)
+        return self.state(hidden) + adv - adv.mean(-1, keepdim=True)
+
+
+def module_device(module: nn.Module) -> torch.device:
+    return next(module.parameters()).device
+
+
+def as_float(x, name: str, device: torch.device) -> torch.Tensor:
+    if isinstance(x, np.ndarray):
+        x = torch.from_numpy(x)
+    if not isinstance(x, torch.Tensor):
+        raise TypeError(f"{name}: expected a tensor or numpy array, got {type(x).__name__}")
+    return x.to(device=device, dtype=torch.float32)
+
+
+def as_long(x, name: str, device: torch.device) -> torch.Tensor:
+    if isinstance(x, np.ndarray):
+        x = torch.from_numpy(np.ascontiguousarray(x))
+    if not isinstance(x, torch.Tensor):
+        raise TypeError(f"{name}: expected a tensor or numpy array, got {type(x).__name__}")
+    if x.is_floating_point():
+        raise TypeError(f"{name}: expected integers, got dtype {x.dtype}")
+    return x.to(device=device, dtype=torch.long)
+
+
+def check_batch_inputs(
+    config: ModelConfig,
+    obs: torch.Tensor,
+    positions: torch.Tensor,
+    hidden: torch.Tensor | None,
+    agent_mask: torch.Tensor | None,
+) -> tuple[int, int]:
+    """Raise a ValueError naming the argument whose shape is wrong; return (B, N)."""
+    if obs.dim() != 5 or tuple(obs.shape[2:]) != config.obs_shape:
+        raise ValueError(f"obs: expected (B, N, {', '.join(map(str, config.obs_shape))}), "
+                         f"got {tuple(obs.shape)}")
+    batch, num_agents = obs.shape[:2]
+    if tuple(positions.shape) != (batch, num_agents, 2):
+        raise ValueError(f"positions: expected {(batch, num_agents, 2)}, got {tuple(positions.shape)}")
+    if hidden is not None and tuple(hidden.shape) != (batch, num_agents, config.hidden_dim):
+        raise ValueError(f"hidden: expected {(batch, num_agents, config.hidden_dim)}, "
+                         f"got {tuple(hidden.shape)}")
+    if agent_mask is not None and tuple(agent_mask.shape) != (batch, num_agents):
+        raise ValueError(f"agent_mask: expected {(batch, num_agents)}, got {tuple(agent_mask.shape)}")
+    return batch, num_agents
+
+
+def as_vector(x, name: str, size: int, device: torch.device) -> torch.Tensor:
+    """A per-robot vector: accepts (size,) or (1, size); returns (size,) float32."""
+    x = as_float(x, name, device)
+    if x.dim() == 2 and x.shape[0] == 1:
+        x = x[0]
+    if tuple(x.shape) != (size,):
+        raise ValueError(f"{name}: expected ({size},), got {tuple(x.shape)}")
+    return x
+
+
+def stack_vectors(vectors, name: str, size: int, device: torch.device) -> torch.Tensor:
+    """A list of per-robot vectors (or an (M, size) array) as an (M, size) float32 tensor."""
+    if isinstance(vectors, (torch.Tensor, np.ndarray)):
+        stacked = as_float(vectors, name, device)
+        if stacked.dim() == 1 and stacked.numel() == 0:
+            stacked = stacked.reshape(0, size)
+        if stacked.dim() != 2 or stacked.shape[1] != size:
+            raise ValueError(f"{name}: expected (M, {size}), got {tuple(stacked.shape)}")
+        return stacked
+    rows = [as_vector(v, f"{name}[{m}]", size, device) for m, v in enumerate(vectors)]
+    if not rows:
+        return torch.zeros(0, size, device=device)
+    return torch.stack(rows)

@@ -1,0 +1,176 @@
+"""Shared ROS plumbing of the fleet: topic names, QoS profiles, cell <-> pose conversion, map
+messages, and the process set-up every fleet process needs (environment, spin thread).
+
+Conventions (see docs/architecture.md):
+- frame "map"; cell (row, col) has its centre at x = origin.x + (col + 0.5) * resolution,
+  y = origin.y + (row + 0.5) * resolution, which is how nav_msgs/OccupancyGrid lays out its
+  row-major data (row index along y).
+- /fleet/map: 0 free, 100 obstacle.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+# Environment every process of the fleet runs with (DESIGN.md section 2): nothing leaves loopback,
+# and the venv is the ROS prefix so ament lookups work.
+FLEET_ENV_DEFAULTS = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+
+MAP_TOPIC = "/fleet/map"
+STATE_TOPIC = "/fleet/state"
+MOVES_TOPIC = "/fleet/moves"
+PROGRESS_TOPIC = "/fleet/progress"
+OUTCOME_TOPIC = "/fleet/outcome"
+MARKERS_TOPIC = "/fleet/markers"
+STATUS_TOPIC = "/fleet/robot_status"
+DHC_HIDDEN_TOPIC = "/fleet/dhc/hidden"
+DCC_ANNOUNCE_TOPIC = "/fleet/dcc/announce"
+FRAME_ID = "map"
+
+
+def robot_ns(robot_id: int) -> str:
+    return f"/robot_{int(robot_id)}"
+
+
+def pose_topic(robot_id: int) -> str:
+    return f"{robot_ns(robot_id)}/pose"
+
+
+def goal_topic(robot_id: int) -> str:
+    return f"{robot_ns(robot_id)}/goal"
+
+
+def waypoint_topic(robot_id: int) -> str:
+    return f"{robot_ns(robot_id)}/waypoint"
+
+
+def dcc_request_service(robot_id: int) -> str:
+    return f"{robot_ns(robot_id)}/dcc_request"
+
+
+def dcc_reply_service(robot_id: int) -> str:
+    return f"{robot_ns(robot_id)}/dcc_reply"
+
+
+def prepare_environment(env: dict | None = None) -> dict:
+    """Return (and apply to os.environ when env is None) the variables every fleet process needs."""
+    target = os.environ if env is None else env
+    for key, value in FLEET_ENV_DEFAULTS.items():
+        target.setdefault(key, value)
+    if "AMENT_PREFIX_PATH" not in target:
+        import sys
+
+        target["AMENT_PREFIX_PATH"] = sys.prefix
+    return target
+
+
+def latched_qos(depth: int = 1):
+    """Reliable, transient local: late subscribers (viewers, restarted nodes) get the last value."""
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    return QoSProfile(depth=depth, history=HistoryPolicy.KEEP_LAST,
+                      reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def reliable_qos(depth: int = 100):
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    return QoSProfile(depth=depth, history=HistoryPolicy.KEEP_LAST,
+                      reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.VOLATILE)
+
+
+@dataclass(frozen=True)
+class MapGeometry:
+    resolution: float = 1.0
+    origin_x: float = 0.0
+    origin_y: float = 0.0
+
+    def __post_init__(self):
+        if not self.resolution > 0:
+            raise ValueError(f"map resolution must be > 0, got {self.resolution!r}")
+
+    def cell_to_xy(self, row: int, col: int) -> tuple[float, float]:
+        return (self.origin_x + (col + 0.5) * self.resolution,
+                self.origin_y + (row + 0.5) * self.resolution)
+
+    def xy_to_cell(self, x: float, y: float) -> tuple[int, int]:
+        """The cell containing (x, y) (may lie outside the grid: the caller checks)."""
+        return (int(np.floor((y - self.origin_y) / self.resolution)),
+                int(np.floor((x - self.origin_x) / self.resolution)))
+
+
+def grid_to_occupancy(grid: np.ndarray, geometry: MapGeometry, stamp=None):
+    from nav_msgs.msg import OccupancyGrid
+
+    msg = OccupancyGrid()
+    msg.header.frame_id = FRAME_ID
+    if stamp is not None:
+        msg.header.stamp = stamp
+    height, width = grid.shape
+    msg.info.resolution = float(geometry.resolution)
+    msg.info.width = int(width)
+    msg.info.height = int(height)
+    msg.info.origin.position.x = float(geometry.origin_x)
+    msg.info.origin.position.y = float(geometry.origin_y)
+    msg.info.origin.orientation.w = 1.0
+    msg.data = (np.asarray(grid, dtype=np.int8).reshape(-1) * 100).astype(np.int8).tolist()
+    return msg
+
+
+def occupancy_to_grid(msg) -> tuple[np.ndarray, MapGeometry]:
+    """Obstacle grid (uint8, 1 = obstacle; unknown -1 counts as obstacle) and its geometry."""
+    data = np.asarray(msg.data, dtype=np.int16).reshape(msg.info.height, msg.info.width)
+    grid = ((data >= 50) | (data < 0)).astype(np.uint8)
+    geometry = MapGeometry(float(msg.info.resolution), float(msg.info.origin.position.x),
+                           float(msg.info.origin.position.y))
+    return grid, geometry
+
+
+def cell_pose(row: int, col: int, geometry: MapGeometry, stamp=None):
+    from geometry_msgs.msg import PoseStamped
+
+    msg = PoseStamped()
+    msg.header.frame_id = FRAME_ID
+    if stamp is not None:
+        msg.header.stamp = stamp
+    msg.pose.position.x, msg.pose.position.y = geometry.cell_to_xy(int(row), int(col))
+    msg.pose.orientation.w = 1.0
+    return msg
+
+
+class SpinThread:
+    """Spin an executor in its own thread (DESIGN.md section 2: never call
+    spin_until_future_complete in a loop); `stop()` shuts it down and joins the thread, which must
+    happen before the nodes are destroyed."""
+
+    def __init__(self, executor):
+        self.executor = executor
+        self._thread = threading.Thread(target=self._run, name="ros-spin", daemon=True)
+
+    def _run(self):
+        try:
+            self.executor.spin()
+        except Exception:  # context shut down under us (Ctrl-C): nothing left to do
+            pass
+
+    def start(self) -> "SpinThread":
+        self._thread.start()
+        return self
+
+    def stop(self, timeout: float = 5.0):
+        self.executor.shutdown(timeout_sec=timeout)
+        self._thread.join(timeout)
+
+
+def split_ros_args(argv: list[str]) -> tuple[list[str], list[str]]:
+    """(own arguments, ROS arguments): everything from `--ros-args` on belongs to rclpy."""
+    if "--ros-args" in argv:
+        index = argv.index("--ros-args")
+        return argv[:index], argv[index:]
+    return list(argv), []

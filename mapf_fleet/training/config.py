@@ -1,0 +1,252 @@
+"""`TrainConfig`: every knob of the trainer in one validated dataclass.
+
+Defaults are the paper's DHC values (appendix Table 3); `DCC_PAPER_OVERRIDES` holds the DCC column.
+YAML files in `config/training/` may set any field; unknown fields and bad values raise
+`TrainConfigError` naming the file, the field and the value.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+
+class TrainConfigError(ValueError):
+    """A training configuration value is missing, unknown or out of range."""
+
+
+@dataclass
+class TrainConfig:
+    # --- algorithm and network -------------------------------------------------------------
+    algo: str = "dhc"  # "dhc" | "dcc"
+    model_preset: str = "paper"  # name of a mapf_fleet.models.config preset ("paper" | "small")
+    model_overrides: dict = field(default_factory=dict)  # extra ModelConfig fields
+
+    # --- Ape-X actors (Ray) ----------------------------------------------------------------
+    ray_address: str | None = None  # join this Ray cluster; None starts a local Ray
+    num_cpus: int = 2  # CPUs of the local Ray (ignored when ray_address is given)
+    use_ray: bool = True  # False runs the actors in-process (tests, debugging)
+    num_actors: int = 16
+    envs_per_actor: int = 1  # environments stepped together (batched inference) per actor
+    episodes_per_task: int = 1  # episodes an actor returns per remote call
+    epsilon_base: float = 0.4  # actor i explores with base^(1 + exp * i / (N - 1))
+    epsilon_exponent: float = 7.0
+    explore_all_agents: bool = True  # epsilon for every agent (all are trained); False: agent 0 only
+    actor_update_interval: int = 400  # learner updates between weight broadcasts
+    gate_actor_fraction: float = 0.5  # success gate uses the lowest-epsilon fraction of actors
+
+    # --- environment -------------------------------------------------------------------------
+    max_episode_steps: int = 256
+    obstacle_density: str | float = "triangular"  # "triangular" (0, .33, .5) or a fixed value
+    finish_reward: str = "team"  # "team" (reference) | "per_agent"
+
+    # --- learner -----------------------------------------------------------------------------
+    batch_size: int = 192  # sequences per learner update
+    seq_len: int = 16  # trained steps per sequence
+    burn_in: int = 0  # steps replayed from the stored hidden state without a loss
+    n_step: int = 2
+    gamma: float = 0.99
+    lr: float = 1e-4
+    grad_clip: float = 40.0
+    target_update_interval: int = 2000
+    learning_starts: int = 50_000  # agent-0 transitions (env steps) in replay before learning
+    max_updates: int = 600_000  # hard cap on learner updates over the whole run
+    huber_delta: float = 1.0
+    learner_threads: int = 1  # torch threads of the learner (CPU)
+    device: str = "auto"  # "auto" = cuda when present, else cpu
+    updates_per_poll: int = 1  # learner updates between polls of the actors
+
+    # --- replay -------------------------------------------------------------------------------
+    replay_capacity: int = 2048 * 16  # sequences (paper: 2048 episodes of up to 16 sequences)
+    priority_alpha: float = 0.6
+    priority_beta: float = 0.4
+    priority_eta: float = 0.9  # sequence priority = eta * max|td| + (1 - eta) * mean|td| (R2D2)
+    priority_epsilon: float = 1e-6
+
+    # --- stage 1: scale expansion -----------------------------------------------------------
+    start_agents: int = 1
+    start_map_size: int = 10
+    final_agents: int = 12
+    final_map_size: int = 40
+    map_size_step: int = 5
+    success_window: int = 200
+    success_threshold: float = 0.9
+
+    # --- stage 2: cooperative exploration ---------------------------------------------------
+    alpha_mode: str = "curriculum"  # "curriculum" | "fixed" (the paper's "w/o CL") | "none"
+    fixed_alpha: float = 0.3
+    alpha_step: float = 0.1
+    alpha_max: float = 1.0
+    # "converged without reaching the threshold" (Algorithm 1, line 19): the alpha fails when
+    # either budget below runs out first. 0 disables a rule; at least one must be on.
+    alpha_max_updates: int = 100_000  # learner updates allowed per alpha
+    plateau_windows: int = 10  # K consecutive full 200-episode windows without a new best ...
+    plateau_min_delta: float = 0.01  # ... success rate by more than this
+
+    # --- run directory --------------------------------------------------------------------------
+    state_interval_updates: int = 500  # training state saved at least every N updates ...
+    state_interval_seconds: float = 300.0  # ... and every this many seconds
+    log_interval_seconds: float = 10.0
+    seed: int = 0
+    progress_bar: bool = True
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    # ------------------------------------------------------------------------------------------
+    def validate(self, source: str = "TrainConfig") -> None:
+        def bad(name: str, why: str) -> TrainConfigError:
+            return TrainConfigError(f"{source}: field {name!r} = {getattr(self, name)!r}: {why}")
+
+        if self.algo not in ("dhc", "dcc"):
+            raise bad("algo", "must be 'dhc' or 'dcc'")
+        if self.alpha_mode not in ("curriculum", "fixed", "none"):
+            raise bad("alpha_mode", "must be 'curriculum', 'fixed' or 'none'")
+        if self.finish_reward not in ("team", "per_agent"):
+            raise bad("finish_reward", "must be 'team' or 'per_agent'")
+        if isinstance(self.obstacle_density, str):
+            if self.obstacle_density != "triangular":
+                raise bad("obstacle_density", "must be 'triangular' or a number in [0, 0.9]")
+        elif not 0.0 <= float(self.obstacle_density) <= 0.9:
+            raise bad("obstacle_density", "must be 'triangular' or a number in [0, 0.9]")
+        positive = ["num_cpus", "envs_per_actor", "episodes_per_task", "actor_update_interval",
+                    "max_episode_steps", "batch_size", "seq_len", "n_step",
+                    "target_update_interval", "max_updates", "learner_threads", "updates_per_poll",
+                    "replay_capacity", "start_agents", "start_map_size", "final_agents",
+                    "final_map_size", "success_window", "state_interval_updates"]
+        for name in positive:
+            if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
+                raise bad(name, "must be an integer >= 1")
+        non_negative = ["num_actors", "burn_in", "learning_starts", "map_size_step",
+                        "alpha_max_updates", "plateau_windows", "seed"]
+        for name in non_negative:
+            if not isinstance(getattr(self, name), int) or getattr(self, name) < 0:
+                raise bad(name, "must be an integer >= 0")
+        if self.num_actors < 1:
+            raise bad("num_actors", "need at least one actor")
+        unit = ["epsilon_base", "gamma", "priority_alpha", "priority_beta", "priority_eta",
+                "success_threshold", "gate_actor_fraction", "fixed_alpha", "alpha_max"]
+        for name in unit:
+            if not 0.0 <= float(getattr(self, name)) <= 1.0:
+                raise bad(name, "must be in [0, 1]")
+        if self.gate_actor_fraction <= 0:
+            raise bad("gate_actor_fraction", "must be > 0")
+        for name in ["lr", "grad_clip", "huber_delta", "alpha_step", "priority_epsilon",
+                     "state_interval_seconds", "log_interval_seconds"]:
+            if not float(getattr(self, name)) > 0:
+                raise bad(name, "must be > 0")
+        if self.epsilon_exponent < 0:
+            raise bad("epsilon_exponent", "must be >= 0")
+        if self.final_agents < self.start_agents:
+            raise bad("final_agents", f"must be >= start_agents ({self.start_agents})")
+        if self.final_map_size < self.start_map_size:
+            raise bad("final_map_size", f"must be >= start_map_size ({self.start_map_size})")
+        if self.alpha_max_updates == 0 and self.plateau_windows == 0:
+            raise bad("alpha_max_updates", "and plateau_windows are both 0: an alpha that never "
+                      "passes the gate would train forever; enable at least one stop rule")
+        if self.device not in ("auto", "cpu", "cuda") and not self.device.startswith("cuda:"):
+            raise bad("device", "must be 'auto', 'cpu', 'cuda' or 'cuda:N'")
+        if not isinstance(self.model_overrides, dict):
+            raise bad("model_overrides", "must be a mapping")
+
+    # ------------------------------------------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def replace(self, **changes: Any) -> "TrainConfig":
+        return dataclasses.replace(self, **changes)
+
+    @property
+    def window_len(self) -> int:
+        """Observation steps stored per replay sequence: burn-in + trained steps + bootstrap."""
+        return self.burn_in + self.seq_len + self.n_step
+
+    def actor_epsilon(self, index: int) -> float:
+        """Ape-X schedule epsilon_i = base^(1 + exp * i / (N - 1)); a single actor takes the
+        middle of the schedule (i / (N - 1) := 0.5) so it neither explores at 0.4 nor never."""
+        n = self.num_actors
+        frac = 0.5 if n == 1 else index / (n - 1)
+        return float(self.epsilon_base ** (1.0 + self.epsilon_exponent * frac))
+
+    def gate_actor_indices(self) -> list[int]:
+        """The lowest-epsilon actors whose episodes drive the curricula (at least one)."""
+        count = max(1, int(round(self.num_actors * self.gate_actor_fraction)))
+        return list(range(self.num_actors - count, self.num_actors))
+
+
+# The DCC column of Table 3 (and the DCC reference's learning rate).
+DCC_PAPER_OVERRIDES: dict[str, Any] = {
+    "algo": "dcc",
+    "batch_size": 128,
+    "seq_len": 20,
+    "burn_in": 20,
+    "lr": 2e-4,
+    "target_update_interval": 1750,
+    "max_updates": 150_000,
+    "actor_update_interval": 200,
+    "final_agents": 16,
+    "replay_capacity": 262_144 // 20,  # 262144 transitions in sequences of 20
+}
+
+PRESETS: dict[str, dict[str, Any]] = {"dhc": {}, "dcc": DCC_PAPER_OVERRIDES}
+
+
+def config_from_dict(data: dict[str, Any], source: str = "<dict>") -> TrainConfig:
+    """Build a config from a mapping. A `preset: dhc|dcc` key starts from that column of the
+    paper's table; other keys override it."""
+    if not isinstance(data, dict):
+        raise TrainConfigError(f"{source}: top level must be a mapping, got {type(data).__name__}")
+    data = dict(data)
+    preset = data.pop("preset", None)
+    values: dict[str, Any] = {}
+    if preset is not None:
+        if preset not in PRESETS:
+            raise TrainConfigError(f"{source}: field 'preset' = {preset!r}: must be one of "
+                                   f"{sorted(PRESETS)}")
+        values.update(PRESETS[preset])
+    known = {f.name: f for f in dataclasses.fields(TrainConfig)}
+    for key, value in data.items():
+        if key not in known:
+            raise TrainConfigError(f"{source}: unknown field {key!r} (value {value!r})")
+        values[key] = value
+    # YAML writes 1e-4 as a string unless it has a dot; coerce numbers by the default's type.
+    for key, value in list(values.items()):
+        default = known[key].default
+        if isinstance(default, float) and isinstance(value, (int, str)) and not isinstance(value, bool):
+            try:
+                values[key] = float(value)
+            except ValueError as exc:
+                raise TrainConfigError(f"{source}: field {key!r} = {value!r}: not a number") from exc
+        elif isinstance(default, bool) and not isinstance(value, bool):
+            raise TrainConfigError(f"{source}: field {key!r} = {value!r}: must be true/false")
+        elif isinstance(default, int) and not isinstance(default, bool):
+            if isinstance(value, float) and value.is_integer():
+                values[key] = int(value)
+            elif isinstance(value, bool) or not isinstance(value, int):
+                raise TrainConfigError(f"{source}: field {key!r} = {value!r}: must be an integer")
+    try:
+        config = TrainConfig(**values)
+    except TrainConfigError as exc:
+        raise TrainConfigError(str(exc).replace("TrainConfig:", f"{source}:", 1)) from None
+    return config
+
+
+def load_config(path: str | Path) -> TrainConfig:
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise TrainConfigError(f"{path}: cannot read training config: {exc}") from exc
+    try:
+        data = yaml.safe_load(text) or {}
+    except yaml.YAMLError as exc:
+        raise TrainConfigError(f"{path}: invalid YAML: {exc}") from exc
+    return config_from_dict(data, source=str(path))
+
+
+def save_config(config: TrainConfig, path: str | Path) -> None:
+    Path(path).write_text(yaml.safe_dump(config.to_dict(), sort_keys=False))

@@ -1,0 +1,149 @@
+#!/usr/bin/env bash
+# One idempotent set-up of mapf_fleet on Debian 12 / Python 3.11:
+#   1. Debian tools (cmake, make, g++, python3.11 venv + headers) via apt-get, only when missing;
+#   2. the venv (<repo>/.venv, or $MAPF_FLEET_VENV) with python3.11;
+#   3. pinned PyPI packages (requirements.txt + constraints.txt);
+#   4. the repair of the ROS wheels' CMake export files (DESIGN.md section 2);
+#   5. mapf_fleet_interfaces built with CMake (out of tree in build/) into the venv prefix;
+#   6. mapf_fleet installed in editable mode.
+# Steps 3, 5 and 6 leave a hash stamp in <venv>/.mapf_fleet_setup/ and are skipped while their
+# inputs are unchanged, so a second run takes seconds. Downloads come only from PyPI and Debian.
+set -euo pipefail
+
+REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+VENV="${MAPF_FLEET_VENV:-$REPO/.venv}"
+PYTHON_FOR_VENV="${MAPF_FLEET_PYTHON:-python3.11}"
+STAMPS="$VENV/.mapf_fleet_setup"
+BUILD_DIR="$REPO/build/mapf_fleet_interfaces"
+SETUP_START=$SECONDS
+
+say() { printf '[setup %3ds] %s\n' "$((SECONDS - SETUP_START))" "$*"; }
+die() { printf 'setup: error: %s\n' "$*" >&2; exit 1; }
+
+# Hash of files (content and name) plus extra strings, to decide whether a step must re-run.
+inputs_hash() {
+  local extra="$1"; shift
+  { printf '%s\n' "$extra"; for f in "$@"; do printf '%s\n' "$f"; cat "$f"; done; } \
+    | sha256sum | cut -d' ' -f1
+}
+stamp_matches() { [ -f "$STAMPS/$1" ] && [ "$(cat "$STAMPS/$1")" = "$2" ]; }
+write_stamp() { mkdir -p "$STAMPS"; printf '%s\n' "$2" > "$STAMPS/$1"; }
+
+# ---- 1. Debian tools -------------------------------------------------------------------------
+apt_install() {
+  local runner=()
+  if [ "$(id -u)" -ne 0 ]; then
+    command -v sudo >/dev/null || die "need root or sudo to apt-get install $*"
+    runner=(sudo)
+  fi
+  say "apt-get install $*"
+  "${runner[@]}" env DEBIAN_FRONTEND=noninteractive apt-get update -qq
+  "${runner[@]}" env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "$@"
+}
+
+missing=()
+command -v cmake >/dev/null || missing+=(cmake)
+command -v make >/dev/null || missing+=(make)
+command -v g++ >/dev/null || missing+=(g++)
+if ! command -v "$PYTHON_FOR_VENV" >/dev/null; then
+  missing+=(python3.11 python3.11-venv python3.11-dev)
+else
+  # Debian splits venv (ensurepip) and the C headers (Python.h, needed by the generated
+  # interface extension) out of the interpreter package.
+  "$PYTHON_FOR_VENV" -c 'import ensurepip, venv' 2>/dev/null || missing+=(python3.11-venv)
+  "$PYTHON_FOR_VENV" -c 'import os, sysconfig, sys; sys.exit(not os.path.exists(os.path.join(sysconfig.get_paths()["include"], "Python.h")))' \
+    || missing+=(python3.11-dev)
+fi
+if [ ${#missing[@]} -gt 0 ]; then
+  command -v apt-get >/dev/null || die "missing ${missing[*]} and no apt-get to install them"
+  apt_install "${missing[@]}"
+fi
+"$PYTHON_FOR_VENV" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))' \
+  || die "$PYTHON_FOR_VENV is not Python 3.11 (the ROS 2 Jazzy wheels are cp311); set MAPF_FLEET_PYTHON"
+
+# ---- 2. venv ---------------------------------------------------------------------------------
+if [ -x "$VENV/bin/python" ] && "$VENV/bin/python" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))' 2>/dev/null; then
+  say "venv $VENV exists"
+else
+  say "creating venv $VENV with $PYTHON_FOR_VENV"
+  rm -rf "$VENV"
+  "$PYTHON_FOR_VENV" -m venv "$VENV"
+fi
+PY="$VENV/bin/python"
+
+# ---- 3. pinned packages ----------------------------------------------------------------------
+REQ_HASH="$(inputs_hash "$VENV" "$REPO/requirements.txt" "$REPO/constraints.txt")"
+if stamp_matches requirements "$REQ_HASH"; then
+  say "requirements unchanged: skipping pip"
+else
+  say "pip install -r requirements.txt -c constraints.txt"
+  "$PY" -m pip install --disable-pip-version-check -q \
+    -r "$REPO/requirements.txt" -c "$REPO/constraints.txt"
+  write_stamp requirements "$REQ_HASH"
+fi
+
+# From here on, run the venv as a ROS prefix (and without the bootstrapper's re-exec).
+# shellcheck source=env.sh
+source "$REPO/scripts/env.sh"
+
+# ---- 4. CMake export repair ------------------------------------------------------------------
+# The ROS wheels were built under /opt/python/cp311-cp311; their CMake exports name that
+# interpreter's include directories, which do not exist here. Point them at this venv's.
+PY_INCLUDE="$("$PY" -c 'import sysconfig; print(sysconfig.get_paths()["include"])')"
+NUMPY_INCLUDE="$("$PY" -c 'import numpy; print(numpy.get_include())')"
+BAD_NUMPY=/opt/python/cp311-cp311/lib/python3.11/site-packages/numpy/_core/include
+BAD_PY=/opt/python/cp311-cp311/include/python3.11
+mapfile -t broken < <(grep -rlF -e "$BAD_NUMPY" -e "$BAD_PY" "$VENV/share" --include='*.cmake' || true)
+if [ ${#broken[@]} -gt 0 ]; then
+  say "repairing ${#broken[@]} CMake export files (python: $PY_INCLUDE, numpy: $NUMPY_INCLUDE)"
+  sed -i -e "s|$BAD_NUMPY|$NUMPY_INCLUDE|g" -e "s|$BAD_PY|$PY_INCLUDE|g" "${broken[@]}"
+else
+  say "CMake export files already repaired"
+fi
+
+# ---- 5. mapf_fleet_interfaces ----------------------------------------------------------------
+IFACE="$REPO/mapf_fleet_interfaces"
+mapfile -t iface_files < <(cd "$IFACE" && find CMakeLists.txt package.xml msg srv -type f \( -name '*.msg' -o -name '*.srv' -o -name 'CMakeLists.txt' -o -name 'package.xml' \) 2>/dev/null | LC_ALL=C sort)
+IFACE_HASH="$(cd "$IFACE" && inputs_hash "$VENV $REQ_HASH" "${iface_files[@]}")"
+if stamp_matches interfaces "$IFACE_HASH" && "$PY" -c 'import mapf_fleet_interfaces.msg' 2>/dev/null; then
+  say "mapf_fleet_interfaces unchanged: skipping build"
+else
+  say "building mapf_fleet_interfaces (${#iface_files[@]} files) into $VENV"
+  # A cache made for another venv or source tree cannot be reused.
+  if [ -f "$BUILD_DIR/CMakeCache.txt" ] && \
+     ! grep -qxF "CMAKE_INSTALL_PREFIX:PATH=$VENV" "$BUILD_DIR/CMakeCache.txt"; then
+    rm -rf "$BUILD_DIR"
+  fi
+  # Remove what the previous build installed, so a deleted .msg leaves no stale module.
+  if [ -f "$BUILD_DIR/install_manifest.txt" ]; then
+    xargs -d '\n' rm -f < "$BUILD_DIR/install_manifest.txt"
+  fi
+  mkdir -p "$BUILD_DIR"
+  cmake -S "$IFACE" -B "$BUILD_DIR" -Wno-dev \
+    -DCMAKE_BUILD_TYPE=Release \
+    -DCMAKE_PREFIX_PATH="$VENV" \
+    -DCMAKE_INSTALL_PREFIX="$VENV" \
+    -DPython3_EXECUTABLE="$PY" \
+    -DBUILD_TESTING=OFF > "$BUILD_DIR.configure.log" 2>&1 \
+    || { tail -40 "$BUILD_DIR.configure.log" >&2; die "cmake configure failed (log: $BUILD_DIR.configure.log)"; }
+  cmake --build "$BUILD_DIR" -j "$(nproc)" > "$BUILD_DIR.build.log" 2>&1 \
+    || { tail -40 "$BUILD_DIR.build.log" >&2; die "interface build failed (log: $BUILD_DIR.build.log)"; }
+  cmake --install "$BUILD_DIR" > "$BUILD_DIR.install.log" 2>&1 \
+    || { tail -40 "$BUILD_DIR.install.log" >&2; die "interface install failed (log: $BUILD_DIR.install.log)"; }
+  "$PY" -c 'import mapf_fleet_interfaces.msg, mapf_fleet_interfaces.srv' \
+    || die "mapf_fleet_interfaces was built but does not import"
+  write_stamp interfaces "$IFACE_HASH"
+fi
+
+# ---- 6. mapf_fleet (editable) ----------------------------------------------------------------
+PKG_HASH="$(inputs_hash "$VENV $REPO" "$REPO/setup.py" "$REPO/setup.cfg" "$REPO/package.xml")"
+if stamp_matches package "$PKG_HASH" && "$PY" -c 'import mapf_fleet' 2>/dev/null; then
+  say "mapf_fleet already installed (editable)"
+else
+  say "pip install -e . (mapf_fleet)"
+  # No build isolation: the build uses the pinned setuptools already in the venv (offline-safe).
+  "$PY" -m pip install --disable-pip-version-check -q --no-deps --no-build-isolation -e "$REPO"
+  write_stamp package "$PKG_HASH"
+fi
+
+say "done: source scripts/env.sh to use $VENV"
