@@ -146,4 +146,15 @@ else
   write_stamp package "$PKG_HASH"
 fi
 
+# An editable wheel does not install setup.py's data_files, so register the package in the
+# venv's ament index by hand, as symlinks into the work tree: get_package_share_directory(
+# "mapf_fleet") then finds package.xml, config/ and models/ exactly as a colcon install would,
+# and edits to config/ show up without re-installing.
+SHARE="$VENV/share/mapf_fleet"
+mkdir -p "$SHARE" "$VENV/share/ament_index/resource_index/packages"
+: > "$VENV/share/ament_index/resource_index/packages/mapf_fleet"
+for item in package.xml config models; do
+  ln -sfn "$REPO/$item" "$SHARE/$item"
+done
+
 say "done: source scripts/env.sh to use $VENV"

@@ -103,6 +103,13 @@ class CheckpointBatchPolicy:
     def reset(self, num_envs: int, num_agents: int) -> None:
         self.policy.reset(num_envs, num_agents)
 
+    def keep(self, rows: list[int]) -> None:
+        """Keep only these episodes' recurrent state (finished episodes leave the batch)."""
+        index = list(rows)
+        self.policy.hidden = self.policy.hidden[index]
+        if getattr(self.policy, "last_actions", None) is not None:
+            self.policy.last_actions = self.policy.last_actions[index]
+
     def act(self, obs: np.ndarray, positions: np.ndarray) -> np.ndarray:
         actions = self.policy.act(obs, positions)
         if hasattr(actions, "detach"):

@@ -188,6 +188,17 @@ def _write_npz_atomic(path: Path, maps, starts, goals) -> None:
             os.unlink(tmp)
 
 
+def generator_tag() -> str:
+    """Short hash of the instance generator's source: a cache made by another version of
+    `mapf_fleet.grid.instance` is not reused."""
+    import hashlib
+    import inspect
+
+    from mapf_fleet.grid import instance
+
+    return hashlib.sha1(inspect.getsource(instance).encode()).hexdigest()[:8]
+
+
 def generated_instances(size: int, num_agents: int, count: int, density: float, seed: int) -> InstanceSet:
     """`count` instances; instance i is drawn from the seed sequence (seed, size, num_agents, i),
     so any prefix is the same whatever `count` is."""
@@ -217,7 +228,9 @@ def scenario_instances(
     if scenario.testset and testsets_dir is not None:
         path = Path(testsets_dir) / scenario.testset.format(agents=scenario.num_agents)
         if path.is_file():
-            published = _read_npz(path)
+            from mapf_fleet.grid.instance import load_dhc_testset
+
+            published = InstanceSet.from_instances(load_dhc_testset(path), str(path))
             if published.maps.shape[1:] != (scenario.size, scenario.size) or published.starts.shape[1] != scenario.num_agents:
                 raise ProtocolError(
                     f"{path}: expected {scenario.size}x{scenario.size} maps with {scenario.num_agents} agents, "
@@ -226,12 +239,14 @@ def scenario_instances(
             if count > len(published):
                 raise ProtocolError(f"--instances {count}: {path} holds only {len(published)} instances")
             subset = published.subset(slice(0, count))
-            return InstanceSet(subset.maps, subset.starts, subset.goals, f"published DHC test set {path.name}")
+            return InstanceSet(subset.maps, subset.starts, subset.goals, f"published DHC test sets ({scenario.testset})")
 
     source = f"generated (seed {seed}, density {density})"
     if cache_dir is None:
         return generated_instances(scenario.size, scenario.num_agents, count, density, seed)
-    cache = Path(cache_dir) / f"{scenario.size}x{scenario.size}_{scenario.num_agents}agents_d{density:g}_seed{seed}.npz"
+    cache = Path(cache_dir) / (
+        f"{scenario.size}x{scenario.size}_{scenario.num_agents}agents_d{density:g}_seed{seed}_{generator_tag()}.npz"
+    )
     if cache.is_file():
         cached = _read_npz(cache)
         if len(cached) >= count:

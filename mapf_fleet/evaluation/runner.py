@@ -34,7 +34,7 @@ class ScenarioResult:
     episodes: list[EpisodeRecord]
     compute_time: float  # seconds spent in the episodes (summed over workers)
     plan_time: float | None = None  # planners: seconds of planning, summed over instances
-    plan_failures: int = 0  # planners: instances without a plan in the time budget
+    plan_failures: int = 0  # planners: instances where some agents got no plan in the time budget
     summary: ScenarioSummary = field(init=False)
 
     def __post_init__(self):
@@ -64,22 +64,34 @@ def _make_env(instances: InstanceSet, k: int, max_steps: int):
 
 
 def run_decentralized(policy, instances: InstanceSet, max_steps: int) -> list[EpisodeRecord]:
-    """Step all episodes of `instances` together with a batch policy (reset/act)."""
+    """Step all episodes of `instances` together with a batch policy (reset/act[/keep]).
+
+    Only live episodes are passed to `act`; when some end, `policy.keep(rows)` (if the policy
+    has it) drops their recurrent state so the batch shrinks with them."""
     bounds = lower_bounds(instances)
     envs = [_make_env(instances, k, max_steps) for k in range(len(instances))]
     obs = np.stack([env.reset() for env in envs]).astype(np.float32)
     positions = np.stack([np.asarray(env.positions) for env in envs])
     trackers = [EpisodeTracker(positions[k], instances.goals[k], max_steps, bounds[k]) for k in range(len(envs))]
     policy.reset(len(envs), instances.starts.shape[1])
-    live = [k for k, t in enumerate(trackers) if not t.done]
+    live = list(range(len(envs)))
+    keep = getattr(policy, "keep", None)
+
+    def shrink(live):
+        rows = [j for j, k in enumerate(live) if not trackers[k].done]
+        if len(rows) < len(live) and rows and keep is not None:
+            keep(rows)
+        return [live[j] for j in rows]
+
+    live = shrink(live)
     while live:
-        actions = np.asarray(policy.act(obs, positions))
-        for k in live:
-            step_obs, _, _, info = envs[k].step(actions[k])
+        actions = np.asarray(policy.act(obs[live], positions[live]))
+        for j, k in enumerate(live):
+            step_obs, _, _, info = envs[k].step(actions[j])
             obs[k] = step_obs
             positions[k] = envs[k].positions
             trackers[k].update(positions[k], info["collisions"])
-        live = [k for k in live if not trackers[k].done]
+        live = shrink(live)
     return [t.record() for t in trackers]
 
 
@@ -106,8 +118,8 @@ def run_planner(planner, instances: InstanceSet, max_steps: int) -> tuple[list[E
     for k in range(len(instances)):
         result = planner.plan(instances.maps[k], instances.starts[k], instances.goals[k])
         plan_time += result.runtime
-        failures += result.positions is None
-        actions = None if result.positions is None else positions_to_actions(result.positions)
+        failures += not result.complete
+        actions = positions_to_actions(result.positions)
         records.append(replay_plan(actions, instances, k, max_steps, bounds[k]))
     return records, plan_time, failures
 

@@ -89,8 +89,13 @@ def _check_actions(actions, num_agents: int) -> np.ndarray:
     return actions.astype(np.int64, copy=False)
 
 
-def _resolve_flat(blocked_flat, h, w, positions, actions):
-    """Core of `resolve_moves` on validated input; returns (new flat cells, collided)."""
+def _resolve_flat(blocked_flat, h, w, positions, actions, map_offset=None):
+    """Core of `resolve_moves` on validated input; returns (new flat cells, collided).
+
+    With `map_offset` (int (N,), a multiple of h*w per agent) the agents live on several maps of
+    the same size stacked in `blocked_flat`; flat cells then include the offset, so conflicts
+    never cross maps. Agent order (lowest index wins) is the order of the arrays.
+    """
     n = positions.shape[0]
     index = np.arange(n)
     current = positions[:, 0] * w + positions[:, 1]
@@ -99,12 +104,16 @@ def _resolve_flat(blocked_flat, h, w, positions, actions):
     # 1. off the map or into an obstacle: revert
     off_map = (target[:, 0] < 0) | (target[:, 0] >= h) | (target[:, 1] < 0) | (target[:, 1] >= w)
     target_flat = np.where(off_map, current, target[:, 0] * w + target[:, 1])
+    if map_offset is not None:
+        current = current + map_offset
+        target_flat = target_flat + map_offset
     collided = moving & (off_map | blocked_flat[target_flat])
     moving &= ~collided
     nxt = np.where(moving, target_flat, current)
+    cell_count = blocked_flat.shape[0]
     # 2. swaps: i moves onto j's cell while j moves onto i's cell -> both revert. Reverting never
     #    creates a swap, so one pass suffices.
-    occupant = np.full(h * w, -1, dtype=np.int64)
+    occupant = np.full(cell_count, -1, dtype=np.int64)
     occupant[current] = index
     other = occupant[nxt]
     safe_other = np.where(other >= 0, other, index)
@@ -119,18 +128,20 @@ def _resolve_flat(blocked_flat, h, w, positions, actions):
     #    the cell when it does not leave) keeps it and all movers into it revert; a cell claimed
     #    only by movers goes to the lowest index, the others revert.
     while True:
-        counts = np.bincount(nxt, minlength=h * w)
+        counts = np.bincount(nxt, minlength=cell_count)
         contested = moving & (counts[nxt] > 1)
         if not contested.any():
             break
-        held = np.zeros(h * w, dtype=bool)
+        held = np.zeros(cell_count, dtype=bool)
         held[nxt[~moving]] = True
-        winner = np.full(h * w, n, dtype=np.int64)
+        winner = np.full(cell_count, n, dtype=np.int64)
         np.minimum.at(winner, nxt[contested], index[contested])
         losers = contested & (held[nxt] | (winner[nxt] != index))
         collided |= losers
         moving &= ~losers
         nxt[losers] = current[losers]
+    if map_offset is not None:
+        nxt = nxt - map_offset
     return nxt, collided
 
 
@@ -163,26 +174,27 @@ def resolve_moves(grid, positions, actions) -> tuple[np.ndarray, np.ndarray]:
 # rewards
 
 def step_rewards(config: EnvConfig, actions, collided, was_on_goal, on_goal,
-                 first_arrival=None) -> tuple[np.ndarray, bool]:
+                 first_arrival=None):
     """Individual rewards of one step and whether every agent stands on its goal.
 
     move: reward_move; stay: reward_stay_on_goal if the agent stands on its goal else
     reward_stay_off_goal; a reverted move: reward_collision. Then the finish reward per
-    `config.finish_reward` (see `EnvConfig`); `first_arrival` (bool (N,)) marks the agents that
-    reached their goal for the first time this episode, used by "per_agent".
+    `config.finish_reward` (see `EnvConfig`); `first_arrival` (bool, like `actions`) marks the
+    agents that reached their goal for the first time this episode, used by "per_agent".
+    Arrays are (N,) for one episode (returns float32 (N,), bool) or (B, N) for a batch
+    (returns float32 (B, N), bool (B,)).
     """
     actions = np.asarray(actions)
     rewards = np.where(actions == STAY,
                        np.where(was_on_goal, config.reward_stay_on_goal, config.reward_stay_off_goal),
                        config.reward_move)
     rewards = np.where(collided, config.reward_collision, rewards).astype(np.float32)
-    all_on_goal = bool(np.all(on_goal))
+    all_on_goal = np.all(on_goal, axis=-1)
     if config.finish_reward == "team":
-        if all_on_goal:
-            rewards[:] = config.reward_finish
+        rewards[all_on_goal, ...] = config.reward_finish
     elif first_arrival is not None:
         rewards[first_arrival] = config.reward_finish
-    return rewards, all_on_goal
+    return rewards, (bool(all_on_goal) if all_on_goal.ndim == 0 else all_on_goal)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -192,29 +204,35 @@ class _ObservationBuilder:
     """Gathers all agents' FOV windows from maps padded once per instance.
 
     static byte per (agent, cell): bit 0 obstacle (off-map padded as obstacle), bits 1..4 the
-    heuristic channels up/down/left/right (padded 0). Agents live in a separate padded
-    occupancy map shared by all agents.
+    heuristic channels up/down/left/right (padded 0). Agents live in a padded occupancy map per
+    map. `grids` is (B, H, W) and `map_of_agent` (N,) says on which map each agent is (B = 1 and
+    all zeros for a single episode).
     """
 
-    def __init__(self, grid: np.ndarray, heuristic_bits: np.ndarray, radius: int):
-        h, w = grid.shape
+    def __init__(self, grids: np.ndarray, heuristic_bits: np.ndarray, radius: int,
+                 map_of_agent: np.ndarray | None = None):
+        if grids.ndim == 2:
+            grids = grids[None]
+        b, h, w = grids.shape
         n = heuristic_bits.shape[0]
+        map_of_agent = np.zeros(n, np.int64) if map_of_agent is None else map_of_agent
         r = int(radius)
         self.radius = r
         self.size = 2 * r + 1
-        self.padded_shape = (h + 2 * r, w + 2 * r)
-        hp, wp = self.padded_shape
-        static = np.zeros((n, hp, wp), dtype=np.uint8)
-        static[:] = 1  # off-map: obstacle bit only
-        static[:, r:r + h, r:r + w] = (grid != 0).astype(np.uint8) | (heuristic_bits << 1)
+        hp, wp = h + 2 * r, w + 2 * r
+        static = np.ones((n, hp, wp), dtype=np.uint8)  # off-map: obstacle bit only
+        static[:, r:r + h, r:r + w] = (grids[map_of_agent] != 0).astype(np.uint8) \
+            | (heuristic_bits << 1)
         self.static = static.reshape(-1)
-        self.occupancy = np.zeros(hp * wp, dtype=np.uint8)
+        self.occupancy = np.zeros(b * hp * wp, dtype=np.uint8)
         offsets = np.arange(self.size)
         # flat offsets of a window relative to its top-left corner in the padded map
         self.window = (offsets[:, None] * wp + offsets[None, :]).reshape(-1)
         self.agent_base = np.arange(n, dtype=np.int64) * (hp * wp)
+        self.map_base = map_of_agent * (hp * wp)
         self.wp = wp
-        self.shifts = np.arange(5, dtype=np.uint8).reshape(1, 5, 1)
+        # padded flat index of an agent's own cell relative to its window corner
+        self.centre = r * wp + r
 
     def corners(self, positions: np.ndarray) -> np.ndarray:
         # window top-left in padded coordinates == agent cell in map coordinates
@@ -222,25 +240,22 @@ class _ObservationBuilder:
 
     def set_agents(self, positions: np.ndarray) -> None:
         self.occupancy[:] = 0
-        r = self.radius
-        self.occupancy[(positions[:, 0] + r) * self.wp + positions[:, 1] + r] = 1
+        self.occupancy[self.map_base + self.corners(positions) + self.centre] = 1
 
     def move_agents(self, old_positions: np.ndarray, new_positions: np.ndarray) -> None:
-        r = self.radius
-        self.occupancy[(old_positions[:, 0] + r) * self.wp + old_positions[:, 1] + r] = 0
-        self.occupancy[(new_positions[:, 0] + r) * self.wp + new_positions[:, 1] + r] = 1
+        self.occupancy[self.map_base + self.corners(old_positions) + self.centre] = 0
+        self.occupancy[self.map_base + self.corners(new_positions) + self.centre] = 1
 
     def build(self, positions: np.ndarray) -> np.ndarray:
         n = positions.shape[0]
         s = self.size
-        cells = self.corners(positions)[:, None] + self.window[None, :]  # (N, S*S)
-        static = self.static[cells + self.agent_base[:, None]]           # (N, S*S)
+        corners = self.corners(positions)
+        static = self.static[(corners + self.agent_base)[:, None] + self.window]  # (N, S*S)
         obs = np.empty((n, NUM_OBS_CHANNELS, s * s), dtype=np.float32)
-        obs[:, 0] = self.occupancy[cells]
+        obs[:, 0] = self.occupancy[(corners + self.map_base)[:, None] + self.window]
         obs[:, 0, (s * s) // 2] = 0.0  # the agent itself is not in its agent channel
-        np.bitwise_and(static[:, None, :] >> self.shifts, 1, out=static5 := np.empty(
-            (n, 5, s * s), dtype=np.uint8))
-        obs[:, 1:] = static5
+        for bit in range(5):
+            obs[:, 1 + bit] = (static >> bit) & 1
         return obs.reshape(n, NUM_OBS_CHANNELS, s, s)
 
 

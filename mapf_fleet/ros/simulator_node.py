@@ -44,6 +44,7 @@ PARAMETERS = {
     "tick_period": (0.0, "minimum seconds per tick (0: as fast as the robots decide)"),
     "resolution": (1.0, "metres per cell in poses and the map"),
     "record_file": ("", "write the run's trajectory and outcome to this JSON file"),
+    "progress_every": (10, "log progress every this many ticks"),
     "start_tick": (0, "first tick number (a restarted simulator may continue a count)"),
 }
 
@@ -204,6 +205,11 @@ class SimulatorNode(Node):
                 num_robots=self.num_robots,
                 on_goal=int((self.positions == self.goals).all(1).sum()),
                 collisions=self.collisions, missed_decisions=self.missed, missed_robots=missing))
+            if steps % int(self.params["progress_every"]) == 0:
+                self.get_logger().info(
+                    f"tick {self.tick}: {int((self.positions == self.goals).all(1).sum())}/"
+                    f"{self.num_robots} on goal, {self.collisions} collisions, "
+                    f"{self.missed} missed decisions")
             if period > 0:
                 time.sleep(max(0.0, period - (time.monotonic() - started)))
         self._publish_state(done=True)

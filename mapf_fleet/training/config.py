@@ -32,7 +32,7 @@ class TrainConfig:
     use_ray: bool = True  # False runs the actors in-process (tests, debugging)
     num_actors: int = 16
     envs_per_actor: int = 1  # environments stepped together (batched inference) per actor
-    episodes_per_task: int = 1  # episodes an actor returns per remote call
+    actor_steps_per_call: int = 64  # batched env steps an actor plays per remote call
     epsilon_base: float = 0.4  # actor i explores with base^(1 + exp * i / (N - 1))
     epsilon_exponent: float = 7.0
     explore_all_agents: bool = True  # epsilon for every agent (all are trained); False: agent 0 only
@@ -91,6 +91,7 @@ class TrainConfig:
     state_interval_updates: int = 500  # training state saved at least every N updates ...
     state_interval_seconds: float = 300.0  # ... and every this many seconds
     log_interval_seconds: float = 10.0
+    max_wall_seconds: float = 0.0  # stop (saving state) after this long; 0 = no limit
     seed: int = 0
     progress_bar: bool = True
 
@@ -113,7 +114,7 @@ class TrainConfig:
                 raise bad("obstacle_density", "must be 'triangular' or a number in [0, 0.9]")
         elif not 0.0 <= float(self.obstacle_density) <= 0.9:
             raise bad("obstacle_density", "must be 'triangular' or a number in [0, 0.9]")
-        positive = ["num_cpus", "envs_per_actor", "episodes_per_task", "actor_update_interval",
+        positive = ["num_cpus", "envs_per_actor", "actor_steps_per_call", "actor_update_interval",
                     "max_episode_steps", "batch_size", "seq_len", "n_step",
                     "target_update_interval", "max_updates", "learner_threads", "updates_per_poll",
                     "replay_capacity", "start_agents", "start_map_size", "final_agents",
@@ -139,6 +140,8 @@ class TrainConfig:
                      "state_interval_seconds", "log_interval_seconds"]:
             if not float(getattr(self, name)) > 0:
                 raise bad(name, "must be > 0")
+        if self.max_wall_seconds < 0:
+            raise bad("max_wall_seconds", "must be >= 0 (0 = no limit)")
         if self.epsilon_exponent < 0:
             raise bad("epsilon_exponent", "must be >= 0")
         if self.final_agents < self.start_agents:

@@ -13,12 +13,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .replay import pack_obs
+from .replay import FAR_AWAY, OBS_BYTES, pack_obs
 
 
 @dataclass
 class EpisodeRecord:
-    obs: np.ndarray  # (T+1, N, 6, 9, 9) binary observations (index T = after the last step)
+    # (T+1, N, 6, 9, 9) binary observations (index T = after the last step), or the same
+    # already bit-packed as (T+1, N, 61) uint8 (what actors send, to keep messages small)
+    obs: np.ndarray
     positions: np.ndarray  # (T+1, N, 2)
     actions: np.ndarray  # (T, N)
     rewards: np.ndarray  # (T, N) rewards as trained on (Eq. 2 already applied)
@@ -61,8 +63,10 @@ def episode_to_sequences(ep: EpisodeRecord, seq_len: int, burn_in: int, n_step: 
     num_agents = ep.actions.shape[1]
     window = burn_in + seq_len + n_step
     returns, discount, offset = n_step_components(ep.rewards, ep.terminal, gamma, n_step)
-    obs_bits = pack_obs(ep.obs)  # (T+1, N, 61)
-    last_actions = np.concatenate([np.zeros((1, num_agents), np.int64), ep.actions], axis=0)
+    packed = ep.obs.dtype == np.uint8 and ep.obs.shape[-1] == OBS_BYTES and ep.obs.ndim == 3
+    obs_bits = ep.obs if packed else pack_obs(ep.obs)  # (T+1, N, 61)
+    # last action fed at each step; -1 = none yet (the env's and DCC's convention)
+    last_actions = np.concatenate([np.full((1, num_agents), -1, np.int64), ep.actions], axis=0)
     sequences = []
     for t0 in range(0, length, seq_len):
         origin = t0 - burn_in  # episode index of window index 0
@@ -70,8 +74,8 @@ def episode_to_sequences(ep: EpisodeRecord, seq_len: int, burn_in: int, n_step: 
         last = min(length, origin + window - 1)  # last episode obs index inside the window
         w_first, w_last = first - origin, last - origin
         seq_obs = np.zeros((window, num_agents, obs_bits.shape[-1]), np.uint8)
-        seq_pos = np.full((window, num_agents, 2), -10_000, np.int16)
-        seq_last = np.zeros((window, num_agents), np.uint8)
+        seq_pos = np.full((window, num_agents, 2), FAR_AWAY, np.int16)
+        seq_last = np.full((window, num_agents), -1, np.int8)
         seq_obs[w_first:w_last + 1] = obs_bits[first:last + 1]
         seq_pos[w_first:w_last + 1] = ep.positions[first:last + 1]
         seq_last[w_first:w_last + 1] = last_actions[first:last + 1]

@@ -84,7 +84,7 @@ class SequenceBatch:
 
     obs: np.ndarray  # (B, W, N, 6, 9, 9) float32
     positions: np.ndarray  # (B, W, N, 2) int64
-    last_actions: np.ndarray  # (B, W, N) int64, action taken before each window step
+    last_actions: np.ndarray  # (B, W, N) int64, action taken before each window step, -1 none
     actions: np.ndarray  # (B, L, N) int64, action taken at each trained step
     returns: np.ndarray  # (B, L, N) float32, discounted reward sums over up to n steps
     boot_discount: np.ndarray  # (B, L) float32, gamma^m, 0 when the episode terminated first
@@ -110,7 +110,7 @@ class PrioritizedSequenceReplay:
         c, w, l, n = capacity, window_len, seq_len, max_agents
         self.obs_bits = np.zeros((c, w, n, OBS_BYTES), np.uint8)
         self.positions = np.full((c, w, n, 2), FAR_AWAY, np.int16)
-        self.last_actions = np.zeros((c, w, n), np.uint8)
+        self.last_actions = np.full((c, w, n), -1, np.int8)  # -1 = no action yet / padding
         self.actions = np.zeros((c, l, n), np.uint8)
         self.returns = np.zeros((c, l, n), np.float32)
         self.boot_discount = np.zeros((c, l), np.float32)
@@ -140,7 +140,7 @@ class PrioritizedSequenceReplay:
         self.obs_bits[slot, :, :n] = seq["obs_bits"]
         self.positions[slot] = FAR_AWAY
         self.positions[slot, :, :n] = seq["positions"]
-        self.last_actions[slot] = 0
+        self.last_actions[slot] = -1
         self.last_actions[slot, :, :n] = seq["last_actions"]
         self.actions[slot] = 0
         self.actions[slot, :, :n] = seq["actions"]

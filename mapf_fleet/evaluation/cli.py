@@ -1,0 +1,175 @@
+"""`mapf-fleet evaluate`: the paper's evaluation protocol for checkpoints and references.
+
+    mapf-fleet evaluate --checkpoint models/dhc.pt [more.pt ...] [--sizes 40] [--agents 4 8]
+        [--instances 200] [--workers 2] [--json out.json] [--csv out.csv]
+        [--markdown out.md] [--plot out.png]
+    mapf-fleet evaluate --checkpoint heuristic --map F.map --scen a.scen b.scen --agents 32
+
+The references of the protocol file (the heuristic policy and LaCAM) are added to the tables
+unless --no-references. Prints the paper-layout tables (success rate, average steps) per map.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+from .policies import REFERENCE_NAMES, parse_policy, unique_names
+from .protocol import (
+    DEFAULT_CACHE,
+    DEFAULT_CONFIG,
+    DEFAULT_TESTSETS,
+    ProtocolConfig,
+    ProtocolError,
+    movingai_scenarios,
+    protocol_scenarios,
+    scenario_instances,
+)
+
+# Default limit for MovingAI maps: the protocol's limit of the nearest protocol map size.
+SMALL_MAP_LIMIT, LARGE_MAP_LIMIT = 256, 386
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="mapf-fleet evaluate", description=__doc__.split("\n")[0])
+    p.add_argument("--checkpoint", nargs="*", default=[], metavar="C",
+                   help=f"checkpoint files, or the pseudo-checkpoints {', '.join(REFERENCE_NAMES)}")
+    p.add_argument("--no-references", action="store_true", help="do not add the protocol's references")
+    p.add_argument("--config", default=str(DEFAULT_CONFIG), help="protocol YAML (default %(default)s)")
+    p.add_argument("--sizes", nargs="+", type=int, help="map sizes to run (default: all of the protocol)")
+    p.add_argument("--agents", nargs="+", type=int, help="agent counts to run (with --map: exactly one)")
+    p.add_argument("--instances", type=int, help="instances per scenario (default: the protocol's 200)")
+    p.add_argument("--seed", type=int, help="seed of generated instances (default: the protocol's)")
+    p.add_argument("--testsets", default=str(DEFAULT_TESTSETS), help="folder of the published DHC test sets")
+    p.add_argument("--cache-dir", default=str(DEFAULT_CACHE), help="cache of generated instances")
+    p.add_argument("--map", help="MovingAI .map file (instead of the protocol)")
+    p.add_argument("--scen", nargs="+", default=[], help="MovingAI .scen files, one instance each")
+    p.add_argument("--max-steps", type=int, help=f"step limit for --map (default {SMALL_MAP_LIMIT} up to 40x40, else {LARGE_MAP_LIMIT})")
+    p.add_argument("--workers", type=int, default=1, help="parallel processes")
+    p.add_argument("--batch-size", type=int, default=200, help="episodes stepped together per job")
+    p.add_argument("--device", default="cpu", help="torch device of learned policies")
+    p.add_argument("--planner-time-limit", type=float, help="seconds of planning per instance")
+    p.add_argument("--json", metavar="OUT", help="write every figure (and every episode) as JSON")
+    p.add_argument("--csv", metavar="OUT", help="write one row per policy and scenario")
+    p.add_argument("--markdown", metavar="OUT", help="write the tables, with the extra metrics")
+    p.add_argument("--plot", metavar="OUT.png", help="plot success rate against agent count")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    return p
+
+
+def _scenarios(args, config: ProtocolConfig):
+    """[(Scenario, InstanceSet)] from the protocol or from MovingAI files."""
+    if args.map:
+        if not args.agents or len(args.agents) != 1:
+            raise ProtocolError("--map needs exactly one --agents N")
+        from mapf_fleet.grid.movingai import read_map
+
+        grid = read_map(args.map)
+        limit = args.max_steps or (SMALL_MAP_LIMIT if max(grid.shape) <= 40 else LARGE_MAP_LIMIT)
+        scenario, instances = movingai_scenarios(args.map, args.scen, args.agents[0], limit)
+        if args.instances:
+            instances = instances.subset(slice(0, args.instances))
+        return [(scenario, instances)]
+    if args.scen:
+        raise ProtocolError("--scen needs --map")
+    count = args.instances or config.instances
+    seed = config.seed if args.seed is None else args.seed
+    out = []
+    for scenario in protocol_scenarios(config, args.sizes, args.agents):
+        if args.max_steps:
+            from dataclasses import replace
+
+            scenario = replace(scenario, max_steps=args.max_steps)
+        out.append((scenario, scenario_instances(
+            scenario, count, density=config.density, seed=seed,
+            testsets_dir=args.testsets, cache_dir=args.cache_dir,
+        )))
+    return out
+
+
+def _metadata(args, config: ProtocolConfig, specs, wall_time: float) -> dict:
+    import numpy
+
+    versions = {"python": platform.python_version(), "numpy": numpy.__version__}
+    for module in ("torch", "pymapf"):
+        try:
+            versions[module] = __import__(module).__version__
+        except Exception:  # noqa: BLE001 - an absent optional library is just not listed
+            pass
+    return {
+        "command": "mapf-fleet evaluate " + " ".join(args.argv),
+        "protocol_file": args.config,
+        "density": config.density,
+        "seed": config.seed if args.seed is None else args.seed,
+        "policies": [{"name": s.name, "kind": s.kind, "path": s.path, "algorithm": s.algorithm} for s in specs],
+        "workers": args.workers,
+        "wall_time_s": round(wall_time, 3),
+        "versions": versions,
+        "cpu_count": os.cpu_count(),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = build_parser().parse_args(argv)
+    args.argv = argv
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    try:
+        config = ProtocolConfig.from_yaml(args.config)
+        time_limit = args.planner_time_limit or config.planner_time_limit
+        names = list(args.checkpoint)
+        if not args.no_references:
+            names += [r for r in config.references if r not in names]
+        if not names:
+            raise ProtocolError("nothing to evaluate: give --checkpoint or drop --no-references")
+        specs = unique_names([
+            parse_policy(n, device=args.device, planner_time_limit=time_limit, planner_seed=config.planner_seed)
+            for n in names
+        ])
+        scenarios = _scenarios(args, config)
+    except (ProtocolError, FileNotFoundError, ValueError) as exc:
+        print(f"mapf-fleet evaluate: {exc}", file=sys.stderr)
+        return 2
+
+    from .report import csv_report, markdown_report, plot_success, write_json
+    from .runner import evaluate
+
+    def progress(done, total, job):
+        if not args.quiet:
+            print(f"[{done}/{total}] {job.spec.name} on {job.scenario.key} ({len(job.instances)} episodes)",
+                  file=sys.stderr, flush=True)
+
+    began = time.perf_counter()
+    results = evaluate(specs, scenarios, workers=args.workers, batch_size=args.batch_size, progress=progress)
+    wall_time = time.perf_counter() - began
+
+    print(markdown_report(results, extra=False))
+    planners = [r for r in results if r.plan_time is not None]
+    if planners:
+        from .planners import library_version
+
+        print(f"Planner reference: {library_version()}; planning time per instance "
+              + ", ".join(f"{r.scenario.key} {r.plan_time / r.summary.episodes:.3f} s" for r in planners if r.summary.episodes))
+    print(f"Wall time: {wall_time:.1f} s with {args.workers} worker(s).")
+
+    metadata = _metadata(args, config, specs, wall_time)
+    if args.json:
+        write_json(args.json, results, metadata)
+    if args.csv:
+        Path(args.csv).write_text(csv_report(results))
+    if args.markdown:
+        Path(args.markdown).write_text(
+            f"# Evaluation\n\n`{metadata['command']}`\n\n" + markdown_report(results, extra=True)
+            + f"\nWall time {wall_time:.1f} s, {args.workers} worker(s).\n"
+        )
+    if args.plot:
+        plot_success(results, args.plot)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

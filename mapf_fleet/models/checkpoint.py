@@ -1,0 +1,240 @@
+"""Checkpoint files: one file per checkpoint, weights plus the metadata needed to use them.
+
+File layout (a torch.save'd dict of tensors and plain data, loadable with weights_only=True):
+    {"format": "mapf_fleet.checkpoint", "format_version": 1,
+     "state_dict": {name: tensor}, "metadata": {...}}
+metadata fields:
+    algorithm        "dhc" | "dcc"
+    model_config     ModelConfig.to_dict()
+    obs_radius       int (= model_config["obs_radius"])
+    obs_padding      "obstacle" (off-map cells are obstacles in channel 1)
+    action_order     ["stay", "up", "down", "left", "right"]
+    alpha            cooperation coefficient of the reward, float in [0, 1]
+    curriculum       {"stage": ..., "setting": ...} plain data (scale and alpha curriculum state)
+    learner_steps    int >= 0
+    training_config  dict (the TrainConfig as plain data)
+    code_version     {"package": "0.1.0", "git_commit": "..." or None}
+    evaluation       dict or None (evaluation summary)
+    created          ISO 8601 UTC time of writing
+    extra            dict, free plain data (optional)
+Writes are atomic (temporary file in the same directory + os.replace), so a reader never sees
+half a file.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import os
+import subprocess
+import tempfile
+from pathlib import Path
+from typing import Any, Mapping
+
+import torch
+from torch import nn
+
+import mapf_fleet
+from mapf_fleet.grid.actions import ACTION_NAMES
+
+from .config import ALGORITHMS, ModelConfig
+
+FORMAT = "mapf_fleet.checkpoint"
+FORMAT_VERSION = 1
+OBS_PADDING = "obstacle"
+ACTION_ORDER = list(ACTION_NAMES)
+# Fields the caller supplies (the rest are derived from the model and the code).
+REQUIRED_FIELDS = ("alpha", "curriculum", "learner_steps", "training_config")
+OPTIONAL_FIELDS = ("evaluation", "extra")
+
+
+class CheckpointError(ValueError):
+    """A checkpoint file is missing, unreadable or incompatible; the message names the field."""
+
+
+def build_model(config: ModelConfig) -> nn.Module:
+    """A fresh DHCNetwork or DCCNetwork for `config`."""
+    from .dcc import DCCNetwork
+    from .dhc import DHCNetwork
+
+    return DHCNetwork(config) if config.algo == "dhc" else DCCNetwork(config)
+
+
+def code_version() -> dict[str, Any]:
+    """Package version and the git commit of the source tree when it is a git checkout."""
+    commit = None
+    try:
+        # GIT_OPTIONAL_LOCKS=0: read only, never touch the index.
+        result = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=Path(mapf_fleet.__file__).resolve().parent,
+            capture_output=True, text=True, timeout=5, env={**os.environ, "GIT_OPTIONAL_LOCKS": "0"},
+        )
+        if result.returncode == 0:
+            commit = result.stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        pass
+    return {"package": mapf_fleet.__version__, "git_commit": commit}
+
+
+def save_checkpoint(path, model: nn.Module, metadata: Mapping[str, Any]) -> Path:
+    """Write `model`'s weights and `metadata` (REQUIRED_FIELDS, optional OPTIONAL_FIELDS)."""
+    path = Path(path)
+    config = getattr(model, "config", None)
+    if not isinstance(config, ModelConfig):
+        raise TypeError(f"save_checkpoint: model has no ModelConfig `config` ({type(model).__name__})")
+    unknown = sorted(set(metadata) - set(REQUIRED_FIELDS) - set(OPTIONAL_FIELDS))
+    if unknown:
+        raise ValueError(f"save_checkpoint {path}: unknown metadata field(s) {unknown}; "
+                         f"allowed {list(REQUIRED_FIELDS + OPTIONAL_FIELDS)}")
+    missing = [name for name in REQUIRED_FIELDS if name not in metadata]
+    if missing:
+        raise ValueError(f"save_checkpoint {path}: missing metadata field(s) {missing}")
+    full = {
+        "algorithm": config.algo,
+        "model_config": config.to_dict(),
+        "obs_radius": config.obs_radius,
+        "obs_padding": OBS_PADDING,
+        "action_order": list(ACTION_ORDER),
+        "alpha": metadata["alpha"],
+        "curriculum": metadata["curriculum"],
+        "learner_steps": metadata["learner_steps"],
+        "training_config": metadata["training_config"],
+        "code_version": code_version(),
+        "evaluation": metadata.get("evaluation"),
+        "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "extra": metadata.get("extra", {}),
+    }
+    _check_metadata(full, str(path))
+    payload = {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "state_dict": {k: v.detach().cpu().clone() for k, v in model.state_dict().items()},
+        "metadata": full,
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            torch.save(payload, handle)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def read_checkpoint(path, map_location="cpu") -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+    """(state_dict, metadata) of a checkpoint, with every metadata field checked."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no such checkpoint file")
+    try:
+        payload = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as exc:  # torch raises many types for corrupt/truncated/unsafe files
+        raise CheckpointError(
+            f"{path}: not a readable checkpoint (corrupt, truncated or not weights-only): "
+            f"{type(exc).__name__}: {exc}") from exc
+    if not isinstance(payload, dict):
+        raise CheckpointError(f"{path}: top level: expected a dict, found {type(payload).__name__}")
+    _expect(path, "format", payload.get("format"), FORMAT)
+    _expect(path, "format_version", payload.get("format_version"), FORMAT_VERSION)
+    state_dict, metadata = payload.get("state_dict"), payload.get("metadata")
+    if not isinstance(state_dict, dict):
+        raise CheckpointError(f"{path}: field state_dict: expected a dict of tensors, "
+                              f"found {type(state_dict).__name__}")
+    if not isinstance(metadata, dict):
+        raise CheckpointError(f"{path}: field metadata: expected a dict, "
+                              f"found {type(metadata).__name__}")
+    _check_metadata(metadata, str(path))
+    return state_dict, metadata
+
+
+def load_checkpoint(path, map_location="cpu") -> tuple[nn.Module, dict[str, Any]]:
+    """(model in eval mode, metadata). Raises CheckpointError naming the bad field."""
+    state_dict, metadata = read_checkpoint(path, map_location)
+    config = ModelConfig.from_dict(metadata["model_config"])
+    model = build_model(config)
+    expected = model.state_dict()
+    for name, tensor in expected.items():
+        if name not in state_dict:
+            raise CheckpointError(f"{path}: state_dict: missing weight {name!r} "
+                                  f"(expected shape {tuple(tensor.shape)})")
+        found = state_dict[name]
+        if not isinstance(found, torch.Tensor) or found.shape != tensor.shape:
+            shape = tuple(found.shape) if isinstance(found, torch.Tensor) else type(found).__name__
+            raise CheckpointError(f"{path}: state_dict[{name!r}]: expected shape "
+                                  f"{tuple(tensor.shape)}, found {shape}")
+    unexpected = sorted(set(state_dict) - set(expected))
+    if unexpected:
+        raise CheckpointError(f"{path}: state_dict: unexpected weight(s) {unexpected[:5]}")
+    model.load_state_dict(state_dict)
+    model.to(map_location if map_location is not None else "cpu")
+    return model.eval(), metadata
+
+
+# ---- validation -------------------------------------------------------------------------
+
+
+def _expect(path, field: str, found: Any, expected: Any) -> None:
+    if found != expected:
+        raise CheckpointError(f"{path}: field {field}: expected {expected!r}, found {found!r}")
+
+
+def _check_metadata(meta: Mapping[str, Any], path: str) -> None:
+    def fail(field: str, expected: str, found: Any) -> None:
+        raise CheckpointError(f"{path}: field metadata.{field}: expected {expected}, found {found!r}")
+
+    for name in ("algorithm", "model_config", "obs_radius", "obs_padding", "action_order",
+                 *REQUIRED_FIELDS, "code_version", "evaluation"):
+        if name not in meta:
+            raise CheckpointError(f"{path}: field metadata.{name}: missing")
+    if meta["algorithm"] not in ALGORITHMS:
+        fail("algorithm", f"one of {ALGORITHMS}", meta["algorithm"])
+    if not isinstance(meta["model_config"], Mapping):
+        fail("model_config", "a dict", meta["model_config"])
+    try:
+        config = ModelConfig.from_dict(meta["model_config"])
+    except (TypeError, ValueError) as exc:
+        raise CheckpointError(f"{path}: field metadata.model_config: {exc}") from exc
+    if config.algo != meta["algorithm"]:
+        fail("model_config.algo", f"{meta['algorithm']!r} (= metadata.algorithm)", config.algo)
+    if meta["obs_radius"] != config.obs_radius:
+        fail("obs_radius", f"{config.obs_radius} (= model_config.obs_radius)", meta["obs_radius"])
+    if meta["obs_padding"] != OBS_PADDING:
+        fail("obs_padding", repr(OBS_PADDING), meta["obs_padding"])
+    if list(meta["action_order"]) != ACTION_ORDER:
+        fail("action_order", repr(ACTION_ORDER), meta["action_order"])
+    alpha = meta["alpha"]
+    if isinstance(alpha, bool) or not isinstance(alpha, (int, float)) or not 0.0 <= alpha <= 1.0:
+        fail("alpha", "a number in [0, 1]", alpha)
+    steps = meta["learner_steps"]
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 0:
+        fail("learner_steps", "an int >= 0", steps)
+    for name in ("curriculum", "training_config", "code_version"):
+        if not isinstance(meta[name], Mapping):
+            fail(name, "a dict", meta[name])
+    if meta["evaluation"] is not None and not isinstance(meta["evaluation"], Mapping):
+        fail("evaluation", "a dict or None", meta["evaluation"])
+    if not isinstance(meta.get("extra", {}), Mapping):
+        fail("extra", "a dict", meta.get("extra"))
+    for name in meta:
+        _check_plain(meta[name], f"metadata.{name}", path)
+
+
+def _check_plain(value: Any, where: str, path: str) -> None:
+    """Only plain data survives torch.load(weights_only=True) without surprises."""
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return
+    if isinstance(value, (list, tuple)):
+        for index, item in enumerate(value):
+            _check_plain(item, f"{where}[{index}]", path)
+        return
+    if isinstance(value, Mapping):
+        for key, item in value.items():
+            if not isinstance(key, str):
+                raise CheckpointError(f"{path}: field {where}: keys must be str, found {key!r}")
+            _check_plain(item, f"{where}.{key}", path)
+        return
+    raise CheckpointError(f"{path}: field {where}: expected plain data (dict/list/str/number/"
+                          f"bool/None), found {type(value).__name__}")

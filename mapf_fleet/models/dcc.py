@@ -1,0 +1,315 @@
+"""DCC network (Ma, Luo and Pan 2021) as in the paper's appendix and the reference code.
+
+One step of agent i:
+  h_i  = GRU([encoder(obs_i), onehot(last_action_i)], hidden_i)          (encode)
+  Decision-causal selection: a_i = argmax dueling(h_i); for every FOV neighbour j, a_i,-j is the
+  same computed from obs_i with j's cell erased in channel 0 (same hidden_i and last action).
+  i requests from j when a_i,-j != a_i.                                    (causal_set)
+  Request layer, at each receiver j with at least one requester:
+    h1_j = GRU_req(attention(query LN(h_j), messages from [j itself] + requesters i), h_j)
+    and h1_j = h_j for agents without requesters.                         (aggregate_requests)
+  Reply layer, at each requester i: the same with the transposed mask and the request-layer
+    outputs: h2_i = GRU_rep(attention(query LN(h1_i), [i itself] + repliers j), h1_i),
+    h2_i = h1_i for agents that requested nothing.                         (aggregate_replies)
+  q_i = dueling(h2_i).
+A message from sender s to receiver r is key/value of [LN(h_s), embed(onehot(pos_s - pos_r))]
+(relative position one-hot over the (2r+1)^2 FOV, comm.relative_position_index). The "itself"
+message (offset (0, 0)) is there when config.attend_self (this project's default); the DCC
+reference attends over the senders only (attend_self=False).
+
+Carried hidden: h2_i, the reply-layer output (the final, post-communication hidden), as the
+reference's step and training forward both do. The pre-communication h_i is not carried.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from mapf_fleet.grid.actions import NUM_ACTIONS
+
+from .comm import fov_neighbour_table, relative_position_index
+from .common import (
+    DuelingHead, StepOutput, as_float, as_long, as_vector, check_batch_inputs, module_device,
+    stack_vectors,
+)
+from .config import OBS_CHANNELS, ModelConfig
+
+
+class DCCCommLayer(nn.Module):
+    """One request or reply layer; attribute names follow the reference's CommLayer."""
+
+    def __init__(self, config: ModelConfig):
+        super().__init__()
+        hidden, width = config.hidden_dim, config.num_heads * config.head_dim
+        self.num_heads, self.head_dim = config.num_heads, config.head_dim
+        self.norm = nn.LayerNorm(hidden)
+        self.position_embeddings = nn.Linear(config.fov**2, config.pos_embed_dim)
+        self.message_key = nn.Linear(hidden + config.pos_embed_dim, width)
+        self.message_value = nn.Linear(hidden + config.pos_embed_dim, width)
+        self.hidden_query = nn.Linear(hidden, width)
+        self.head_agg = nn.Linear(width, width)
+        self.update = nn.GRUCell(width, hidden)
+
+    def embed_positions(self, position_index: torch.Tensor) -> torch.Tensor:
+        # Linear(one_hot(index)) is exactly this column gather plus bias.
+        return self.position_embeddings.weight.t()[position_index] + self.position_embeddings.bias
+
+    def forward(self, own_h: torch.Tensor, sender_h: torch.Tensor,
+                position_index: torch.Tensor, sender_valid: torch.Tensor) -> torch.Tensor:
+        """own_h (M, H), sender_h (M, S, H), position_index (M, S), sender_valid (M, S).
+
+        Returns the GRU-updated (M, H); the caller passes only receivers (rows with at least
+        one real sender).
+        """
+        m, s, _ = sender_h.shape
+        query = self.hidden_query(self.norm(own_h)).view(m, 1, self.num_heads, self.head_dim)
+        message = torch.cat([self.norm(sender_h), self.embed_positions(position_index)], dim=-1)
+        key = self.message_key(message).view(m, s, self.num_heads, self.head_dim)
+        value = self.message_value(message).view(m, s, self.num_heads, self.head_dim)
+        scores = (query * key).sum(-1) / math.sqrt(self.head_dim)  # (M, S, heads)
+        scores = scores.masked_fill(~sender_valid[:, :, None], float("-inf"))
+        weights = torch.softmax(scores, dim=1)  # over senders
+        aggregated = self.head_agg((weights[..., None] * value).sum(1).reshape(m, -1))
+        return self.update(aggregated, own_h)
+
+
+class DCCNetwork(nn.Module):
+    algo = "dcc"
+
+    def __init__(self, config: ModelConfig | None = None):
+        super().__init__()
+        config = config if config is not None else ModelConfig.preset("dcc", "paper")
+        if config.algo != "dcc":
+            raise ValueError(f"DCCNetwork: config.algo must be 'dcc', got {config.algo!r}")
+        self.config = config
+        layers: list[nn.Module] = []
+        in_channels = OBS_CHANNELS
+        for out_channels in config.conv_channels:
+            layers += [nn.Conv2d(in_channels, out_channels, 3, 1), nn.LeakyReLU(0.2, True)]
+            in_channels = out_channels
+        layers.append(nn.Flatten())
+        self.obs_encoder = nn.Sequential(*layers)
+        side = config.fov - 2 * len(config.conv_channels)
+        self.latent_dim = in_channels * side * side + NUM_ACTIONS
+        self.recurrent = nn.GRUCell(self.latent_dim, config.hidden_dim)
+        self.request_comm = DCCCommLayer(config)
+        self.reply_comm = DCCCommLayer(config)
+        self.head = DuelingHead(config.hidden_dim)
+
+    @property
+    def hidden_dim(self) -> int:
+        return self.config.hidden_dim
+
+    # ---- shared pieces ------------------------------------------------------------------
+
+    def _encode(self, obs: torch.Tensor, last_action: torch.Tensor,
+                hidden: torch.Tensor) -> torch.Tensor:
+        """obs (M, 6, fov, fov), last_action (M,) long in -1..4 (-1: none), hidden (M, H)."""
+        one_hot = F.one_hot(last_action.clamp(min=0), NUM_ACTIONS).to(obs.dtype)
+        one_hot = one_hot * (last_action >= 0)[:, None].to(obs.dtype)
+        latent = torch.cat([self.obs_encoder(obs), one_hot], dim=1)
+        return self.recurrent(latent, hidden)
+
+    def _greedy(self, h: torch.Tensor) -> torch.Tensor:
+        return self.head(h).argmax(-1)
+
+    def _erased_variants(self, obs: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
+        """Copies of obs (E, 6, fov, fov) with channel 0 cleared at offsets (E, 2) from the centre."""
+        variants = obs.clone()
+        cell = offsets + self.config.obs_radius
+        variants[torch.arange(len(variants), device=obs.device), 0, cell[:, 0], cell[:, 1]] = 0.0
+        return variants
+
+    def _encode_with_variants(self, obs, last_action, hidden, owner, offsets):
+        """Encode every agent (M rows) and its erased variants (E rows, owner[e] in 0..M-1).
+
+        Returns (h (M, H), greedy action of each variant (E,)). The variants never need
+        gradients (they only decide who talks); without autograd everything runs as one
+        encoder batch, which is the fast inference path.
+        """
+        variants = self._erased_variants(obs[owner], offsets)
+        if torch.is_grad_enabled():
+            h = self._encode(obs, last_action, hidden)
+            with torch.no_grad():
+                variant_h = self._encode(variants, last_action[owner], hidden[owner])
+        else:
+            both = self._encode(torch.cat([obs, variants]),
+                                torch.cat([last_action, last_action[owner]]),
+                                torch.cat([hidden, hidden[owner]]))
+            h, variant_h = both[: len(obs)], both[len(obs):]
+        return h, self._greedy(variant_h)
+
+    # ---- batched ------------------------------------------------------------------------
+
+    def step(self, obs, positions, hidden=None, last_action=None, agent_mask=None,
+             comm_mask=None) -> StepOutput:
+        """One step of B episodes x N agents (differentiable; wrap in torch.no_grad to act).
+
+        obs (B, N, 6, fov, fov), positions (B, N, 2) int, hidden (B, N, H) or None (zeros),
+        last_action (B, N) int in -1..4 or None (-1 = no previous action: zero one-hot),
+        agent_mask (B, N) bool or None, comm_mask (B, N, N) bool or None: a decision-causal
+        mask recorded earlier ([b, i, j] = i requests from j); when given, the causal check is
+        skipped (the trainer can replay the actor's masks, as the reference learner does).
+        """
+        cfg = self.config
+        device = module_device(self)
+        obs = as_float(obs, "obs", device)
+        positions = as_long(positions, "positions", device)
+        hidden = None if hidden is None else as_float(hidden, "hidden", device)
+        if agent_mask is not None:
+            agent_mask = torch.as_tensor(agent_mask, device=device).bool()
+        batch, num_agents = check_batch_inputs(cfg, obs, positions, hidden, agent_mask)
+        if hidden is None:
+            hidden = obs.new_zeros(batch, num_agents, cfg.hidden_dim)
+        if last_action is None:
+            last_action = torch.full((batch, num_agents), -1, dtype=torch.long, device=device)
+        last_action = as_long(last_action, "last_action", device)
+        if tuple(last_action.shape) != (batch, num_agents):
+            raise ValueError(f"last_action: expected {(batch, num_agents)}, "
+                             f"got {tuple(last_action.shape)}")
+
+        # Every agent's FOV neighbours (B, N, K), index order, -1 padded.
+        table = fov_neighbour_table(positions, cfg.obs_radius, agent_mask)
+        slot_valid = table >= 0
+        table0 = table.clamp(min=0)
+        batch_index = torch.arange(batch, device=device)[:, None, None]
+        # offsets[b, i, k] = pos of neighbour - pos of i  (sender - receiver when i receives)
+        offsets = positions[batch_index, table0] - positions[:, :, None, :]
+        offsets = offsets * slot_valid[..., None]  # empty slots: (0, 0), masked out later
+
+        flat_obs, flat_hidden = obs.flatten(0, 1), hidden.flatten(0, 1)
+        flat_last = last_action.flatten()
+        if comm_mask is None:
+            b_e, i_e, k_e = slot_valid.nonzero(as_tuple=True)
+            owner = b_e * num_agents + i_e
+            h_flat, variant_actions = self._encode_with_variants(
+                flat_obs, flat_last, flat_hidden, owner, offsets[b_e, i_e, k_e])
+            with torch.no_grad():
+                own_actions = self._greedy(h_flat)
+            requests = torch.zeros_like(slot_valid)
+            requests[b_e, i_e, k_e] = variant_actions != own_actions[owner]
+            comm_mask = torch.zeros(batch, num_agents, num_agents + 1, dtype=torch.bool,
+                                    device=device)
+            comm_mask.scatter_(2, torch.where(requests, table, num_agents), True)
+            comm_mask = comm_mask[..., :num_agents]
+        else:
+            comm_mask = torch.as_tensor(comm_mask, device=device).bool()
+            if tuple(comm_mask.shape) != (batch, num_agents, num_agents):
+                raise ValueError(f"comm_mask: expected {(batch, num_agents, num_agents)}, "
+                                 f"got {tuple(comm_mask.shape)}")
+            h_flat = self._encode(flat_obs, flat_last, flat_hidden)
+            requests = slot_valid & comm_mask[batch_index, torch.arange(num_agents, device=device)[:, None], table0]
+        h = h_flat.view(batch, num_agents, -1)
+
+        # Request layer: receiver r hears from its neighbours n that request from r.
+        incoming = slot_valid & comm_mask[batch_index, table0, torch.arange(num_agents, device=device)[:, None]]
+        h1 = self._comm(self.request_comm, h, table0, offsets, incoming)
+        # Reply layer (transposed mask): requester i hears from the neighbours it requested.
+        h2 = self._comm(self.reply_comm, h1, table0, offsets, requests)
+        q = self.head(h2)
+        if agent_mask is not None:
+            keep = agent_mask[..., None]
+            q, h2 = q * keep, h2 * keep
+        return StepOutput(q=q, hidden=h2, comm_mask=comm_mask)
+
+    def _comm(self, layer: DCCCommLayer, h: torch.Tensor, table0: torch.Tensor,
+              offsets: torch.Tensor, senders: torch.Tensor) -> torch.Tensor:
+        """Run `layer` for every agent with at least one sender; others keep h."""
+        rows = senders.any(-1).nonzero(as_tuple=True)
+        if rows[0].numel() == 0:
+            return h
+        sender_h = h[rows[0][:, None], table0[rows]]
+        position_index = relative_position_index(offsets[rows], self.config.obs_radius)
+        valid = senders[rows]
+        own = h[rows]
+        if self.config.attend_self:
+            sender_h, position_index, valid = self._with_self(own, sender_h, position_index, valid)
+        return h.index_put(rows, layer(own, sender_h, position_index, valid))
+
+    def _with_self(self, own, sender_h, position_index, valid):
+        """Prepend each receiver's own message at offset (0, 0) (the FOV centre)."""
+        centre = self.config.obs_radius * (self.config.fov + 1)
+        self_index = torch.full_like(position_index[:, :1], centre)
+        self_valid = torch.ones_like(valid[:, :1])
+        return (torch.cat([own[:, None], sender_h], 1), torch.cat([self_index, position_index], 1),
+                torch.cat([self_valid, valid], 1))
+
+    # ---- per robot ----------------------------------------------------------------------
+    # Each takes only the robot's own data and the messages it received; 1-D in, 1-D out.
+
+    def _robot_inputs(self, obs_i, last_action_i, hidden_i):
+        device = module_device(self)
+        obs_i = as_float(obs_i, "obs_i", device)
+        if tuple(obs_i.shape) != self.config.obs_shape:
+            raise ValueError(f"obs_i: expected {self.config.obs_shape}, got {tuple(obs_i.shape)}")
+        last = int(-1 if last_action_i is None else last_action_i)
+        if not -1 <= last < NUM_ACTIONS:
+            raise ValueError(f"last_action_i: expected -1..{NUM_ACTIONS - 1}, got {last}")
+        if hidden_i is None:
+            hidden_i = torch.zeros(self.config.hidden_dim, device=device)
+        hidden_i = as_vector(hidden_i, "hidden_i", self.config.hidden_dim, device)
+        return obs_i, torch.tensor([last], device=device), hidden_i
+
+    def encode(self, obs_i, last_action_i=None, hidden_i=None) -> torch.Tensor:
+        """Own observation, last action (-1/None: none) and previous hidden (None: zeros) -> h."""
+        obs_i, last, hidden_i = self._robot_inputs(obs_i, last_action_i, hidden_i)
+        return self._encode(obs_i[None], last, hidden_i[None])[0]
+
+    def causal_set(self, obs_i, last_action_i, hidden_i, neighbour_offsets) -> np.ndarray:
+        """Which FOV neighbours this robot requests from: bool (M,) over `neighbour_offsets`.
+
+        neighbour_offsets (M, 2): neighbour position - own position (comm.fov_neighbours).
+        Runs the robot's own step once per erased neighbour, batched with the plain step.
+        """
+        obs_i, last, hidden_i = self._robot_inputs(obs_i, last_action_i, hidden_i)
+        offsets = as_long(np.asarray(neighbour_offsets, dtype=np.int64).reshape(-1, 2),
+                          "neighbour_offsets", obs_i.device)
+        if offsets.shape[0] == 0:
+            return np.zeros(0, dtype=bool)
+        relative_position_index(offsets, self.config.obs_radius)  # raises outside the FOV
+        owner = torch.zeros(offsets.shape[0], dtype=torch.long, device=obs_i.device)
+        with torch.no_grad():
+            h, variant_actions = self._encode_with_variants(
+                obs_i[None], last, hidden_i[None], owner, offsets)
+            own_action = self._greedy(h)[0]
+        return (variant_actions != own_action).cpu().numpy()
+
+    def _aggregate(self, layer: DCCCommLayer, h_own, messages, name: str) -> torch.Tensor:
+        device = module_device(self)
+        h_own = as_vector(h_own, "h_own", self.config.hidden_dim, device)
+        messages = list(messages)
+        if not messages:
+            return h_own
+        offsets = torch.as_tensor(np.array([m[0] for m in messages], dtype=np.int64).reshape(-1, 2),
+                                  device=device)
+        sender_h = stack_vectors([m[1] for m in messages], name, self.config.hidden_dim, device)
+        position_index = relative_position_index(offsets, self.config.obs_radius)[None]
+        sender_h, valid = sender_h[None], torch.ones_like(position_index, dtype=torch.bool)
+        own = h_own[None]
+        if self.config.attend_self:
+            sender_h, position_index, valid = self._with_self(own, sender_h, position_index, valid)
+        return layer(own, sender_h, position_index, valid)[0]
+
+    def aggregate_requests(self, h_own, requests) -> torch.Tensor:
+        """Receiver side: own h (H,) and [(offset, h_requester)] -> h1 (H,).
+
+        offset = requester position - own position. No request: h1 = h_own.
+        """
+        return self._aggregate(self.request_comm, h_own, requests, "requests")
+
+    def aggregate_replies(self, h1_own, replies) -> torch.Tensor:
+        """Requester side: own request-layer output h1 (H,) and [(offset, h1_replier)] -> h2.
+
+        offset = replier position - own position. No reply (requested nobody): h2 = h1_own.
+        h2 is both the input of `q_values` and the hidden to carry to the next step.
+        """
+        return self._aggregate(self.reply_comm, h1_own, replies, "replies")
+
+    def q_values(self, h) -> torch.Tensor:
+        """Q-values (5,) of a final hidden h2 (H,) (or (..., H) -> (..., 5))."""
+        return self.head(as_float(h, "h", module_device(self)))

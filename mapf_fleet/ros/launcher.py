@@ -1,0 +1,194 @@
+"""`mapf-fleet up`: start a simulated fleet (simulator + one policy node per robot), show live
+progress, print the outcome and exit 0 on success.
+
+Process layout: by default each policy node runs in its own process; `--nodes-per-process K`
+hosts K robots' nodes per process (needed past ~32 processes, DESIGN.md section 2);
+`--single-process` runs the simulator and every policy node in this process. Every process gets
+ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from mapf_fleet.ros import common
+from mapf_fleet.ros.instances import InstanceSource
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+def default_checkpoint() -> str:
+    found = sorted(glob.glob(str(REPO_ROOT / "models" / "*.pt")))
+    preferred = [f for f in found if "dhc" in Path(f).name.lower()] or found
+    return preferred[0] if preferred else ""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="mapf-fleet up", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--checkpoint", default=None,
+                        help="policy checkpoint (default: the first DHC checkpoint in models/)")
+    parser.add_argument("--num-robots", type=int, default=8)
+    parser.add_argument("--size", type=int, default=16, help="side of a generated map")
+    parser.add_argument("--density", type=float, default=0.3)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--instance", default="", help="instance YAML (grid, starts, goals)")
+    parser.add_argument("--map", default="", help="MovingAI .map (with --scen)")
+    parser.add_argument("--scen", default="", help="MovingAI .scen (with --map)")
+    parser.add_argument("--max-steps", type=int, default=256)
+    parser.add_argument("--decision-timeout", type=float, default=10.0)
+    parser.add_argument("--comm-timeout", type=float, default=5.0)
+    parser.add_argument("--startup-timeout", type=float, default=120.0)
+    parser.add_argument("--nodes-per-process", type=int, default=1)
+    parser.add_argument("--single-process", action="store_true",
+                        help="simulator and all policy nodes in this process")
+    parser.add_argument("--record", default="", help="write trajectory and outcome JSON here")
+    parser.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID to use")
+    parser.add_argument("--params-file", default="", help="ROS parameters YAML for all nodes")
+    parser.add_argument("--quiet", action="store_true", help="no live progress")
+    return parser
+
+
+def _ros_args(params: dict, params_file: str) -> list[str]:
+    args = ["--ros-args"]
+    if params_file:
+        args += ["--params-file", params_file]
+    for name, value in params.items():
+        args += ["-p", f"{name}:={value}"]
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(sys.argv[1:] if argv is None else argv)
+    checkpoint = args.checkpoint or default_checkpoint()
+    if not checkpoint or not Path(checkpoint).is_file():
+        print(f"mapf-fleet up: checkpoint not found: {checkpoint!r} (pass --checkpoint)",
+              file=sys.stderr)
+        return 2
+    if args.nodes_per_process < 1:
+        print("mapf-fleet up: --nodes-per-process must be >= 1", file=sys.stderr)
+        return 2
+    try:
+        source = InstanceSource(args.instance, args.map, args.scen, args.num_robots, args.size,
+                                args.density, args.seed)
+        num_robots = source.load().num_agents
+    except (ValueError, OSError) as exc:
+        print(f"mapf-fleet up: bad instance: {exc}", file=sys.stderr)
+        return 2
+    env = common.prepare_environment(dict(os.environ))
+    if args.domain_id is not None:
+        env["ROS_DOMAIN_ID"] = str(args.domain_id)
+    record = args.record or os.path.join(tempfile.mkdtemp(prefix="mapf_fleet_"), "run.json")
+    sim_params = {"instance_file": args.instance, "map_file": args.map, "scen_file": args.scen,
+                  "num_robots": args.num_robots, "size": args.size, "density": args.density,
+                  "seed": args.seed, "max_steps": args.max_steps,
+                  "decision_timeout": args.decision_timeout,
+                  "startup_timeout": args.startup_timeout, "record_file": record}
+    sim_params = {k: v for k, v in sim_params.items() if v != ""}
+    policy_params = {"checkpoint": checkpoint, "comm_timeout": args.comm_timeout}
+    started = time.monotonic()
+    if args.single_process:
+        os.environ.update(env)
+        code = run_single_process(num_robots, sim_params, policy_params, args.params_file)
+    else:
+        code = run_processes(num_robots, sim_params, policy_params, args, env)
+    elapsed = time.monotonic() - started
+    return report(record, elapsed) if code in (0, 1) else code
+
+
+def run_processes(num_robots, sim_params, policy_params, args, env) -> int:
+    python = sys.executable
+    runner = [python, "-m", "mapf_fleet.ros.run"]
+    procs: list[subprocess.Popen] = []
+    quiet_out = subprocess.DEVNULL
+    try:
+        k = args.nodes_per_process
+        for first in range(0, num_robots, k):
+            ids = f"{first}-{min(first + k, num_robots) - 1}"
+            procs.append(subprocess.Popen(
+                runner + ["policy", "--robots", ids] + _ros_args(policy_params, args.params_file),
+                env=env, stdout=quiet_out, stderr=quiet_out))
+        simulator = subprocess.Popen(
+            runner + ["simulator"] + _ros_args(sim_params, args.params_file), env=env,
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        for line in simulator.stdout:
+            if not args.quiet:
+                print(line.rstrip(), flush=True)
+        return simulator.wait()
+    except KeyboardInterrupt:
+        return 130
+    finally:
+        stop_processes(procs)
+
+
+def stop_processes(procs, grace: float = 3.0) -> None:
+    """SIGTERM, then SIGKILL what did not stop (a hung Fast DDS process ignores SIGTERM)."""
+    for proc in procs:
+        if proc.poll() is None:
+            proc.terminate()
+    deadline = time.monotonic() + grace
+    for proc in procs:
+        try:
+            proc.wait(max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def run_single_process(num_robots, sim_params, policy_params, params_file) -> int:
+    import rclpy
+    from rclpy.executors import MultiThreadedExecutor
+    from rclpy.parameter import Parameter
+
+    from mapf_fleet.ros.policy_node import PolicyNode
+    from mapf_fleet.ros.simulator_node import SimulatorNode
+
+    rclpy.init(args=["up"] + (["--ros-args", "--params-file", params_file] if params_file else []))
+    try:
+        simulator = SimulatorNode(parameter_overrides=[Parameter(k, value=v)
+                                                       for k, v in sim_params.items()])
+        overrides = [Parameter("comm_timeout", value=float(policy_params["comm_timeout"]))]
+        first = PolicyNode(robot_id=0, checkpoint=policy_params["checkpoint"],
+                           parameter_overrides=list(overrides))
+        policies = [first] + [PolicyNode(robot_id=i, model=first.brain.model,
+                                         parameter_overrides=list(overrides))
+                              for i in range(1, num_robots)]
+        executor = MultiThreadedExecutor(num_threads=4)
+        for node in [simulator] + policies:
+            executor.add_node(node)
+        spinner = common.SpinThread(executor).start()
+        for node in policies:
+            node.start()
+        simulator.start()
+        try:
+            while not simulator.finished.wait(0.2):
+                pass
+        finally:
+            for node in policies:
+                node.stop()
+            spinner.stop()
+            for node in [simulator] + policies:
+                node.destroy_node()
+        return 0 if simulator.outcome is not None and simulator.outcome.success else 1
+    finally:
+        rclpy.try_shutdown()
+
+
+def report(record_path: str, elapsed: float) -> int:
+    try:
+        record = json.loads(Path(record_path).read_text())
+    except (OSError, ValueError) as exc:
+        print(f"mapf-fleet up: no outcome ({exc})", file=sys.stderr)
+        return 1
+    ticks = max(int(record.get("steps", 0)), 1)
+    print(f"outcome: {record['summary']}")
+    print(f"wall time {elapsed:.1f} s, {ticks / elapsed:.2f} ticks/s; record: {record_path}")
+    return 0 if record.get("success") else 1

@@ -1,0 +1,79 @@
+"""`mapf-fleet node NAME [--ros-args ...]`: run one node like `ros2 run mapf_fleet NAME`.
+
+NAME is simulator, policy or aggregator. `mapf-fleet node policy --robots 0-7 --ros-args -p
+checkpoint:=F` hosts several policy nodes in one process (one MultiThreadedExecutor), which is
+how large fleets stay within Fast DDS's ~32 processes per domain.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from mapf_fleet.ros import common
+
+NODES = {
+    "simulator": "mapf_fleet.ros.simulator_node",
+    "policy": "mapf_fleet.ros.policy_node",
+    "aggregator": "mapf_fleet.ros.aggregator_node",
+}
+
+
+def parse_robot_ids(text: str) -> list[int]:
+    """'0-3,7' -> [0, 1, 2, 3, 7]."""
+    ids: list[int] = []
+    try:
+        for part in text.split(","):
+            if "-" in part:
+                low, high = part.split("-")
+                ids.extend(range(int(low), int(high) + 1))
+            elif part.strip():
+                ids.append(int(part))
+    except ValueError:
+        raise ValueError(f"--robots: expected ids like '0-3,7', got {text!r}") from None
+    if not ids or min(ids) < 0:
+        raise ValueError(f"--robots: expected non-negative ids, got {text!r}")
+    return ids
+
+
+def host_policy_nodes(robot_ids: list[int], ros_args: list[str]) -> int:
+    import rclpy
+
+    from mapf_fleet.ros.policy_node import PolicyNode, load_policy_model, spin_policy_nodes
+
+    rclpy.init(args=["policy"] + ros_args)
+    try:
+        first = PolicyNode(robot_id=robot_ids[0])
+        # one model object shared by the nodes of this process (inference only, no state in it)
+        model = first.brain.model
+        nodes = [first] + [PolicyNode(robot_id=i, model=model) for i in robot_ids[1:]]
+        spin_policy_nodes(nodes)
+    finally:
+        rclpy.try_shutdown()
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    own, ros_args = common.split_ros_args(argv)
+    parser = argparse.ArgumentParser(prog="mapf-fleet node", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("name", choices=sorted(NODES))
+    parser.add_argument("--robots", help="policy only: host these robot ids in this process")
+    parser.add_argument("--params-file", help="ROS parameters YAML (same as --ros-args "
+                        "--params-file F)")
+    args = parser.parse_args(own)
+    if args.params_file:
+        ros_args = (ros_args or ["--ros-args"]) + ["--params-file", args.params_file]
+    common.prepare_environment()
+    if args.robots:
+        if args.name != "policy":
+            parser.error("--robots applies to the policy node only")
+        return host_policy_nodes(parse_robot_ids(args.robots), ros_args)
+    import importlib
+
+    return int(importlib.import_module(NODES[args.name]).main(ros_args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

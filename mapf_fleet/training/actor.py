@@ -1,0 +1,151 @@
+"""Ape-X actor: plays episodes with an epsilon-greedy copy of the network and returns them
+as replay sequences.
+
+`EpisodeWorker` is a plain class (tests and `use_ray: false` run it in-process); the trainer
+wraps it with `ray.remote` to run one per Ray worker. Rewards are the grid environment's
+individual rewards combined by Eq. 2 (`CooperativeReward(alpha)`, neighbours in the 9x9 FOV at
+the positions after the step) with the alpha of the current task.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from .config import TrainConfig
+from .episodes import EpisodeRecord, episode_to_sequences
+from .modelio import build_model, hidden_dim, model_step
+from .replay import pack_obs
+
+
+@dataclass(frozen=True)
+class Task:
+    """What actors should play: the curriculum setting and alpha, tagged with a version so the
+    trainer can drop episodes played under an older task."""
+
+    num_agents: int
+    map_size: int
+    alpha: float
+    version: int = 0
+
+
+class _Recorder:
+    """Buffers of one running episode."""
+
+    def __init__(self, obs_bits, positions, hidden):
+        self.obs, self.positions, self.hidden = [obs_bits], [positions], [hidden]
+        self.actions, self.rewards = [], []
+
+    def add(self, action, reward, obs_bits, positions, hidden):
+        self.actions.append(action)
+        self.rewards.append(reward)
+        self.obs.append(obs_bits)
+        self.positions.append(positions)
+        self.hidden.append(hidden)
+
+    def finish(self, terminal: bool) -> EpisodeRecord:
+        return EpisodeRecord(obs=np.stack(self.obs), positions=np.stack(self.positions),
+                             actions=np.stack(self.actions), rewards=np.stack(self.rewards),
+                             hidden=np.stack(self.hidden), terminal=terminal)
+
+
+class EpisodeWorker:
+    def __init__(self, cfg: TrainConfig, actor_index: int, seed: int | None = None):
+        torch.set_num_threads(1)
+        self.cfg = cfg
+        self.index = actor_index
+        self.epsilon = cfg.actor_epsilon(actor_index)
+        self.rng = np.random.default_rng(cfg.seed * 1000 + actor_index if seed is None else seed)
+        self.model = build_model(cfg).eval()
+        self.hidden_dim = hidden_dim(self.model)
+        self.weights_version = -1
+        self.task: Task | None = None
+        self.envs: list = []
+
+    # -- control ------------------------------------------------------------------------
+    def set_weights(self, state_dict: dict, version: int) -> None:
+        self.model.load_state_dict(state_dict)
+        self.weights_version = version
+
+    def set_task(self, task: Task) -> None:
+        if task != self.task:
+            self.task = task
+            self.envs = []  # episodes in progress belong to the old task: drop them
+
+    # -- episodes -------------------------------------------------------------------------
+    def _new_episode(self, slot: int):
+        from mapf_fleet.grid.env import EnvConfig, MAPFEnv
+        from mapf_fleet.grid.instance import generate_instance, sample_training_density
+
+        task = self.task
+        density = (sample_training_density(self.rng) if self.cfg.obstacle_density == "triangular"
+                   else float(self.cfg.obstacle_density))
+        instance = generate_instance(task.map_size, task.num_agents, density, self.rng)
+        env_cfg = EnvConfig(max_steps=self.cfg.max_episode_steps,
+                            finish_reward=self.cfg.finish_reward)
+        if slot < len(self.envs) and self.envs[slot] is not None:
+            env = self.envs[slot]["env"]
+            obs = env.reset(instance)
+        else:
+            env = MAPFEnv(instance, env_cfg)
+            obs = env.observe()
+        hidden = np.zeros((task.num_agents, self.hidden_dim), np.float32)
+        state = {"env": env, "obs": obs, "hidden": hidden,
+                 "rec": _Recorder(pack_obs(obs), env.positions.astype(np.int16),
+                                  hidden.astype(np.float16))}
+        if slot < len(self.envs):
+            self.envs[slot] = state
+        else:
+            self.envs.append(state)
+
+    def run(self, num_steps: int) -> dict:
+        """Step every environment `num_steps` times; return the sequences and statistics of
+        the episodes that finished. Episodes still running carry over to the next call (same
+        task), so short calls lose nothing and keep weights and curriculum fresh."""
+        from mapf_fleet.grid.reward import CooperativeReward
+
+        if self.task is None:
+            raise RuntimeError("EpisodeWorker.run: set_task() first")
+        cfg, task = self.cfg, self.task
+        coop = CooperativeReward(task.alpha, radius=4)
+        while len(self.envs) < cfg.envs_per_actor:
+            self._new_episode(len(self.envs))
+        sequences, stats = [], []
+        agent_steps, t0 = 0, time.perf_counter()
+        for _ in range(num_steps):
+            envs = self.envs
+            obs = torch.from_numpy(np.stack([e["obs"] for e in envs]))
+            pos = torch.from_numpy(np.stack([e["env"].positions for e in envs]).astype(np.int64))
+            hid = torch.from_numpy(np.stack([e["hidden"] for e in envs]))
+            last = torch.from_numpy(np.stack([e["env"].last_actions for e in envs]).astype(np.int64))
+            with torch.no_grad():
+                out = model_step(self.model, cfg.algo, obs, pos, hid, last)
+            actions = out.q.argmax(-1).numpy()
+            new_hidden = out.hidden.numpy()
+            explore = self.rng.random(actions.shape) < self.epsilon
+            if not cfg.explore_all_agents:
+                explore[:, 1:] = False
+            actions = np.where(explore, self.rng.integers(0, 5, actions.shape), actions)
+            for slot, e in enumerate(envs):
+                env = e["env"]
+                obs_next, rewards, done, info = env.step(actions[slot])
+                shaped = coop(rewards, env.positions)
+                e["obs"], e["hidden"] = obs_next, new_hidden[slot]
+                e["rec"].add(actions[slot].astype(np.uint8), shaped, pack_obs(obs_next),
+                             env.positions.astype(np.int16), new_hidden[slot].astype(np.float16))
+                agent_steps += task.num_agents
+                if done:
+                    record = e["rec"].finish(terminal=bool(info["success"]))
+                    sequences.extend(episode_to_sequences(record, cfg.seq_len, cfg.burn_in,
+                                                          cfg.n_step, cfg.gamma))
+                    stats.append({"success": bool(info["success"]), "steps": int(info["steps"]),
+                                  "num_agents": task.num_agents, "map_size": task.map_size,
+                                  "alpha": task.alpha, "task_version": task.version,
+                                  "actor": self.index, "epsilon": self.epsilon})
+                    self._new_episode(slot)
+        return {"sequences": sequences, "episodes": stats, "agent_steps": agent_steps,
+                "seconds": time.perf_counter() - t0, "actor": self.index,
+                "weights_version": self.weights_version, "task_version": task.version}

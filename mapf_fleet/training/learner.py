@@ -1,0 +1,131 @@
+"""The learner: n-step double-network Q-learning over replayed sequences of every agent.
+
+Efficiency choice (vs the reference learner). The reference samples one transition of agent 0,
+replays up to 16 steps of *every* agent to rebuild agent 0's recurrent and communication state,
+and trains agent 0's single output; all other outputs are thrown away. Here a sample is a
+sequence of `seq_len` steps of one episode and the loss covers **every agent at every trained
+step** (R2D2-style stored hidden state + optional burn-in). The forward cost per sample is about
+the same as the reference's (all agents over burn_in + seq_len + n steps, online and target),
+but it trains seq_len x N agent-transitions instead of 1. Approximations, both standard:
+  - the hidden state at the start of a window is the one the actor stored (with the actor's,
+    slightly older, weights); `burn_in` steps without a loss let it adapt (R2D2);
+  - one priority per sequence, eta * max|td| + (1 - eta) * mean|td| over its agents and steps,
+    and one importance weight per sequence (R2D2).
+Every agent is trained, so actors explore with epsilon on every agent (`explore_all_agents`).
+"""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from .config import TrainConfig
+from .modelio import build_model, model_step, pick_device
+from .replay import SequenceBatch
+
+
+class Learner:
+    def __init__(self, cfg: TrainConfig, device: str | torch.device | None = None):
+        self.cfg = cfg
+        self.device = pick_device(cfg.device) if device is None else torch.device(device)
+        self.model = build_model(cfg).to(self.device)
+        self.target = copy.deepcopy(self.model).eval()
+        for p in self.target.parameters():
+            p.requires_grad_(False)
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.lr)
+        self.updates = 0
+
+    # ------------------------------------------------------------------------------------------
+    def _tensors(self, batch: SequenceBatch) -> dict:
+        # Agents are packed at the front of a slot: cut the padding of small settings.
+        n = int(np.flatnonzero(batch.agent_mask.any(0)).max()) + 1
+        dev = self.device
+
+        def t(x, dtype=None):
+            return torch.as_tensor(np.ascontiguousarray(x), device=dev, dtype=dtype)
+
+        return {
+            "obs": t(batch.obs[:, :, :n]), "positions": t(batch.positions[:, :, :n]),
+            "last": t(batch.last_actions[:, :, :n]), "actions": t(batch.actions[:, :, :n]),
+            "returns": t(batch.returns[:, :, :n]), "discount": t(batch.boot_discount),
+            "boot_index": t(batch.boot_index), "step_mask": t(batch.step_mask),
+            "agent_mask": t(batch.agent_mask[:, :n]), "start": t(batch.start_index),
+            "hidden": t(batch.hidden[:, :n]), "weights": t(batch.weights),
+        }
+
+    def _unroll(self, net, d: dict, w_from: int, w_to: int, h: torch.Tensor):
+        """Run `net` over window steps [w_from, w_to); the stored hidden state replaces the
+        carried one until each sample's own start index."""
+        qs = []
+        for w in range(w_from, w_to):
+            out = model_step(net, self.cfg.algo, d["obs"][:, w], d["positions"][:, w], h,
+                             d["last"][:, w], d["agent_mask"])
+            before_start = (d["start"] > w)[:, None, None]  # input of step w+1 still stored
+            h = torch.where(before_start, d["hidden"], out.hidden)
+            qs.append(out.q)
+        return torch.stack(qs, 1), h
+
+    def compute_loss(self, batch: SequenceBatch):
+        """Return (loss, per-sequence priorities (B,) numpy, stats dict)."""
+        cfg, d = self.cfg, self._tensors(batch)
+        burn, length, window = cfg.burn_in, cfg.seq_len, cfg.window_len
+        h0 = d["hidden"]
+        with torch.no_grad():
+            q_target, _ = self._unroll(self.target, d, 0, window, h0)  # (B, W, N, 5)
+            values = q_target.max(-1).values  # (B, W, N)
+            n_agents = values.shape[-1]
+            index = d["boot_index"][:, :, None].expand(-1, -1, n_agents)
+            boot = values.gather(1, index)  # (B, L, N)
+            target = d["returns"] + d["discount"][:, :, None] * boot
+            h = h0
+            if burn:
+                _, h = self._unroll(self.model, d, 0, burn, h0)
+        q_online, _ = self._unroll(self.model, d, burn, burn + length, h)  # (B, L, N, 5)
+        q_taken = q_online.gather(-1, d["actions"][..., None]).squeeze(-1)
+        mask = (d["step_mask"][:, :, None] & d["agent_mask"][:, None, :]).float()
+        td = target - q_taken
+        elementwise = F.huber_loss(q_taken, target, reduction="none", delta=cfg.huber_delta)
+        count = mask.sum().clamp(min=1.0)
+        loss = (elementwise * mask * d["weights"][:, None, None]).sum() / count
+        with torch.no_grad():
+            abs_td = td.abs() * mask
+            per_seq_max = abs_td.flatten(1).max(1).values
+            per_seq_mean = abs_td.flatten(1).sum(1) / mask.flatten(1).sum(1).clamp(min=1.0)
+            priorities = cfg.priority_eta * per_seq_max + (1 - cfg.priority_eta) * per_seq_mean
+            mean_q = (q_taken * mask).sum() / count
+        stats = {"loss": float(loss.detach()), "mean_q": float(mean_q),
+                 "mean_abs_td": float(abs_td.sum() / count), "transitions": int(mask.sum())}
+        return loss, priorities.cpu().numpy(), stats
+
+    def update(self, batch: SequenceBatch):
+        """One gradient step; returns (priorities, stats)."""
+        self.model.train()
+        loss, priorities, stats = self.compute_loss(batch)
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        stats["grad_norm"] = float(torch.nn.utils.clip_grad_norm_(self.model.parameters(),
+                                                                   self.cfg.grad_clip))
+        self.optimizer.step()
+        self.updates += 1
+        if self.updates % self.cfg.target_update_interval == 0:
+            self.sync_target()
+        return priorities, stats
+
+    def sync_target(self) -> None:
+        self.target.load_state_dict(self.model.state_dict())
+
+    def cpu_weights(self) -> dict:
+        return {k: v.detach().to("cpu").clone() for k, v in self.model.state_dict().items()}
+
+    def state_dict(self) -> dict:
+        return {"model": self.model.state_dict(), "target": self.target.state_dict(),
+                "optimizer": self.optimizer.state_dict(), "updates": self.updates}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.model.load_state_dict(state["model"])
+        self.target.load_state_dict(state["target"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.updates = int(state["updates"])

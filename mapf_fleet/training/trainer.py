@@ -1,0 +1,376 @@
+"""The training loop: Ape-X actors (Ray or in-process), replay, learner, both curricula,
+run directory, TensorBoard, progress bar, resume.
+
+The driver process holds the replay and the learner; actors are Ray actors that each play
+`actor_steps_per_call` batched steps per call with the latest weights broadcast to them (every
+`actor_update_interval` updates) and return replay sequences plus episode outcomes. Outcomes of
+the lowest-epsilon actors played under the current task drive the curricula.
+
+Not saved across a resume: the replay content (refilled to `learning_starts`) and episodes in
+flight. Saved: weights, target, optimizer, curricula, counters, elapsed time.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from . import run_state
+from .actor import EpisodeWorker, Task
+from .config import TrainConfig, config_from_dict, load_config, save_config
+from .curriculum import AlphaCurriculum, ScaleCurriculum, SuccessWindow
+from .learner import Learner
+from .modelio import hidden_dim
+from .replay import PrioritizedSequenceReplay
+
+STAGE_SCALE, STAGE_ALPHA, STAGE_DONE = "scale", "alpha", "done"
+
+
+class _LocalActors:
+    """Actors run in-process, one call at a time (tests, debugging, `use_ray: false`)."""
+
+    def __init__(self, cfg: TrainConfig):
+        self.workers = [EpisodeWorker(cfg, i) for i in range(cfg.num_actors)]
+        self.weights = None
+        self.cursor = 0
+
+    def broadcast(self, weights: dict, version: int) -> None:
+        self.weights = (weights, version)
+
+    def poll(self, task: Task, block: bool) -> list[dict]:
+        worker = self.workers[self.cursor]
+        self.cursor = (self.cursor + 1) % len(self.workers)
+        if self.weights is not None and worker.weights_version != self.weights[1]:
+            worker.set_weights(*self.weights)
+        worker.set_task(task)
+        return [worker.run(worker.cfg.actor_steps_per_call)]
+
+    def close(self) -> None:
+        pass
+
+
+class _RayActors:
+    """Ape-X actors as Ray actors; results are collected with ray.wait as they finish."""
+
+    def __init__(self, cfg: TrainConfig):
+        import ray
+
+        self.ray = ray
+        self.started_ray = False
+        if not ray.is_initialized():
+            kwargs: dict[str, Any] = dict(include_dashboard=False, logging_level=logging.WARNING,
+                                          log_to_driver=False, configure_logging=True)
+            if cfg.ray_address:
+                ray.init(address=cfg.ray_address, **kwargs)
+            else:
+                ray.init(num_cpus=cfg.num_cpus, **kwargs)
+            self.started_ray = True
+        # Locally, actors share the configured CPUs; on a cluster each takes one CPU.
+        cpus = 1.0 if cfg.ray_address else min(1.0, cfg.num_cpus / cfg.num_actors)
+        remote_cls = ray.remote(num_cpus=cpus)(EpisodeWorker)
+        self.actors = [remote_cls.remote(cfg, i) for i in range(cfg.num_actors)]
+        self.cfg = cfg
+        self.weights_ref = None
+        self.weights_version = -1
+        self.actor_versions = [-2] * len(self.actors)
+        self.pending: dict = {}  # object ref -> actor index
+
+    def broadcast(self, weights: dict, version: int) -> None:
+        self.weights_ref = self.ray.put(weights)
+        self.weights_version = version
+
+    def _submit(self, index: int, task: Task) -> None:
+        actor = self.actors[index]
+        if self.weights_ref is not None and self.actor_versions[index] != self.weights_version:
+            actor.set_weights.remote(self.weights_ref, self.weights_version)
+            self.actor_versions[index] = self.weights_version
+        actor.set_task.remote(task)
+        self.pending[actor.run.remote(self.cfg.actor_steps_per_call)] = index
+
+    def poll(self, task: Task, block: bool) -> list[dict]:
+        busy = set(self.pending.values())
+        for index in range(len(self.actors)):
+            if index not in busy:
+                self._submit(index, task)
+        ready, _ = self.ray.wait(list(self.pending), num_returns=1, timeout=None if block else 0)
+        if ready:  # take every finished one without waiting more
+            more, _ = self.ray.wait([r for r in self.pending if r not in ready],
+                                    num_returns=len(self.pending) - len(ready), timeout=0)
+            ready = ready + more
+        results = []
+        for ref in ready:
+            index = self.pending.pop(ref)
+            results.append(self.ray.get(ref))
+            self._submit(index, task)
+        return results
+
+    def close(self) -> None:
+        for actor in self.actors:
+            self.ray.kill(actor)
+        self.pending.clear()
+        if self.started_ray:
+            self.ray.shutdown()
+
+
+class Trainer:
+    def __init__(self, cfg: TrainConfig, run_dir: str | Path, resume: bool = False):
+        self.cfg, self.run_dir = cfg, Path(run_dir)
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        torch.manual_seed(cfg.seed)
+        torch.set_num_threads(cfg.learner_threads)
+        self.learner = Learner(cfg)
+        self.replay = PrioritizedSequenceReplay(
+            cfg.replay_capacity, cfg.window_len, cfg.seq_len, cfg.final_agents,
+            hidden_dim(self.learner.model), cfg.priority_alpha, cfg.priority_epsilon, cfg.seed)
+        self.scale = ScaleCurriculum(cfg.start_agents, cfg.start_map_size, cfg.final_agents,
+                                     cfg.final_map_size, cfg.map_size_step, cfg.success_window,
+                                     cfg.success_threshold)
+        self.alpha = AlphaCurriculum(cfg.alpha_mode, cfg.alpha_step, cfg.alpha_max,
+                                     cfg.fixed_alpha, cfg.success_window, cfg.success_threshold,
+                                     cfg.alpha_max_updates, cfg.plateau_windows,
+                                     cfg.plateau_min_delta)
+        self.stage = STAGE_SCALE
+        self.task_version = 0
+        self.counters = {"episodes": 0, "gate_episodes": 0, "agent_steps": 0, "env_steps": 0,
+                         "elapsed_seconds": 0.0}
+        self.checkpoints: list[str] = []
+        self.gate_actors = set(cfg.gate_actor_indices())
+        # success of every setting / alpha seen, for the logs (not used for gating)
+        self.setting_windows: dict[str, SuccessWindow] = {}
+        self.events: list[str] = []
+        self.bar = None
+        if resume:
+            self._load_state()
+        else:
+            save_config(cfg, self.run_dir / run_state.CONFIG_FILE)
+        if self.stage == STAGE_SCALE and self.scale.done:
+            self._enter_stage_alpha(save=False)
+
+    # -- state ----------------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        return {"learner": self.learner.state_dict(), "scale": self.scale.state_dict(),
+                "alpha": self.alpha.state_dict(), "stage": self.stage,
+                "task_version": self.task_version, "counters": dict(self.counters),
+                "checkpoints": list(self.checkpoints), "config": self.cfg.to_dict()}
+
+    def _load_state(self) -> None:
+        state = run_state.load_state(self.run_dir)
+        self.learner.load_state_dict(state["learner"])
+        self.scale.load_state_dict(state["scale"])
+        self.alpha.load_state_dict(state["alpha"])
+        self.stage = str(state["stage"])
+        self.task_version = int(state["task_version"]) + 1  # episodes in flight are gone
+        self.counters.update(state["counters"])
+        self.checkpoints = list(state["checkpoints"])
+
+    def save_state(self) -> None:
+        run_state.save_state(self.run_dir, self.state_dict())
+
+    # -- curriculum -------------------------------------------------------------------------------
+    @property
+    def task(self) -> Task:
+        if self.stage == STAGE_SCALE:
+            return Task(self.scale.num_agents, self.scale.map_size, 0.0, self.task_version)
+        return Task(self.cfg.final_agents, self.cfg.final_map_size, float(self.alpha.alpha),
+                    self.task_version)
+
+    def _metadata(self) -> dict:
+        return {"alpha": float(self.task.alpha),
+                "curriculum": {"stage": self.stage, "setting": list(self.scale.setting),
+                               "alpha_passed": list(self.alpha.passed),
+                               "alpha_star": self.alpha.alpha_star},
+                "learner_steps": int(self.learner.updates),
+                "training_config": self.cfg.to_dict()}
+
+    def save_checkpoint(self, name: str, alpha: float | None = None) -> Path:
+        from mapf_fleet.models.checkpoint import save_checkpoint
+
+        meta = self._metadata()
+        if alpha is not None:
+            meta["alpha"] = float(alpha)
+        path = self.run_dir / run_state.CHECKPOINT_DIR / name
+        save_checkpoint(path, self.learner.model, meta)
+        if name not in self.checkpoints:
+            self.checkpoints.append(name)
+        return path
+
+    def _enter_stage_alpha(self, save: bool = True) -> None:
+        if save:
+            self.save_checkpoint("stage1.pt", alpha=0.0)
+        self.stage = STAGE_DONE if self.alpha.done else STAGE_ALPHA
+        self.alpha.begin(self.learner.updates)
+        self.task_version += 1
+
+    def _record_episode(self, ep: dict) -> None:
+        self.counters["episodes"] += 1
+        key = f"{ep['num_agents']}agents_{ep['map_size']}x{ep['map_size']}_alpha{ep['alpha']:.1f}"
+        self.setting_windows.setdefault(key, SuccessWindow(self.cfg.success_window)).add(
+            ep["success"])
+        if ep["actor"] not in self.gate_actors or ep["task_version"] != self.task_version:
+            return
+        self.counters["gate_episodes"] += 1
+        if self.stage == STAGE_SCALE:
+            if self.scale.record(ep["success"]):
+                self.task_version += 1
+                self._log_event(f"stage 1: setting -> {self.scale.setting}")
+                if self.scale.done:
+                    self._enter_stage_alpha()
+        elif self.stage == STAGE_ALPHA:
+            alpha_now = self.alpha.alpha
+            event = self.alpha.record(ep["success"], self.learner.updates)
+            if event == AlphaCurriculum.PASSED:
+                self.save_checkpoint(run_state.alpha_checkpoint_name(alpha_now), alpha=alpha_now)
+                self.task_version += 1
+                self._log_event(f"stage 2: alpha {alpha_now:g} passed")
+            if self.alpha.done:
+                self.stage = STAGE_DONE
+                self._log_event(f"stage 2 done: {self.alpha.stop_reason}")
+
+    def _log_event(self, text: str) -> None:
+        self.events.append(f"[update {self.learner.updates}] {text}")
+        if self.bar is not None:
+            self.bar.write(text)
+
+    # -- main loop --------------------------------------------------------------------------------
+    def run(self) -> dict:
+        cfg = self.cfg
+        writer = None
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+
+            writer = SummaryWriter(str(self.run_dir / run_state.TB_DIR))
+        except ImportError:  # tensorboard missing: train anyway, say so
+            logging.getLogger(__name__).warning("tensorboard not installed: no scalars written")
+        if cfg.progress_bar:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=cfg.max_updates, initial=self.learner.updates, unit="upd",
+                            dynamic_ncols=True)
+        actors = _RayActors(cfg) if cfg.use_ray else _LocalActors(cfg)
+        start = time.monotonic()
+        elapsed0 = self.counters["elapsed_seconds"]
+        last_state, last_log = self.learner.updates, time.monotonic()
+        last_state_time = time.monotonic()
+        rate_steps, rate_updates, rate_t = 0, 0, time.monotonic()
+        last_stats: dict = {}
+        actors.broadcast(self.learner.cpu_weights(), self.learner.updates)
+        stop_reason = ""
+        try:
+            while self.stage != STAGE_DONE:
+                if self.learner.updates >= cfg.max_updates:
+                    stop_reason = f"max_updates {cfg.max_updates} reached"
+                    break
+                if cfg.max_wall_seconds and time.monotonic() - start >= cfg.max_wall_seconds:
+                    stop_reason = f"max_wall_seconds {cfg.max_wall_seconds:g} reached"
+                    break
+                can_learn = (self.replay.added_steps >= cfg.learning_starts
+                             and len(self.replay) > 0)
+                for result in actors.poll(self.task, block=not can_learn):
+                    for seq in result["sequences"]:
+                        self.replay.add(seq)
+                    self.counters["agent_steps"] += result["agent_steps"]
+                    rate_steps += result["agent_steps"]
+                    for ep in result["episodes"]:
+                        self.counters["env_steps"] += ep["steps"]
+                        self._record_episode(ep)
+                        if self.stage == STAGE_DONE:
+                            break
+                    if self.stage == STAGE_DONE:
+                        break
+                if self.stage == STAGE_DONE:
+                    break
+                if self.replay.added_steps >= cfg.learning_starts and len(self.replay) > 0:
+                    for _ in range(cfg.updates_per_poll):
+                        batch = self.replay.sample(cfg.batch_size, cfg.priority_beta)
+                        priorities, last_stats = self.learner.update(batch)
+                        self.replay.update_priorities(batch.indices, priorities)
+                        rate_updates += 1
+                        if self.bar is not None:
+                            self.bar.update(1)
+                        if self.learner.updates % cfg.actor_update_interval == 0:
+                            actors.broadcast(self.learner.cpu_weights(), self.learner.updates)
+                    if self.stage == STAGE_ALPHA and self.alpha.check_budget(self.learner.updates):
+                        self.stage = STAGE_DONE
+                        self._log_event(f"stage 2 done: {self.alpha.stop_reason}")
+                now = time.monotonic()
+                self.counters["elapsed_seconds"] = elapsed0 + now - start
+                if now - last_log >= cfg.log_interval_seconds:
+                    span = max(now - rate_t, 1e-9)
+                    rates = {"actor_agent_steps_per_s": rate_steps / span,
+                             "learner_updates_per_s": rate_updates / span}
+                    self._write_scalars(writer, last_stats, rates)
+                    rate_steps, rate_updates, rate_t, last_log = 0, 0, now, now
+                if (self.learner.updates - last_state >= cfg.state_interval_updates
+                        or now - last_state_time >= cfg.state_interval_seconds):
+                    self.save_state()
+                    last_state, last_state_time = self.learner.updates, now
+        finally:
+            actors.close()
+            self.counters["elapsed_seconds"] = elapsed0 + time.monotonic() - start
+            if self.bar is not None:
+                self.bar.close()
+        if self.stage == STAGE_DONE and not stop_reason:
+            stop_reason = self.alpha.stop_reason or "stage 2 done"
+        self.save_checkpoint("final.pt")
+        self.save_state()
+        result = self.result(stop_reason)
+        run_state.write_result(self.run_dir, result)
+        if writer is not None:
+            writer.close()
+        return result
+
+    def result(self, stop_reason: str) -> dict:
+        return {"stage": self.stage, "finished": self.stage == STAGE_DONE,
+                "stop_reason": stop_reason, "alpha_star": self.alpha.alpha_star,
+                "alpha_passed": list(self.alpha.passed), "setting": list(self.scale.setting),
+                "learner_updates": self.learner.updates, "checkpoints": list(self.checkpoints),
+                "counters": dict(self.counters), "events": list(self.events)}
+
+    def _write_scalars(self, writer, stats: dict, rates: dict) -> None:
+        step = self.learner.updates
+        if self.bar is not None:
+            agents, size = self.task.num_agents, self.task.map_size
+            window = self.scale.window if self.stage == STAGE_SCALE else self.alpha.window
+            self.bar.set_postfix_str(
+                f"stage {self.stage} | {agents} agents {size}x{size} | alpha {self.task.alpha:.1f}"
+                f" | success {window.rate:.2f} | {rates['actor_agent_steps_per_s']:.0f} agent-steps/s"
+                f" | {rates['learner_updates_per_s']:.2f} upd/s")
+        if writer is None:
+            return
+        for key in ("loss", "mean_q", "mean_abs_td", "grad_norm"):
+            if key in stats:
+                writer.add_scalar(f"learner/{key}", stats[key], step)
+        for key, value in rates.items():
+            writer.add_scalar(f"rate/{key}", value, step)
+        writer.add_scalar("curriculum/stage", {STAGE_SCALE: 1, STAGE_ALPHA: 2}.get(self.stage, 3),
+                          step)
+        writer.add_scalar("curriculum/num_agents", self.task.num_agents, step)
+        writer.add_scalar("curriculum/map_size", self.task.map_size, step)
+        writer.add_scalar("curriculum/alpha", self.task.alpha, step)
+        gate = self.scale.window if self.stage == STAGE_SCALE else self.alpha.window
+        writer.add_scalar("curriculum/gate_success_rate", gate.rate, step)
+        for key, window in self.setting_windows.items():
+            writer.add_scalar(f"success_rate/{key}", window.rate, step)
+        writer.add_scalar("replay/sequences", len(self.replay), step)
+        writer.flush()
+
+
+def train(config_path: str | Path | None = None, run_dir: str | Path | None = None,
+          resume: str | Path | None = None, overrides: dict | None = None) -> dict:
+    """Start (config + run_dir) or resume (run dir) a training run; returns the result."""
+    if resume is not None:
+        run_dir = Path(resume)
+        cfg = load_config(run_dir / run_state.CONFIG_FILE)
+    else:
+        if config_path is None or run_dir is None:
+            raise ValueError("train: give config_path and run_dir, or resume")
+        cfg = load_config(config_path)
+    if overrides:
+        cfg = config_from_dict({**cfg.to_dict(), **overrides}, source="overrides")
+    return Trainer(cfg, run_dir, resume=resume is not None).run()

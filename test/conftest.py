@@ -1,0 +1,121 @@
+"""Shared test set-up: the ROS environment every test process needs, and the `ros_env` fixture
+that isolates each ROS test in its own DDS domain.
+
+Several engineers (and CI) run ROS tests on the same machine at the same time, so a domain id is
+reserved machine-wide with a lock file for the duration of a test, not just picked per process.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import glob
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parent.parent
+
+# Make `python -m pytest` work without sourcing scripts/env.sh first: the venv is the ROS
+# prefix, and nothing the tests start may talk beyond loopback. Set before any rclpy import so
+# that subprocesses inherit it too.
+os.environ.setdefault("AMENT_PREFIX_PATH", sys.prefix)
+os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+
+# Domain ids 1..101 keep Fast DDS's port numbers valid on Linux; 0 is everyone's default.
+DOMAIN_IDS = range(1, 102)
+DOMAIN_LOCK_DIR = Path(os.environ.get("MAPF_FLEET_DOMAIN_LOCKS", "/tmp/mapf_fleet_ros_domains"))
+# Shared-memory files younger than this may belong to a process that is still setting up.
+STALE_SHM_AGE_S = 10.0
+
+
+@dataclass
+class RosTestEnv:
+    """What a ROS test needs: its private domain id, and the environment for subprocesses."""
+
+    domain_id: int
+    env: dict[str, str] = field(repr=False)
+
+
+def _reserve_domain_id() -> tuple[int, int]:
+    """Lock and return (domain_id, lock_fd). The lock (flock) is released when the fd closes or
+    the process dies, so a crashed test run never leaks a reservation."""
+    DOMAIN_LOCK_DIR.mkdir(parents=True, exist_ok=True)
+    start = os.getpid() % len(DOMAIN_IDS)  # spread concurrent runs over the range
+    for k in range(len(DOMAIN_IDS)):
+        domain_id = DOMAIN_IDS[(start + k) % len(DOMAIN_IDS)]
+        fd = os.open(DOMAIN_LOCK_DIR / f"{domain_id}.lock", os.O_CREAT | os.O_RDWR, 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            continue
+        return domain_id, fd
+    raise RuntimeError(f"all ROS domain ids {DOMAIN_IDS.start}..{DOMAIN_IDS.stop - 1} are in use")
+
+
+def _shm_files_in_use() -> set[str]:
+    """Every /dev/shm path some live process has mapped or open."""
+    in_use: set[str] = set()
+    for proc in glob.glob("/proc/[0-9]*"):
+        try:
+            with open(f"{proc}/maps") as maps:
+                for line in maps:
+                    idx = line.find("/dev/shm/")
+                    if idx >= 0:
+                        in_use.add(line[idx:].rstrip("\n").removesuffix(" (deleted)"))
+            for fd in os.listdir(f"{proc}/fd"):
+                target = os.readlink(f"{proc}/fd/{fd}")
+                if target.startswith("/dev/shm/"):
+                    in_use.add(target)
+        except OSError:  # the process ended or is not ours to read
+            continue
+    return in_use
+
+
+def cleanup_stale_fastdds_shm() -> int:
+    """Remove Fast DDS shared-memory files that no live process uses (left by killed nodes).
+    Files still mapped or open by anyone (another engineer's running fleet) are kept."""
+    candidates = glob.glob("/dev/shm/fastrtps_*") + glob.glob("/dev/shm/sem.fastrtps_*")
+    if not candidates:
+        return 0
+    in_use = _shm_files_in_use()
+    now = time.time()
+    removed = 0
+    for path in candidates:
+        try:
+            if path in in_use or now - os.path.getmtime(path) < STALE_SHM_AGE_S:
+                continue
+            os.remove(path)
+            removed += 1
+        except OSError:
+            continue
+    return removed
+
+
+@pytest.fixture
+def ros_env(monkeypatch: pytest.MonkeyPatch) -> RosTestEnv:
+    """A private ROS_DOMAIN_ID for this test (set in os.environ for in-process rclpy, and in
+    `.env` for subprocesses), loopback-only discovery, and removal of stale Fast DDS
+    shared-memory files before and after the test."""
+    cleanup_stale_fastdds_shm()
+    domain_id, lock_fd = _reserve_domain_id()
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(domain_id))
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    env = dict(os.environ)
+    try:
+        yield RosTestEnv(domain_id=domain_id, env=env)
+    finally:
+        os.close(lock_fd)
+        cleanup_stale_fastdds_shm()
+
+
+@pytest.fixture(autouse=True)
+def _isolate_ros_tests(request: pytest.FixtureRequest) -> None:
+    """Every test marked `ros` gets its own domain even if it does not ask for `ros_env`."""
+    if request.node.get_closest_marker("ros") is not None:
+        request.getfixturevalue("ros_env")
