@@ -26,6 +26,12 @@ inputs_hash() {
   { printf '%s\n' "$extra"; for f in "$@"; do printf '%s\n' "$f"; cat "$f"; done; } \
     | sha256sum | cut -d' ' -f1
 }
+# pip, with the warnings of this machine's pip configuration about index locations that do not
+# hold a package filtered out (hundreds of lines of noise in a fresh install).
+run_pip() {
+  { "$PY" -m pip --disable-pip-version-check "$@" 2>&1 1>&3 \
+      | { grep -v "is ignored: it is neither a file nor a directory" || true; } >&2; } 3>&1
+}
 stamp_matches() { [ -f "$STAMPS/$1" ] && [ "$(cat "$STAMPS/$1")" = "$2" ]; }
 write_stamp() { mkdir -p "$STAMPS"; printf '%s\n' "$2" > "$STAMPS/$1"; }
 
@@ -77,8 +83,7 @@ if stamp_matches requirements "$REQ_HASH"; then
   say "requirements unchanged: skipping pip"
 else
   say "pip install -r requirements.txt -c constraints.txt"
-  "$PY" -m pip install --disable-pip-version-check -q \
-    -r "$REPO/requirements.txt" -c "$REPO/constraints.txt"
+  run_pip install -q -r "$REPO/requirements.txt" -c "$REPO/constraints.txt"
   write_stamp requirements "$REQ_HASH"
 fi
 
@@ -142,7 +147,7 @@ if stamp_matches package "$PKG_HASH" && "$PY" -c 'import mapf_fleet' 2>/dev/null
 else
   say "pip install -e . (mapf_fleet)"
   # No build isolation: the build uses the pinned setuptools already in the venv (offline-safe).
-  "$PY" -m pip install --disable-pip-version-check -q --no-deps --no-build-isolation -e "$REPO"
+  run_pip install -q --no-deps --no-build-isolation -e "$REPO"
   write_stamp package "$PKG_HASH"
 fi
 

@@ -12,7 +12,6 @@ import glob
 import os
 import sys
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
@@ -33,12 +32,17 @@ DOMAIN_LOCK_DIR = Path(os.environ.get("MAPF_FLEET_DOMAIN_LOCKS", "/tmp/mapf_flee
 STALE_SHM_AGE_S = 10.0
 
 
-@dataclass
-class RosTestEnv:
-    """What a ROS test needs: its private domain id, and the environment for subprocesses."""
+class RosTestEnv(dict):
+    """What a ROS test needs: the environment for the processes it starts (this dict itself, so
+    `subprocess.Popen(..., env=ros_env)` works), with its private `.domain_id`."""
 
-    domain_id: int
-    env: dict[str, str] = field(repr=False)
+    def __init__(self, domain_id: int, env: dict[str, str]):
+        super().__init__(env)
+        self.domain_id = domain_id
+
+    @property
+    def env(self) -> dict[str, str]:
+        return self
 
 
 def _reserve_domain_id() -> tuple[int, int]:
@@ -106,9 +110,8 @@ def ros_env(monkeypatch: pytest.MonkeyPatch) -> RosTestEnv:
     domain_id, lock_fd = _reserve_domain_id()
     monkeypatch.setenv("ROS_DOMAIN_ID", str(domain_id))
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    env = dict(os.environ)
     try:
-        yield RosTestEnv(domain_id=domain_id, env=env)
+        yield RosTestEnv(domain_id, dict(os.environ))
     finally:
         os.close(lock_fd)
         cleanup_stale_fastdds_shm()

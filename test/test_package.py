@@ -313,7 +313,7 @@ def test_fleet_state_crosses_processes(ros_env):
     rclpy = pytest.importorskip("rclpy")
     msg_module = pytest.importorskip("mapf_fleet_interfaces.msg", reason=REBUILD_HINT)
     publisher = subprocess.Popen(
-        [sys.executable, "-c", _PUBLISHER, "15"], env=ros_env.env,
+        [sys.executable, "-c", _PUBLISHER, "15"], env=ros_env,
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
     )
     context = rclpy.Context()
@@ -338,3 +338,51 @@ def test_fleet_state_crosses_processes(ros_env):
     assert received, f"no FleetState from the publisher process (domain {ros_env.domain_id}):\n{output}"
     assert list(received[0].rows) == [1, 2, 3] and list(received[0].cols) == [4, 5, 6]
     assert received[0].tick > 41
+
+
+# ---------------------------------------------------------------------------------------------
+# the shared ROS test fixtures (test/conftest.py)
+
+
+def _root_conftest():
+    """test/conftest.py by path: `import conftest` may give test/ros/conftest.py instead."""
+    spec = importlib.util.spec_from_file_location("mapf_fleet_root_conftest", REPO / "test" / "conftest.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_domain_reservations_are_exclusive_until_released():
+    conftest = _root_conftest()
+
+    first, first_fd = conftest._reserve_domain_id()
+    second, second_fd = conftest._reserve_domain_id()
+    try:
+        assert first != second
+        assert all(d in conftest.DOMAIN_IDS for d in (first, second))
+    finally:
+        os.close(first_fd)
+        os.close(second_fd)
+
+
+@pytest.mark.skipif(not os.path.isdir("/dev/shm"), reason="no /dev/shm")
+def test_shm_cleanup_removes_only_unused_files():
+    conftest = _root_conftest()
+
+    tag = f"fastrtps_mapf_fleet_test_{os.getpid()}"
+    held, stale = f"/dev/shm/{tag}_held", f"/dev/shm/{tag}_stale"
+    old = time.time() - 3600  # older than the grace period for files being set up
+    for path in (held, stale):
+        with open(path, "w") as f:
+            f.write("x")
+        os.utime(path, (old, old))
+    handle = open(held)
+    try:
+        conftest.cleanup_stale_fastdds_shm()
+        assert os.path.exists(held), "a file a live process holds open was removed"
+        assert not os.path.exists(stale), "an unused, old file was kept"
+    finally:
+        handle.close()
+        for path in (held, stale):
+            if os.path.exists(path):
+                os.remove(path)

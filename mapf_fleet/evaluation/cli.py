@@ -147,7 +147,7 @@ def main(argv: list[str] | None = None) -> int:
     results = evaluate(specs, scenarios, workers=args.workers, batch_size=args.batch_size, progress=progress)
     wall_time = time.perf_counter() - began
 
-    print(markdown_report(results, extra=False))
+    print(markdown_report(results, extra=("agent_success_rate",)))
     planners = [r for r in results if r.plan_time is not None]
     if planners:
         from .planners import library_version

@@ -60,12 +60,17 @@ def _limits(results: list[ScenarioResult], map_name: str) -> str:
             f"instances: {'; '.join(sources)}")
 
 
-def markdown_report(results: list[ScenarioResult], *, extra: bool = True) -> str:
-    """The paper's two tables per map (success rate, average steps), then the extra metrics."""
+def markdown_report(results: list[ScenarioResult], *, extra: bool | tuple[str, ...] = True) -> str:
+    """The paper's two tables per map (success rate, average steps), then the extra metrics
+    (all of them, or the named ones)."""
+    if extra is True:
+        extras = EXTRA_METRICS
+    else:
+        extras = tuple(m for m in EXTRA_METRICS if extra and m[0] in extra)
     parts = []
     for map_name in _maps(results):
         parts.append(f"### {map_name} ({_limits(results, map_name)})\n")
-        for metric, title, pattern in PAPER_METRICS + (EXTRA_METRICS if extra else ()):
+        for metric, title, pattern in PAPER_METRICS + extras:
             parts.append(metric_table(results, map_name, metric, title, pattern) + "\n")
     return "\n".join(parts)
 

@@ -32,8 +32,8 @@ def synthetic_obs(rng: np.random.Generator, positions: np.ndarray, radius: int =
     return obs
 
 
-def make_sensitive(net: torch.nn.Module, seed: int, weight_scale: float = 1.5,
-                   head_scale: float = 1.0) -> torch.nn.Module:
+def make_sensitive(net: torch.nn.Module, seed: int, weight_scale: float = 1.2,
+                   head_scale: float = 0.5, agent_channel_scale: float = 3.0) -> torch.nn.Module:
     """Re-initialise with larger weights so greedy actions react to single agents.
 
     With PyTorch's default init a freshly built network hardly ever changes its greedy action
@@ -48,6 +48,8 @@ def make_sensitive(net: torch.nn.Module, seed: int, weight_scale: float = 1.5,
                 p.copy_(torch.randn(p.shape, generator=gen) * (weight_scale / fan_in**0.5))
             else:
                 p.copy_(torch.randn(p.shape, generator=gen) * 0.1)
+        # Neighbours (observation channel 0) weigh more, so erasing one often flips an action.
+        net.obs_encoder[0].weight[:, 0] *= agent_channel_scale
         for p in net.head.parameters():
             p.mul_(head_scale)
     return net

@@ -168,6 +168,7 @@ class SimulatorNode(Node):
         timeout = float(self.params["decision_timeout"])
         period = float(self.params["tick_period"])
         steps = 0
+        run_started = time.monotonic()
         success = bool((self.positions == self.goals).all())
         while not success and steps < max_steps and rclpy.ok():
             started = time.monotonic()
@@ -225,7 +226,8 @@ class SimulatorNode(Node):
         self.outcome_pub.publish(self.outcome)
         self.get_logger().info(summary)
         if self.params["record_file"]:
-            self.record.update(success=success, steps=steps, collisions=self.collisions,
+            self.record.update(run_seconds=time.monotonic() - run_started,
+                               success=success, steps=steps, collisions=self.collisions,
                                missed_decisions=self.missed, summary=summary)
             with open(self.params["record_file"], "w") as handle:
                 json.dump(self.record, handle)

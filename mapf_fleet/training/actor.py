@@ -37,11 +37,12 @@ class _Recorder:
 
     def __init__(self, obs_bits, positions, hidden):
         self.obs, self.positions, self.hidden = [obs_bits], [positions], [hidden]
-        self.actions, self.rewards = [], []
+        self.actions, self.rewards, self.individual = [], [], []
 
-    def add(self, action, reward, obs_bits, positions, hidden):
+    def add(self, action, reward, individual, obs_bits, positions, hidden):
         self.actions.append(action)
         self.rewards.append(reward)
+        self.individual.append(individual)
         self.obs.append(obs_bits)
         self.positions.append(positions)
         self.hidden.append(hidden)
@@ -49,7 +50,8 @@ class _Recorder:
     def finish(self, terminal: bool) -> EpisodeRecord:
         return EpisodeRecord(obs=np.stack(self.obs), positions=np.stack(self.positions),
                              actions=np.stack(self.actions), rewards=np.stack(self.rewards),
-                             hidden=np.stack(self.hidden), terminal=terminal)
+                             hidden=np.stack(self.hidden), terminal=terminal,
+                             individual_rewards=np.stack(self.individual))
 
 
 class EpisodeWorker:
@@ -64,6 +66,8 @@ class EpisodeWorker:
         self.weights_version = -1
         self.task: Task | None = None
         self.envs: list = []
+        self.keep_records = False  # tests: keep finished EpisodeRecords in `records`
+        self.records: list[EpisodeRecord] = []
 
     # -- control ------------------------------------------------------------------------
     def set_weights(self, state_dict: dict, version: int) -> None:
@@ -134,11 +138,13 @@ class EpisodeWorker:
                 obs_next, rewards, done, info = env.step(actions[slot])
                 shaped = coop(rewards, env.positions)
                 e["obs"], e["hidden"] = obs_next, new_hidden[slot]
-                e["rec"].add(actions[slot].astype(np.uint8), shaped, pack_obs(obs_next),
+                e["rec"].add(actions[slot].astype(np.uint8), shaped, rewards, pack_obs(obs_next),
                              env.positions.astype(np.int16), new_hidden[slot].astype(np.float16))
                 agent_steps += task.num_agents
                 if done:
                     record = e["rec"].finish(terminal=bool(info["success"]))
+                    if self.keep_records:
+                        self.records.append(record)
                     sequences.extend(episode_to_sequences(record, cfg.seq_len, cfg.burn_in,
                                                           cfg.n_step, cfg.gamma))
                     stats.append({"success": bool(info["success"]), "steps": int(info["steps"]),

@@ -26,6 +26,7 @@ class EpisodeRecord:
     rewards: np.ndarray  # (T, N) rewards as trained on (Eq. 2 already applied)
     hidden: np.ndarray  # (T+1, N, H) hidden state fed into step t
     terminal: bool  # the episode ended by success (no bootstrap past the end)
+    individual_rewards: np.ndarray | None = None  # (T, N) env rewards before Eq. 2 (for checks)
 
     @property
     def length(self) -> int:

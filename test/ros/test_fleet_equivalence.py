@@ -54,11 +54,12 @@ def run_fleet(tmp_path, env, checkpoint, seed, num_robots, size, max_steps, extr
 @pytest.mark.slow
 @pytest.mark.parametrize("algo", ["dhc", "dcc"])
 def test_separate_processes_match_batched_rollout(tmp_path, ros_env, checkpoints, algo):
-    for seed in (3, 11):
+    # one robot per process, then 4 robots' nodes per process (the large-fleet layout)
+    for seed, per_process in ((3, 1), (11, 4)):
         instance = generate_instance(10, 8, 0.2, seed)
         expected_actions, expected_positions = batched_rollout(checkpoints[algo], instance, 16)
         record, proc = run_fleet(tmp_path, ros_env, checkpoints[algo], seed, 8, 10, 16,
-                                 extra=["--density", "0.2"])
+                                 extra=["--density", "0.2", "--nodes-per-process", str(per_process)])
         assert record["missed_decisions"] == 0, proc.stdout
         assert record["actions"] == expected_actions, f"seed {seed}"
         assert record["positions"] == expected_positions, f"seed {seed}"

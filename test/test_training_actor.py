@@ -1,0 +1,77 @@
+"""The actor: Eq. 2 applied to the environment's rewards, epsilon schedule, sequences out."""
+
+import numpy as np
+import pytest
+import torch
+
+from mapf_fleet.training.actor import EpisodeWorker, Task
+from mapf_fleet.training.config import TrainConfig
+
+
+def _cfg(**kw):
+    base = dict(model_preset="small", num_actors=2, envs_per_actor=2, max_episode_steps=12,
+                seq_len=4, burn_in=2, final_agents=6, final_map_size=10, obstacle_density=0.0,
+                explore_all_agents=True)
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+def _eq2_by_hand(rewards, positions, alpha):
+    out = np.empty(len(rewards))
+    for i in range(len(rewards)):
+        near = [j for j in range(len(rewards)) if j != i
+                and abs(positions[j][0] - positions[i][0]) <= 4
+                and abs(positions[j][1] - positions[i][1]) <= 4]
+        out[i] = rewards[i] if not near else \
+            (1 - alpha) * rewards[i] + alpha * np.mean([rewards[j] for j in near])
+    return out
+
+
+def test_actor_rewards_follow_eq2_with_task_alpha():
+    torch.manual_seed(0)
+    worker = EpisodeWorker(_cfg(), actor_index=0, seed=3)  # epsilon 0.4: varied rewards
+    worker.keep_records = True
+    worker.set_task(Task(num_agents=6, map_size=10, alpha=0.5))
+    result = worker.run(40)
+    assert worker.records and len(result["episodes"]) == len(worker.records)
+    differs = False
+    for rec in worker.records:
+        for t in range(rec.length):
+            expected = _eq2_by_hand(rec.individual_rewards[t], rec.positions[t + 1], 0.5)
+            np.testing.assert_allclose(rec.rewards[t], expected, rtol=1e-5, atol=1e-6)
+            differs |= not np.allclose(rec.rewards[t], rec.individual_rewards[t])
+    assert differs, "6 agents on 10x10 always have FOV neighbours with different rewards"
+    # sequences carry all 6 agents and the n-step sums of the shaped rewards
+    seq = result["sequences"][0]
+    assert seq["actions"].shape == (4, 6) and seq["hidden"].shape[0] == 6
+    rec = worker.records[0]
+    r = rec.rewards
+    np.testing.assert_allclose(seq["returns"][0], r[0] + 0.99 * r[1], rtol=1e-5)
+
+
+def test_alpha_zero_keeps_individual_rewards():
+    worker = EpisodeWorker(_cfg(), actor_index=0, seed=4)
+    worker.keep_records = True
+    worker.set_task(Task(num_agents=4, map_size=10, alpha=0.0))
+    worker.run(12)
+    for rec in worker.records:
+        np.testing.assert_allclose(rec.rewards, rec.individual_rewards)
+
+
+def test_epsilon_schedule_and_gate_actors():
+    cfg = TrainConfig(num_actors=4)
+    eps = [cfg.actor_epsilon(i) for i in range(4)]
+    np.testing.assert_allclose(eps, [0.4 ** (1 + 7 * i / 3) for i in range(4)])
+    assert cfg.gate_actor_indices() == [2, 3]
+    assert TrainConfig(num_actors=1).gate_actor_indices() == [0]
+
+
+def test_task_change_drops_running_episodes():
+    worker = EpisodeWorker(_cfg(), actor_index=1, seed=5)
+    worker.set_task(Task(2, 10, 0.0, version=0))
+    worker.run(3)
+    assert worker.envs
+    worker.set_task(Task(3, 10, 0.0, version=1))
+    assert worker.envs == []
+    result = worker.run(12)
+    assert all(ep["num_agents"] == 3 and ep["task_version"] == 1 for ep in result["episodes"])

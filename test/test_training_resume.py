@@ -1,0 +1,94 @@
+"""Run directory, config loading and resume after kill -9."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from mapf_fleet.training import run_state
+from mapf_fleet.training.config import TrainConfig, TrainConfigError, config_from_dict, load_config
+from mapf_fleet.training.trainer import Trainer
+
+REPO = Path(__file__).resolve().parent.parent
+CONFIGS = REPO / "config" / "training"
+
+
+@pytest.mark.parametrize("name", ["dhc_paper", "dcc_paper", "dhc_cpu", "dcc_cpu", "tiny"])
+def test_shipped_configs_load(name):
+    cfg = load_config(CONFIGS / f"{name}.yaml")
+    assert cfg.algo in ("dhc", "dcc")
+
+
+def test_paper_defaults_and_dcc_preset():
+    dhc = TrainConfig()
+    assert (dhc.batch_size, dhc.seq_len, dhc.lr, dhc.target_update_interval) == (192, 16, 1e-4, 2000)
+    assert (dhc.gamma, dhc.n_step, dhc.grad_clip, dhc.learning_starts) == (0.99, 2, 40.0, 50_000)
+    dcc = config_from_dict({"preset": "dcc"})
+    assert (dcc.batch_size, dcc.seq_len, dcc.lr, dcc.final_agents) == (128, 20, 2e-4, 16)
+
+
+def test_bad_config_names_file_field_and_value(tmp_path):
+    path = tmp_path / "bad.yaml"
+    path.write_text("batch_size: 0\n")
+    with pytest.raises(TrainConfigError, match=r"bad.yaml.*batch_size.*0"):
+        load_config(path)
+    path.write_text("batchsize: 3\n")
+    with pytest.raises(TrainConfigError, match="unknown field 'batchsize'"):
+        load_config(path)
+    path.write_text("lr: fast\n")
+    with pytest.raises(TrainConfigError, match="'lr'.*fast"):
+        load_config(path)
+    with pytest.raises(TrainConfigError, match="plateau_windows"):
+        TrainConfig(alpha_max_updates=0, plateau_windows=0)
+
+
+def _tiny_overrides():
+    return ["--set", "use_ray=false", "--set", "num_actors=1", "--set", "envs_per_actor=4",
+            "--set", "actor_steps_per_call=8", "--set", "learning_starts=50",
+            "--set", "state_interval_updates=5", "--set", "batch_size=4",
+            "--set", "max_updates=100000", "--set", "alpha_max_updates=100000"]
+
+
+def test_resume_after_kill_9(tmp_path):
+    run = tmp_path / "run"
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    cmd = [sys.executable, "-m", "mapf_fleet.cli", "train", "--config",
+           str(CONFIGS / "tiny.yaml"), "--run-dir", str(run), *_tiny_overrides()]
+    proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 240
+        saved = None
+        while time.monotonic() < deadline:
+            time.sleep(1.0)
+            if proc.poll() is not None:
+                pytest.fail(f"trainer exited early: {proc.stderr.read().decode()[-2000:]}")
+            if (run / run_state.STATE_FILE).exists():
+                saved = run_state.load_state(run)
+                if saved["learner"]["updates"] >= 10:
+                    break
+        assert saved is not None and saved["learner"]["updates"] >= 10, "no state written"
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    saved = run_state.load_state(run)  # the last complete file (writes are atomic)
+    trainer = Trainer(load_config(run / run_state.CONFIG_FILE), run, resume=True)
+    assert trainer.learner.updates == saved["learner"]["updates"]
+    assert trainer.scale.state_dict() == saved["scale"]
+    assert trainer.alpha.state_dict() == saved["alpha"]
+    assert trainer.counters["episodes"] == saved["counters"]["episodes"]
+    opt = trainer.learner.optimizer.state_dict()
+    steps = {int(s["step"]) for s in opt["state"].values()}
+    assert steps == {saved["learner"]["updates"]}  # Adam moments restored, not restarted
+    for name, value in saved["learner"]["model"].items():
+        assert torch.equal(trainer.learner.model.state_dict()[name], value)
+    # and it continues from there
+    trainer.cfg = trainer.cfg.replace(max_updates=trainer.learner.updates + 3, use_ray=False)
+    result = trainer.run()
+    assert result["learner_updates"] == saved["learner"]["updates"] + 3
+    assert (run / "checkpoints" / "final.pt").exists()
