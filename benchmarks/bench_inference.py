@@ -1,10 +1,14 @@
 """Inference cost of DHC and DCC: milliseconds per agent step on one CPU thread.
 
-Batched: one episode of N agents per `step` (N = 16, 64, 128 by default), on a 40x40 map with
-uniformly random distinct positions (the paper's density of agents for 40x40 test instances),
-observations synthetic but consistent with the positions. Per robot: each robot runs its own
+Batched: one episode of N agents per `step` (N = 16, 64, 128 by default) with uniformly random
+distinct positions on the map of the paper's test protocol for that fleet size (40x40 up to 64
+agents, 80x80 above), observations synthetic but consistent with the positions. DCC's cost
+grows with the number of FOV neighbours (one extra encoder pass per neighbour), printed too. Per robot: each robot runs its own
 split step (encode, communication, Q-values; DCC with its causal check) with the messages of
 the others, as a ROS policy node would; the figure is the mean over the robots of one fleet.
+
+Times are CPU time of the calling thread (time.thread_time; torch uses that one thread), so
+other processes on a shared machine do not inflate them; the wall-clock median is shown beside.
 
 Usage: .venv/bin/python benchmarks/bench_inference.py [--agents 16 64 128] [--repeats 10]
 """
@@ -22,8 +26,12 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from mapf_fleet.models import ModelConfig, build_model, dhc_partners, fov_neighbours  # noqa: E402
-from mapf_fleet.models.synthetic import make_sensitive, random_positions, synthetic_obs  # noqa: E402
+from mapf_fleet.models import (  # noqa: E402
+    ModelConfig, build_model, dhc_partners, fov_neighbours,
+)
+from mapf_fleet.models.synthetic import (  # noqa: E402
+    make_sensitive, random_positions, synthetic_obs,
+)
 
 
 def fleet(seed: int, num_agents: int, side: int):
@@ -32,34 +40,38 @@ def fleet(seed: int, num_agents: int, side: int):
     return synthetic_obs(rng, positions), positions
 
 
-def time_batched(net, obs, positions, repeats: int) -> tuple[float, float]:
-    """(median ms per agent step, mean requests per agent) over `repeats` consecutive steps."""
+def time_batched(net, obs, positions, repeats: int) -> tuple[float, float, float]:
+    """(median CPU ms, median wall ms per agent step, mean requests per agent) over `repeats`
+    consecutive steps with the hidden state carried."""
     obs_t, pos_t = torch.from_numpy(obs)[None], torch.from_numpy(positions)[None]
     hidden, last = None, None
-    times, requests = [], []
+    cpu, wall, requests = [], [], []
     with torch.no_grad():
         for i in range(repeats + 2):
             extra = {"last_action": last} if net.config.algo == "dcc" else {}
-            start = time.perf_counter()
+            start, start_wall = time.thread_time(), time.perf_counter()
             out = net.step(obs_t, pos_t, hidden, **extra)
-            elapsed = time.perf_counter() - start
+            cpu.append(time.thread_time() - start)
+            wall.append(time.perf_counter() - start_wall)
             hidden, last = out.hidden, out.actions
-            if i >= 2:  # warm-up
-                times.append(elapsed)
-                requests.append(out.comm_mask.sum().item() / len(positions))
-    return statistics.median(times) * 1e3 / len(positions), float(np.mean(requests))
+            requests.append(out.comm_mask.sum().item() / len(positions))
+    per_agent = 1e3 / len(positions)
+    # The first two steps are warm-up.
+    return (statistics.median(cpu[2:]) * per_agent, statistics.median(wall[2:]) * per_agent,
+            float(np.mean(requests[2:])))
 
 
-def time_per_robot(net, obs, positions, repeats: int) -> float:
-    """Median over steps of (total robot compute time / N), messages passed in memory."""
+def time_per_robot(net, obs, positions, repeats: int) -> tuple[float, float]:
+    """Median over steps of (total robot compute time / N), CPU and wall; messages are passed
+    in memory (no transport cost)."""
     n = len(positions)
     cfg = net.config
     hidden = [None] * n
     last = [-1] * n
-    times = []
+    cpu, wall = [], []
     with torch.no_grad():
         for i in range(repeats + 1):
-            start = time.perf_counter()
+            start, start_wall = time.thread_time(), time.perf_counter()
             if cfg.algo == "dhc":
                 partners = dhc_partners(positions, cfg.obs_radius, cfg.max_partners)
                 h = [net.encode(obs[j], hidden[j]) for j in range(n)]
@@ -82,40 +94,44 @@ def time_per_robot(net, obs, positions, repeats: int) -> float:
                 final = [net.aggregate_replies(h1[j], [(positions[k] - positions[j], h1[k])
                                                        for k in requested[j]]) for j in range(n)]
             actions = [int(net.q_values(v).argmax()) for v in final]
-            elapsed = time.perf_counter() - start
+            cpu.append(time.thread_time() - start)
+            wall.append(time.perf_counter() - start_wall)
             hidden, last = final, actions
-            if i >= 1:
-                times.append(elapsed)
-    return statistics.median(times) * 1e3 / n
+    return statistics.median(cpu[1:]) * 1e3 / n, statistics.median(wall[1:]) * 1e3 / n
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--agents", type=int, nargs="+", default=[16, 64, 128])
     parser.add_argument("--per-robot-agents", type=int, default=16)
-    parser.add_argument("--side", type=int, default=40)
+    parser.add_argument("--side", type=int, default=0,
+                        help="map side; 0 = the test protocol's (40 up to 64 agents, else 80)")
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--algos", nargs="+", default=["dhc", "dcc"])
     parser.add_argument("--presets", nargs="+", default=["paper", "small"])
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s), map {args.side}x"
-          f"{args.side}, random weights scaled so DCC communicates (synthetic.make_sensitive)")
-    print(f"{'algo':5} {'preset':6} {'mode':10} {'agents':>6} {'ms/agent-step':>14} "
-          f"{'requests/agent':>15}")
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s), random weights "
+          f"scaled so DCC communicates (synthetic.make_sensitive)")
+    print(f"{'algo':5} {'preset':6} {'mode':10} {'agents':>6} {'map':>4} {'fov nbrs':>8} "
+          f"{'cpu ms/agent-step':>18} {'wall ms':>8} {'requests/agent':>15}")
     for algo in args.algos:
         for preset in args.presets:
             net = make_sensitive(build_model(ModelConfig.preset(algo, preset)), 0).eval()
-            for n in args.agents:
-                obs, positions = fleet(n, n, args.side)
-                ms, req = time_batched(net, obs, positions, args.repeats)
-                req_text = f"{req:15.2f}" if algo == "dcc" else f"{'-':>15}"
-                print(f"{algo:5} {preset:6} {'batched':10} {n:6d} {ms:14.3f} {req_text}", flush=True)
-            n = args.per_robot_agents
-            obs, positions = fleet(n, n, args.side)
-            ms = time_per_robot(net, obs, positions, max(3, args.repeats // 3))
-            print(f"{algo:5} {preset:6} {'per-robot':10} {n:6d} {ms:14.3f} {'-':>15}", flush=True)
+            runs = [("batched", n) for n in args.agents] + [("per-robot", args.per_robot_agents)]
+            for mode, n in runs:
+                side = args.side or (40 if n <= 64 else 80)
+                obs, positions = fleet(n, n, side)
+                neighbours = float((obs[:, 0] > 0).sum()) / n
+                if mode == "batched":
+                    ms, wall, req = time_batched(net, obs, positions, args.repeats)
+                    req_text = f"{req:15.2f}" if algo == "dcc" else f"{'-':>15}"
+                else:
+                    ms, wall = time_per_robot(net, obs, positions, max(3, args.repeats // 3))
+                    req_text = f"{'-':>15}"
+                print(f"{algo:5} {preset:6} {mode:10} {n:6d} {side:4d} {neighbours:8.2f} "
+                      f"{ms:18.3f} {wall:8.3f} {req_text}", flush=True)
 
 
 if __name__ == "__main__":

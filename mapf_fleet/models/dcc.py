@@ -96,6 +96,9 @@ class DCCNetwork(nn.Module):
         self.obs_encoder = nn.Sequential(*layers)
         side = config.fov - 2 * len(config.conv_channels)
         self.latent_dim = in_channels * side * side + NUM_ACTIONS
+        # Channels-last weights and inputs: 15-30 % faster oneDNN convolutions on CPU here
+        # (benchmarks/bench_inference.py); load_state_dict keeps this layout.
+        self.obs_encoder.to(memory_format=torch.channels_last)
         self.recurrent = nn.GRUCell(self.latent_dim, config.hidden_dim)
         self.request_comm = DCCCommLayer(config)
         self.reply_comm = DCCCommLayer(config)
@@ -112,7 +115,8 @@ class DCCNetwork(nn.Module):
         """obs (M, 6, fov, fov), last_action (M,) long in -1..4 (-1: none), hidden (M, H)."""
         one_hot = F.one_hot(last_action.clamp(min=0), NUM_ACTIONS).to(obs.dtype)
         one_hot = one_hot * (last_action >= 0)[:, None].to(obs.dtype)
-        latent = torch.cat([self.obs_encoder(obs), one_hot], dim=1)
+        features = self.obs_encoder(obs.contiguous(memory_format=torch.channels_last))
+        latent = torch.cat([features, one_hot], dim=1)
         return self.recurrent(latent, hidden)
 
     def _greedy(self, h: torch.Tensor) -> torch.Tensor:

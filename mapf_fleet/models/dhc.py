@@ -87,6 +87,9 @@ class DHCNetwork(nn.Module):
             nn.Flatten(),
         )
         self.latent_dim = DHC_SQUEEZE_CHANNELS * side * side
+        # Channels-last weights and inputs: 15-30 % faster oneDNN convolutions on CPU here
+        # (benchmarks/bench_inference.py); load_state_dict keeps this layout.
+        self.obs_encoder.to(memory_format=torch.channels_last)
         self.recurrent = nn.GRUCell(self.latent_dim, config.hidden_dim)
         self.attention = DHCAttention(config.hidden_dim, config.num_heads, config.head_dim)
         self.update = nn.GRUCell(config.head_dim, config.hidden_dim)
@@ -100,7 +103,8 @@ class DHCNetwork(nn.Module):
 
     def _encode(self, obs: torch.Tensor, hidden: torch.Tensor) -> torch.Tensor:
         """obs (M, 6, fov, fov), hidden (M, H) -> (M, H)."""
-        return self.recurrent(self.obs_encoder(obs), hidden)
+        features = self.obs_encoder(obs.contiguous(memory_format=torch.channels_last))
+        return self.recurrent(features, hidden)
 
     def _round(self, query_h: torch.Tensor, member_h: torch.Tensor,
                member_valid: torch.Tensor) -> torch.Tensor:

@@ -1,0 +1,58 @@
+"""End to end: the tiny config through both stages on Ray, and real learning (both slow)."""
+
+import json
+import os
+
+import pytest
+
+from mapf_fleet.training import run_state
+from mapf_fleet.training.cli import main as train_main
+from mapf_fleet.training.config import load_config
+from mapf_fleet.training.trainer import Trainer
+
+from pathlib import Path
+
+CONFIGS = Path(__file__).resolve().parent.parent / "config" / "training"
+
+
+@pytest.fixture
+def ray_shutdown():
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    yield
+    import ray
+
+    if ray.is_initialized():
+        ray.shutdown()
+
+
+@pytest.mark.slow
+def test_tiny_config_runs_both_stages_on_ray(tmp_path, ray_shutdown, capsys):
+    run = tmp_path / "tiny"
+    code = train_main(["--config", str(CONFIGS / "tiny.yaml"), "--run-dir", str(run)])
+    assert code == 0
+    result = json.loads((run / run_state.RESULT_FILE).read_text())
+    assert result["finished"], result["stop_reason"]
+    assert result["setting"] == [2, 15]
+    assert "stage1.pt" in result["checkpoints"]
+    for alpha in result["alpha_passed"]:
+        assert (run / "checkpoints" / run_state.alpha_checkpoint_name(alpha)).exists()
+    if result["alpha_passed"]:
+        assert result["alpha_star"] == result["alpha_passed"][-1]
+    assert (run / "config.yaml").exists() and any((run / "tb").iterdir())
+    from mapf_fleet.models.checkpoint import load_checkpoint
+
+    model, meta = load_checkpoint(run / "checkpoints" / "final.pt")
+    assert meta["learner_steps"] == result["learner_updates"]
+
+
+@pytest.mark.slow
+def test_one_agent_on_10x10_learns_past_0_9(tmp_path):
+    """Real learning: the gate (> 0.9 success over the last 100 greedy-ish episodes) must pass
+    within 2500 learner updates of 32 sequences x 8 steps (about 10 minutes on 2 cores)."""
+    cfg = load_config(CONFIGS / "tiny.yaml").replace(
+        use_ray=False, num_actors=1, envs_per_actor=16, updates_per_poll=4, final_agents=1,
+        final_map_size=10, alpha_mode="fixed", fixed_alpha=0.0, success_window=100,
+        success_threshold=0.9, max_updates=2500, max_wall_seconds=1200,
+        alpha_max_updates=2500, plateau_windows=0, seed=1)
+    result = Trainer(cfg, tmp_path / "learn").run()
+    assert result["alpha_passed"] == [0.0], result
