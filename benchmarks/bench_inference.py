@@ -3,9 +3,10 @@
 Batched: one episode of N agents per `step` (N = 16, 64, 128 by default) with uniformly random
 distinct positions on the map of the paper's test protocol for that fleet size (40x40 up to 64
 agents, 80x80 above), observations synthetic but consistent with the positions. DCC's cost
-grows with the number of FOV neighbours (one extra encoder pass per neighbour), printed too. Per robot: each robot runs its own
-split step (encode, communication, Q-values; DCC with its causal check) with the messages of
-the others, as a ROS policy node would; the figure is the mean over the robots of one fleet.
+grows with the number of FOV neighbours (one extra encoder pass per neighbour), printed too.
+Per robot: each robot runs its own split step (encode, communication, Q-values; DCC with its
+causal check) with the messages of the others, as a ROS policy node would; the figure is the
+mean over the robots of one fleet.
 
 Times are CPU time of the calling thread (time.thread_time; torch uses that one thread), so
 other processes on a shared machine do not inflate them; the wall-clock median is shown beside.

@@ -42,7 +42,8 @@ def dhc_robots_step(net: DHCNetwork, obs, positions, hidden):
     h = [net.encode(obs[i], hidden[i]) for i in range(len(obs))]
     for round_index in range(cfg.comm_rounds):
         published = list(h)  # every robot publishes its vector of this round
-        h = [net.comm_round(round_index, published[i], [published[j] for j in partners[i] if j >= 0])
+        h = [net.comm_round(round_index, published[i],
+                            [published[j] for j in partners[i] if j >= 0])
              for i in range(len(obs))]
     q = torch.stack([net.q_values(v) for v in h])
     return q, torch.stack(h), int((partners >= 0).sum())

@@ -136,8 +136,12 @@ def generate_instance(size, num_agents: int, density: float, rng, max_map_attemp
     """A random instance by the DHC reference protocol, reproducible from `rng` (Generator or seed).
 
     Each cell is an obstacle with probability `density`. Each agent in turn picks a free
-    4-connected region uniformly among those with at least two unused cells (as the reference
-    does), then two distinct unused cells of it as start and goal. So all 2N starts and goals are
+    4-connected region with probability proportional to its unused cells (among regions with at
+    least two unused cells), i.e. its start is uniform over the usable free cells, then two
+    distinct unused cells of that region as start and goal. The DHC training code picks regions
+    uniformly, which crowds agents into small pockets (19% of agents outside the largest region
+    at 40x40/64 against 2.5% in the published DHC test sets); weighting by size matches the
+    published test sets. So all 2N starts and goals are
     distinct and each goal is reachable from its start. A map without room for N pairs is redrawn
     (up to `max_map_attempts` times). `size` is an int (square) or (height, width).
     """
@@ -167,7 +171,8 @@ def generate_instance(size, num_agents: int, density: float, rng, max_map_attemp
         starts = np.empty(num_agents, dtype=np.int64)
         goals = np.empty(num_agents, dtype=np.int64)
         for agent in range(num_agents):
-            slot = int(rng.integers(len(open_regions)))
+            weights = np.array([remaining[k] for k in open_regions], dtype=np.float64)
+            slot = int(rng.choice(len(open_regions), p=weights / weights.sum()))
             k = open_regions[slot]
             n = remaining[k]
             starts[agent], goals[agent] = regions[k][n - 1], regions[k][n - 2]

@@ -66,7 +66,8 @@ def code_version() -> dict[str, Any]:
         # GIT_OPTIONAL_LOCKS=0: read only, never touch the index.
         result = subprocess.run(
             ["git", "rev-parse", "HEAD"], cwd=Path(mapf_fleet.__file__).resolve().parent,
-            capture_output=True, text=True, timeout=5, env={**os.environ, "GIT_OPTIONAL_LOCKS": "0"},
+            capture_output=True, text=True, timeout=5,
+            env={**os.environ, "GIT_OPTIONAL_LOCKS": "0"},
         )
         if result.returncode == 0:
             commit = result.stdout.strip() or None
@@ -80,7 +81,8 @@ def save_checkpoint(path, model: nn.Module, metadata: Mapping[str, Any]) -> Path
     path = Path(path)
     config = getattr(model, "config", None)
     if not isinstance(config, ModelConfig):
-        raise TypeError(f"save_checkpoint: model has no ModelConfig `config` ({type(model).__name__})")
+        raise TypeError(f"save_checkpoint: model has no ModelConfig `config` "
+                        f"({type(model).__name__})")
     unknown = sorted(set(metadata) - set(REQUIRED_FIELDS) - set(OPTIONAL_FIELDS))
     if unknown:
         raise ValueError(f"save_checkpoint {path}: unknown metadata field(s) {unknown}; "
@@ -183,7 +185,8 @@ def _expect(path, field: str, found: Any, expected: Any) -> None:
 
 def _check_metadata(meta: Mapping[str, Any], path: str) -> None:
     def fail(field: str, expected: str, found: Any) -> None:
-        raise CheckpointError(f"{path}: field metadata.{field}: expected {expected}, found {found!r}")
+        raise CheckpointError(
+            f"{path}: field metadata.{field}: expected {expected}, found {found!r}")
 
     for name in ("algorithm", "model_config", "obs_radius", "obs_padding", "action_order",
                  *REQUIRED_FIELDS, "code_version", "evaluation"):

@@ -85,12 +85,14 @@ def check_batch_inputs(
                          f"got {tuple(obs.shape)}")
     batch, num_agents = obs.shape[:2]
     if tuple(positions.shape) != (batch, num_agents, 2):
-        raise ValueError(f"positions: expected {(batch, num_agents, 2)}, got {tuple(positions.shape)}")
+        raise ValueError(f"positions: expected {(batch, num_agents, 2)}, "
+                         f"got {tuple(positions.shape)}")
     if hidden is not None and tuple(hidden.shape) != (batch, num_agents, config.hidden_dim):
         raise ValueError(f"hidden: expected {(batch, num_agents, config.hidden_dim)}, "
                          f"got {tuple(hidden.shape)}")
     if agent_mask is not None and tuple(agent_mask.shape) != (batch, num_agents):
-        raise ValueError(f"agent_mask: expected {(batch, num_agents)}, got {tuple(agent_mask.shape)}")
+        raise ValueError(f"agent_mask: expected {(batch, num_agents)}, "
+                         f"got {tuple(agent_mask.shape)}")
     return batch, num_agents
 
 

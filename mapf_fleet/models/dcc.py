@@ -123,7 +123,7 @@ class DCCNetwork(nn.Module):
         return self.head(h).argmax(-1)
 
     def _erased_variants(self, obs: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
-        """Copies of obs (E, 6, fov, fov) with channel 0 cleared at offsets (E, 2) from the centre."""
+        """Copies of obs (E, 6, fov, fov), channel 0 cleared at offsets (E, 2) from the centre."""
         variants = obs.clone()
         cell = offsets + self.config.obs_radius
         variants[torch.arange(len(variants), device=obs.device), 0, cell[:, 0], cell[:, 1]] = 0.0
@@ -182,6 +182,7 @@ class DCCNetwork(nn.Module):
         slot_valid = table >= 0
         table0 = table.clamp(min=0)
         batch_index = torch.arange(batch, device=device)[:, None, None]
+        agent_index = torch.arange(num_agents, device=device)[:, None]
         # offsets[b, i, k] = pos of neighbour - pos of i  (sender - receiver when i receives)
         offsets = positions[batch_index, table0] - positions[:, :, None, :]
         offsets = offsets * slot_valid[..., None]  # empty slots: (0, 0), masked out later
@@ -207,11 +208,11 @@ class DCCNetwork(nn.Module):
                 raise ValueError(f"comm_mask: expected {(batch, num_agents, num_agents)}, "
                                  f"got {tuple(comm_mask.shape)}")
             h_flat = self._encode(flat_obs, flat_last, flat_hidden)
-            requests = slot_valid & comm_mask[batch_index, torch.arange(num_agents, device=device)[:, None], table0]
+            requests = slot_valid & comm_mask[batch_index, agent_index, table0]
         h = h_flat.view(batch, num_agents, -1)
 
         # Request layer: receiver r hears from its neighbours n that request from r.
-        incoming = slot_valid & comm_mask[batch_index, table0, torch.arange(num_agents, device=device)[:, None]]
+        incoming = slot_valid & comm_mask[batch_index, table0, agent_index]
         h1 = self._comm(self.request_comm, h, table0, offsets, incoming)
         # Reply layer (transposed mask): requester i hears from the neighbours it requested.
         h2 = self._comm(self.reply_comm, h1, table0, offsets, requests)
