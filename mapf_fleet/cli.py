@@ -14,6 +14,7 @@ COMMANDS = {
     "train": ("mapf_fleet.training.cli", "main", "Ape-X training with both curricula"),
     "evaluate": ("mapf_fleet.evaluation.cli", "main", "the paper's evaluation protocol"),
     "render": ("mapf_fleet.evaluation.render", "main", "render one episode as GIF/PNG"),
+    "card": ("mapf_fleet.evaluation.model_card", "main", "write a checkpoint's model card"),
     "up": ("mapf_fleet.ros.launcher", "main", "start a simulated (or real-robot) fleet"),
     "echo": ("mapf_fleet.ros.echo", "main", "print a topic's messages as YAML"),
     "topics": ("mapf_fleet.ros.echo", "topics_main", "list the fleet's topics"),

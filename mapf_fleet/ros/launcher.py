@@ -145,10 +145,9 @@ def stop_processes(procs, grace: float = 3.0) -> None:
 
 def run_single_process(num_robots, sim_params, policy_params, params_file) -> int:
     import rclpy
-    from rclpy.executors import MultiThreadedExecutor
     from rclpy.parameter import Parameter
 
-    from mapf_fleet.ros.policy_node import PolicyNode
+    from mapf_fleet.ros.policy_node import PolicyNode, spin_policy_nodes
     from mapf_fleet.ros.simulator_node import SimulatorNode
 
     rclpy.init(args=["up"] + (["--ros-args", "--params-file", params_file] if params_file else []))
@@ -158,25 +157,12 @@ def run_single_process(num_robots, sim_params, policy_params, params_file) -> in
         overrides = [Parameter("comm_timeout", value=float(policy_params["comm_timeout"]))]
         first = PolicyNode(robot_id=0, checkpoint=policy_params["checkpoint"],
                            parameter_overrides=list(overrides))
-        policies = [first] + [PolicyNode(robot_id=i, model=first.brain.model,
+        policies = [first] + [PolicyNode(robot_id=i, model=first.model,
                                          parameter_overrides=list(overrides))
                               for i in range(1, num_robots)]
-        executor = MultiThreadedExecutor(num_threads=4)
-        for node in [simulator] + policies:
-            executor.add_node(node)
-        spinner = common.SpinThread(executor).start()
-        for node in policies:
-            node.start()
-        simulator.start()
-        try:
-            while not simulator.finished.wait(0.2):
-                pass
-        finally:
-            for node in policies:
-                node.stop()
-            spinner.stop()
-            for node in [simulator] + policies:
-                node.destroy_node()
+        # one hub drives every robot of this process; the simulator shares the executor
+        spin_policy_nodes(policies, until=simulator.finished.is_set, extra_nodes=[simulator],
+                          on_started=simulator.start)
         return 0 if simulator.outcome is not None and simulator.outcome.success else 1
     finally:
         rclpy.try_shutdown()

@@ -39,13 +39,13 @@ def parse_robot_ids(text: str) -> list[int]:
 def host_policy_nodes(robot_ids: list[int], ros_args: list[str]) -> int:
     import rclpy
 
-    from mapf_fleet.ros.policy_node import PolicyNode, load_policy_model, spin_policy_nodes
+    from mapf_fleet.ros.policy_node import PolicyNode, spin_policy_nodes
 
     rclpy.init(args=["policy"] + ros_args)
     try:
         first = PolicyNode(robot_id=robot_ids[0])
         # one model object shared by the nodes of this process (inference only, no state in it)
-        model = first.brain.model
+        model = first.model
         nodes = [first] + [PolicyNode(robot_id=i, model=model) for i in robot_ids[1:]]
         spin_policy_nodes(nodes)
     finally:

@@ -67,18 +67,21 @@ class SimulatorNode(Node):
         self.episode = random.getrandbits(63)
         self.positions = np.array(self.instance.starts, dtype=np.int64)
         self.goals = np.array(self.instance.goals, dtype=np.int64)
-        self.last_actions = np.zeros(self.num_robots, dtype=np.int64)
+        # -1: no action yet (MAPFEnv.last_actions; DCC feeds a zero one-hot then)
+        self.last_actions = np.full(self.num_robots, -1, dtype=np.int64)
         self.tick = int(p["start_tick"])
         self.collisions = 0
         self.missed = 0
         self.missed_robots: set[int] = set()
         self.record = {"episode": self.episode, "positions": [self.positions.tolist()],
-                       "actions": [], "collided": [], "missed": []}
+                       "actions": [], "collided": [], "missed": [],
+                       "requested": [], "messages": []}
         self.outcome: FleetOutcome | None = None
         self.finished = threading.Event()
 
         self._moves_lock = threading.Condition()
         self._moves: dict[int, int] = {}
+        self._comm: dict[int, tuple[list[int], int]] = {}  # robot -> (requested, received)
         self._ready: dict[int, RobotStatus] = {}
 
         self.map_pub = self.create_publisher(OccupancyGrid, common.MAP_TOPIC, common.latched_qos())
@@ -117,6 +120,8 @@ class SimulatorNode(Node):
                 self.get_logger().warning(f"ignored bad move {msg.robot_id}/{msg.action}")
                 return
             self._moves[int(msg.robot_id)] = int(msg.action)
+            self._comm[int(msg.robot_id)] = ([int(j) for j in msg.requested],
+                                             int(msg.messages_received))
             if msg.missing_peers:
                 self.get_logger().warning(
                     f"tick {msg.tick}: robot {msg.robot_id} decided without peers "
@@ -181,7 +186,8 @@ class SimulatorNode(Node):
                         break
                     self._moves_lock.wait(remaining)
                 moves = dict(self._moves)
-                self._moves = {}
+                comm = dict(self._comm)
+                self._moves, self._comm = {}, {}
                 self.tick += 1
             missing = sorted(set(range(self.num_robots)) - set(moves))
             actions = np.array([moves.get(i, 0) for i in range(self.num_robots)], dtype=np.int64)
@@ -200,6 +206,12 @@ class SimulatorNode(Node):
             self.record["actions"].append(actions.tolist())
             self.record["collided"].append(np.flatnonzero(collided).tolist())
             self.record["missed"].append(missing)
+            # who talked to whom: per robot its partners (DHC) / requested peers (DCC), and the
+            # peer messages it used
+            self.record["requested"].append([comm.get(i, ([], 0))[0]
+                                             for i in range(self.num_robots)])
+            self.record["messages"].append([comm.get(i, ([], 0))[1]
+                                            for i in range(self.num_robots)])
             self.record["positions"].append(self.positions.tolist())
             self.progress_pub.publish(FleetProgress(
                 episode=self.episode, tick=self.tick, max_steps=max_steps,

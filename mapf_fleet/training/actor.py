@@ -59,7 +59,12 @@ class EpisodeWorker:
         torch.set_num_threads(1)
         self.cfg = cfg
         self.index = actor_index
-        self.epsilon = cfg.actor_epsilon(actor_index)
+        # one epsilon per environment slot (cfg.epsilon_per_env) or one for the whole actor
+        self.epsilons = np.array([cfg.slot_epsilon(actor_index, k)
+                                  for k in range(cfg.envs_per_actor)])
+        self.gate_slots = np.array([cfg.is_gate_slot(actor_index, k)
+                                    for k in range(cfg.envs_per_actor)])
+        self.epsilon = float(self.epsilons.max())  # the actor's most exploring slot (logs)
         self.rng = np.random.default_rng(cfg.seed * 1000 + actor_index if seed is None else seed)
         self.model = build_model(cfg).eval()
         self.hidden_dim = hidden_dim(self.model)
@@ -88,9 +93,10 @@ class EpisodeWorker:
         density = (sample_training_density(self.rng) if self.cfg.obstacle_density == "triangular"
                    else float(self.cfg.obstacle_density))
         instance = generate_instance(task.map_size, task.num_agents, density, self.rng)
-        env_cfg = EnvConfig(max_steps=self.cfg.max_episode_steps,
+        env_cfg = EnvConfig(max_steps=self.cfg.episode_step_limit(task.map_size),
                             finish_reward=self.cfg.finish_reward)
-        if slot < len(self.envs) and self.envs[slot] is not None:
+        if slot < len(self.envs) and self.envs[slot] is not None \
+                and self.envs[slot]["env"].config == env_cfg:
             env = self.envs[slot]["env"]
             obs = env.reset(instance)
         else:
@@ -129,7 +135,7 @@ class EpisodeWorker:
                 out = model_step(self.model, cfg.algo, obs, pos, hid, last)
             actions = out.q.argmax(-1).numpy()
             new_hidden = out.hidden.numpy()
-            explore = self.rng.random(actions.shape) < self.epsilon
+            explore = self.rng.random(actions.shape) < self.epsilons[:len(envs), None]
             if not cfg.explore_all_agents:
                 explore[:, 1:] = False
             actions = np.where(explore, self.rng.integers(0, 5, actions.shape), actions)
@@ -150,7 +156,8 @@ class EpisodeWorker:
                     stats.append({"success": bool(info["success"]), "steps": int(info["steps"]),
                                   "num_agents": task.num_agents, "map_size": task.map_size,
                                   "alpha": task.alpha, "task_version": task.version,
-                                  "actor": self.index, "epsilon": self.epsilon})
+                                  "actor": self.index, "epsilon": float(self.epsilons[slot]),
+                                  "gate": bool(self.gate_slots[slot])})
                     self._new_episode(slot)
         return {"sequences": sequences, "episodes": stats, "agent_steps": agent_steps,
                 "seconds": time.perf_counter() - t0, "actor": self.index,

@@ -8,6 +8,7 @@ YAML files in `config/training/` may set any field; unknown fields and bad value
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -33,14 +34,23 @@ class TrainConfig:
     num_actors: int = 16
     envs_per_actor: int = 1  # environments stepped together (batched inference) per actor
     actor_steps_per_call: int = 64  # batched env steps an actor plays per remote call
-    epsilon_base: float = 0.4  # actor i explores with base^(1 + exp * i / (N - 1))
+    epsilon_base: float = 0.4  # explorer i explores with base^(1 + exp * i / (N - 1))
     epsilon_exponent: float = 7.0
+    # True: every environment slot of every actor is its own Ape-X explorer (N = num_actors x
+    # envs_per_actor epsilons), so even one or two actors cover the whole schedule; False: one
+    # epsilon per actor (the paper, where each actor runs one environment).
+    epsilon_per_env: bool = True
     explore_all_agents: bool = True  # epsilon for every agent (all are trained); False: agent 0 only
     actor_update_interval: int = 400  # learner updates between weight broadcasts
-    gate_actor_fraction: float = 0.5  # success gate uses the lowest-epsilon fraction of actors
+    gate_actor_fraction: float = 0.5  # success gate uses the lowest-epsilon fraction of explorers
 
     # --- environment -------------------------------------------------------------------------
     max_episode_steps: int = 256
+    # > 0: the step limit of a curriculum task is min(max_episode_steps, ceil(f * map side)), so
+    # 6.4 gives the paper's 256 at 40x40 but 64 at 10x10, where a looping policy would otherwise
+    # fill the replay with 256-step failures of a task solved in about 7 steps. 0: always
+    # max_episode_steps (reference).
+    max_steps_per_map_side: float = 0.0
     obstacle_density: str | float = "triangular"  # "triangular" (0, .33, .5) or a fixed value
     finish_reward: str = "team"  # "team" (reference) | "per_agent"
 
@@ -142,6 +152,8 @@ class TrainConfig:
                 raise bad(name, "must be > 0")
         if self.max_wall_seconds < 0:
             raise bad("max_wall_seconds", "must be >= 0 (0 = no limit)")
+        if self.max_steps_per_map_side < 0:
+            raise bad("max_steps_per_map_side", "must be >= 0 (0 = max_episode_steps always)")
         if self.epsilon_exponent < 0:
             raise bad("epsilon_exponent", "must be >= 0")
         if self.final_agents < self.start_agents:
@@ -179,6 +191,35 @@ class TrainConfig:
         """The lowest-epsilon actors whose episodes drive the curricula (at least one)."""
         count = max(1, int(round(self.num_actors * self.gate_actor_fraction)))
         return list(range(self.num_actors - count, self.num_actors))
+
+    # -- exploration slots --------------------------------------------------------------------
+    @property
+    def num_explorers(self) -> int:
+        return self.num_actors * self.envs_per_actor if self.epsilon_per_env else self.num_actors
+
+    def explorer_index(self, actor: int, env_slot: int) -> int:
+        """Position of (actor, env slot) in the epsilon schedule. Interleaved (slot-major) so
+        that every actor holds a spread of epsilons, from exploring to nearly greedy."""
+        if not self.epsilon_per_env:
+            return actor
+        return env_slot * self.num_actors + actor
+
+    def _schedule(self, index: int, count: int) -> float:
+        frac = 0.5 if count == 1 else index / (count - 1)
+        return float(self.epsilon_base ** (1.0 + self.epsilon_exponent * frac))
+
+    def slot_epsilon(self, actor: int, env_slot: int) -> float:
+        return self._schedule(self.explorer_index(actor, env_slot), self.num_explorers)
+
+    def is_gate_slot(self, actor: int, env_slot: int) -> bool:
+        """Episodes of the lowest-epsilon `gate_actor_fraction` of explorers drive the gates."""
+        count = max(1, int(round(self.num_explorers * self.gate_actor_fraction)))
+        return self.explorer_index(actor, env_slot) >= self.num_explorers - count
+
+    def episode_step_limit(self, map_size: int) -> int:
+        if self.max_steps_per_map_side <= 0:
+            return self.max_episode_steps
+        return int(min(self.max_episode_steps, math.ceil(self.max_steps_per_map_side * map_size)))
 
 
 # The DCC column of Table 3 (and the DCC reference's learning rate).

@@ -4,7 +4,8 @@ run directory, TensorBoard, progress bar, resume.
 The driver process holds the replay and the learner; actors are Ray actors that each play
 `actor_steps_per_call` batched steps per call with the latest weights broadcast to them (every
 `actor_update_interval` updates) and return replay sequences plus episode outcomes. Outcomes of
-the lowest-epsilon actors played under the current task drive the curricula.
+the lowest-epsilon explorers (environment slots, see `TrainConfig.epsilon_per_env`) played
+under the current task drive the curricula.
 
 Not saved across a resume: the replay content (refilled to `learning_starts`) and episodes in
 flight. Saved: weights, target, optimizer, curricula, counters, elapsed time.
@@ -212,7 +213,8 @@ class Trainer:
         key = f"{ep['num_agents']}agents_{ep['map_size']}x{ep['map_size']}_alpha{ep['alpha']:.1f}"
         self.setting_windows.setdefault(key, SuccessWindow(self.cfg.success_window)).add(
             ep["success"])
-        if ep["actor"] not in self.gate_actors or ep["task_version"] != self.task_version:
+        gate = ep["gate"] if "gate" in ep else ep["actor"] in self.gate_actors
+        if not gate or ep["task_version"] != self.task_version:
             return
         self.counters["gate_episodes"] += 1
         if self.stage == STAGE_SCALE:

@@ -1,0 +1,391 @@
+"""PolicyHub: the per-process engine behind the policy nodes hosted in one process.
+
+Every robot keeps its own node (its parameters, its publishers, its DCC services: the ROS
+interface does not change with the process layout), but the robots of one process share:
+- one subscription each to the map, the fleet state, the peer topic (DHC hidden vectors / DCC
+  announcements) and the heartbeats, feeding one mailbox (with N robots in one process, N
+  subscriptions to the shared peer topic cost N x N callbacks per round);
+- one decision thread that runs the local robots' encode / communication rounds / Q-values as
+  batched torch calls, with the numbers of the batched evaluator (same padding and masking);
+- local delivery: a message between two robots of the same process goes straight into the
+  mailbox (it is still published, so viewers and other processes see it).
+
+Only `comm_timeout`, `service_timeout` and `status_period` of the first hosted node are used.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+
+import numpy as np
+import torch
+
+from mapf_fleet.grid.actions import ACTION_DELTAS
+from mapf_fleet.grid.heuristic import cached_heuristic_bits
+from mapf_fleet.ros import common
+from mapf_fleet.ros.mailbox import Mailbox
+
+
+class LocalObserver:
+    """FOV observations of some robots (the local ones) in a fleet, with the padded static map
+    and each robot's heuristic channels computed once per (map, goals). Same layout and values as
+    `mapf_fleet.grid.env.observe` (off-map = obstacle, heuristic 0 off the map)."""
+
+    def __init__(self, grid: np.ndarray, goals: np.ndarray, radius: int):
+        grid = np.asarray(grid)
+        self.key = (grid.shape, grid.tobytes(), np.asarray(goals).tobytes())
+        h, w = grid.shape
+        r = self.radius = int(radius)
+        self.size = 2 * r + 1
+        self.hp, self.wp = h + 2 * r, w + 2 * r
+        bits = cached_heuristic_bits(grid, goals)  # (M, H, W), bit k = heuristic channel k
+        static = np.ones((len(goals), self.hp, self.wp), dtype=np.uint8)
+        static[:, r:r + h, r:r + w] = (grid != 0).astype(np.uint8) | (bits << 1)
+        self.static = static.reshape(len(goals), -1)
+        offsets = np.arange(self.size)
+        self.window = (offsets[:, None] * self.wp + offsets[None, :]).reshape(-1)
+        self.centre = r * self.wp + r
+
+    def observe(self, positions: np.ndarray, local: np.ndarray) -> np.ndarray:
+        """float32 (M, 6, S, S) for robots `local` given every robot's `positions` (N, 2)."""
+        corners = positions[:, 0] * self.wp + positions[:, 1]  # window corner == cell (padded)
+        occupancy = np.zeros(self.hp * self.wp, dtype=np.float32)
+        occupancy[corners + self.centre] = 1.0
+        windows = corners[local][:, None] + self.window  # (M, S*S)
+        m, s2 = windows.shape
+        obs = np.empty((m, 6, s2), dtype=np.float32)
+        obs[:, 0] = occupancy[windows]
+        obs[:, 0, s2 // 2] = 0.0  # the robot itself is not in its agent channel
+        static = np.take_along_axis(self.static, windows, axis=1)
+        for bit in range(5):
+            obs[:, 1 + bit] = (static >> bit) & 1
+        return obs.reshape(m, 6, self.size, self.size)
+
+
+class PolicyHub:
+    def __init__(self, nodes, model):
+        from mapf_fleet_interfaces.msg import (DccAnnounce, DhcHidden, FleetState,
+                                               RobotStatus)
+        from nav_msgs.msg import OccupancyGrid
+        from rclpy.callback_groups import ReentrantCallbackGroup
+        from rclpy.node import Node
+
+        if not nodes:
+            raise ValueError("PolicyHub needs at least one policy node")
+        ids = [n.robot_id for n in nodes]
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"PolicyHub: robot ids hosted twice in {ids}")
+        self.nodes = list(nodes)
+        self.model = model.eval()
+        self.algo = model.config.algo
+        self.radius = int(model.config.obs_radius)
+        self.ids = np.array(ids, dtype=np.int64)
+        self.index_of = {int(r): m for m, r in enumerate(ids)}
+        first = nodes[0]
+        self.comm_timeout = first.comm_timeout
+        self.host = f"mapf_policy_hub_{os.getpid()}_{ids[0]}"
+        self.node = Node(self.host)
+        self.mailbox = Mailbox()
+        self.grid = None
+        self.geometry = None
+        self._observer: LocalObserver | None = None
+        self._state_cond = threading.Condition()
+        self._latest_state = None
+        self._episode = None
+        self._tick = -1
+        self._hidden: torch.Tensor | None = None  # (M, H) carried post-communication hidden
+        self._stop = threading.Event()
+        self._hosts: dict[int, str] = {}  # robot id -> host, from heartbeats
+        self.decisions = 0
+        self.sent = {"local": 0, "service": 0}
+        for node in nodes:
+            node.hub = self
+        group = ReentrantCallbackGroup()
+        self.node.create_subscription(OccupancyGrid, common.MAP_TOPIC, self._on_map,
+                                      common.latched_qos(), callback_group=group)
+        self.node.create_subscription(FleetState, common.STATE_TOPIC, self._on_state,
+                                      common.reliable_qos(10), callback_group=group)
+        self.node.create_subscription(RobotStatus, common.STATUS_TOPIC, self._on_status,
+                                      common.reliable_qos(1000), callback_group=group)
+        if self.algo == "dhc":
+            self.node.create_subscription(DhcHidden, common.DHC_HIDDEN_TOPIC, self._on_hidden,
+                                          common.reliable_qos(1000), callback_group=group)
+        else:
+            self.node.create_subscription(DccAnnounce, common.DCC_ANNOUNCE_TOPIC,
+                                          self._on_announce, common.reliable_qos(1000),
+                                          callback_group=group)
+        self.node.create_timer(first.status_period, self._heartbeat, callback_group=group)
+        self._thread = threading.Thread(target=self._loop, name=f"policy-hub-{ids[0]}",
+                                        daemon=True)
+
+    @property
+    def all_nodes(self):
+        return [self.node] + self.nodes
+
+    # ---- callbacks: store and notify, never block ----
+    def _on_map(self, msg):
+        self.grid, self.geometry = common.occupancy_to_grid(msg)
+
+    def _on_state(self, msg):
+        with self._state_cond:
+            self._latest_state = msg  # a slow or restarted hub skips to the newest tick
+            self._state_cond.notify_all()
+
+    def _on_status(self, msg):
+        self._hosts[int(msg.robot_id)] = msg.host
+
+    def _on_hidden(self, msg):
+        if int(msg.robot_id) in self.index_of:
+            return  # delivered locally already
+        self.mailbox.put(msg.episode, f"dhc{msg.round}", msg.tick, msg.robot_id,
+                         np.asarray(msg.hidden, dtype=np.float32))
+
+    def _on_announce(self, msg):
+        if int(msg.robot_id) in self.index_of:
+            return
+        self.mailbox.put(msg.episode, "announce", msg.tick, msg.robot_id,
+                         [int(t) for t in msg.targets])
+
+    def deliver(self, kind: str, receiver: int, request) -> bool:
+        """A DCC service call reached robot `receiver` of this process."""
+        return self.mailbox.put(request.episode, f"{kind}{receiver}", request.tick,
+                                request.sender, np.asarray(request.hidden, np.float32))
+
+    def peers_reachable(self) -> int:
+        """Robots whose heartbeat was heard, provided every host seen also subscribes to our peer
+        topic (so nothing we publish is lost); 0 otherwise."""
+        hosts = set(self._hosts.values()) | {self.host}
+        matched = min(n.peer_pub.get_subscription_count() for n in self.nodes)
+        return len(self._hosts) if matched >= len(hosts) else 0
+
+    def _heartbeat(self):
+        from mapf_fleet_interfaces.msg import RobotStatus
+
+        peers = self.peers_reachable()
+        for node in self.nodes:
+            node.status_pub.publish(RobotStatus(
+                episode=self._episode or 0, robot_id=node.robot_id, tick=max(self._tick, 0),
+                ready=self.grid is not None, peers=peers, host=self.host,
+                detail=f"{self.algo}, {len(self.nodes)} robots on this host, "
+                       f"{self.decisions} decisions, {self.mailbox.stale_dropped} stale "
+                       f"messages ignored"))
+
+    # ---- the decision loop (own thread) ----
+    def start(self):
+        self._thread.start()
+
+    def stop(self):
+        self._stop.set()
+        with self._state_cond:
+            self._state_cond.notify_all()
+        self.mailbox.interrupt()
+        self._thread.join(5.0)
+
+    def _loop(self):
+        while not self._stop.is_set():
+            with self._state_cond:
+                while not self._stop.is_set() and (
+                        self._latest_state is None or self.grid is None or
+                        (self._latest_state.episode == self._episode and
+                         self._latest_state.tick <= self._tick)):
+                    self._state_cond.wait(0.2)
+                if self._stop.is_set():
+                    return
+                state = self._latest_state
+            try:
+                self._decide(state)
+            except Exception as exc:  # a bad tick must not kill the robots
+                import traceback
+
+                self.node.get_logger().error(f"tick {state.tick}: decision failed: {exc!r}\n"
+                                             f"{traceback.format_exc()}")
+                self._tick = state.tick
+
+    def _decide(self, state):
+        if state.episode != self._episode or state.tick != self._tick + 1:
+            # a new run, or joined mid-run / skipped ticks: the recurrent state is not ours
+            self._hidden = None
+        self._episode = state.episode
+        self._tick = tick = int(state.tick)
+        self.mailbox.set_tick(state.episode, tick)
+        if state.done:
+            return
+        positions = np.stack([np.asarray(state.rows), np.asarray(state.cols)], 1).astype(np.int64)
+        goals = np.stack([np.asarray(state.goal_rows), np.asarray(state.goal_cols)],
+                         1).astype(np.int64)
+        if int(self.ids.max()) >= len(positions):
+            raise ValueError(f"robot ids {self.ids.tolist()} do not fit a fleet of "
+                             f"{len(positions)} robots")
+        local_goals = goals[self.ids]
+        key = (self.grid.shape, self.grid.tobytes(), local_goals.tobytes())
+        if self._observer is None or self._observer.key != key:
+            self._observer = LocalObserver(self.grid, local_goals, self.radius)
+        obs = torch.from_numpy(self._observer.observe(positions, self.ids))
+        if self._hidden is None:
+            self._hidden = torch.zeros(len(self.ids), self.model.config.hidden_dim)
+        with torch.no_grad():
+            if self.algo == "dhc":
+                h, requested, received, missing = self._dhc(tick, obs, positions)
+            else:
+                last = torch.as_tensor(np.asarray(state.last_actions, dtype=np.int64)[self.ids])
+                h, requested, received, missing = self._dcc(tick, obs, last, positions)
+            actions = self.model.head(h).argmax(-1).numpy()
+        if self.mailbox.current_tick != tick:
+            return  # the fleet moved on while we waited: this decision is stale
+        self._hidden = h
+        self.decisions += 1
+        stamp = self.node.get_clock().now().to_msg()
+        from mapf_fleet_interfaces.msg import RobotMove
+
+        for m, node in enumerate(self.nodes):
+            action = int(actions[m])
+            node.move_pub.publish(RobotMove(
+                episode=state.episode, tick=tick, robot_id=node.robot_id, action=action,
+                missing_peers=sorted(missing[m]), requested=requested[m],
+                messages_received=received[m]))
+            target = positions[node.robot_id] + ACTION_DELTAS[action]
+            node.waypoint_pub.publish(common.cell_pose(target[0], target[1], self.geometry,
+                                                       stamp))
+        if any(missing):
+            left_out = {int(self.ids[m]): sorted(s) for m, s in enumerate(missing) if s}
+            self.node.get_logger().warning(f"tick {tick}: left out peers {left_out}")
+
+    def _deadline(self) -> float:
+        return time.monotonic() + self.comm_timeout
+
+    # ---- DHC: two rounds over the shared topic ----
+    def _dhc(self, tick, obs, positions):
+        from mapf_fleet.models.comm import dhc_partners
+        from mapf_fleet_interfaces.msg import DhcHidden
+
+        model, m_count = self.model, len(self.ids)
+        h = model._encode(obs, self._hidden)
+        partners = dhc_partners(positions, self.radius, model.config.max_partners)[self.ids]
+        wanted = {int(j) for j in partners.reshape(-1) if j >= 0}
+        missing = [set() for _ in range(m_count)]
+        received = [0] * m_count
+        for r in range(model.config.comm_rounds):
+            vectors = h.numpy().copy()
+            for m, node in enumerate(self.nodes):
+                self.mailbox.put(self._episode, f"dhc{r}", tick, node.robot_id, vectors[m])
+                node.peer_pub.publish(DhcHidden(episode=self._episode, tick=tick, round=r,
+                                                robot_id=node.robot_id,
+                                                hidden=vectors[m].tolist()))
+            box = self.mailbox.wait_for(f"dhc{r}", tick, wanted, self._deadline())
+            # members: self first, then the partners nearest first (as the batched step)
+            members = np.zeros((m_count, 1 + partners.shape[1], h.shape[1]), dtype=np.float32)
+            valid = np.zeros(members.shape[:2], dtype=bool)
+            members[:, 0], valid[:, 0] = vectors, True
+            for m in range(m_count):
+                for k, j in enumerate(partners[m]):
+                    if j < 0:
+                        continue
+                    if int(j) in box:
+                        members[m, 1 + k], valid[m, 1 + k] = box[int(j)], True
+                        received[m] += 1
+                    else:
+                        missing[m].add(int(j))
+            rows = torch.from_numpy(np.flatnonzero(valid[:, 1:].any(1)))
+            if rows.numel():
+                updated = model._round(h[rows], torch.from_numpy(members)[rows],
+                                       torch.from_numpy(valid)[rows])
+                h = h.index_put((rows,), updated)
+        requested = [[int(j) for j in row if j >= 0] for row in partners]
+        return h, requested, received, missing
+
+    # ---- DCC: announcements over a topic, requests and replies as services ----
+    def _dcc(self, tick, obs, last, positions):
+        from mapf_fleet_interfaces.msg import DccAnnounce
+
+        model, m_count = self.model, len(self.ids)
+        delta = positions[None, :, :] - positions[self.ids][:, None, :]  # (M, N, 2)
+        inside = (np.abs(delta) <= self.radius).all(-1)
+        inside[np.arange(m_count), self.ids] = False
+        owner, neighbour = np.nonzero(inside)  # index order per robot, as the batched step
+        h, variant_actions = model._encode_with_variants(
+            obs, last, self._hidden, torch.from_numpy(owner),
+            torch.from_numpy(delta[owner, neighbour]))
+        own_actions = model._greedy(h).numpy()
+        chosen = variant_actions.numpy() != own_actions[owner]
+        targets = [[] for _ in range(m_count)]
+        for m, j in zip(owner[chosen], neighbour[chosen]):
+            targets[m].append(int(j))
+        missing = [set() for _ in range(m_count)]
+        received = [0] * m_count
+        vectors = h.numpy().copy()
+        for m, node in enumerate(self.nodes):
+            self.mailbox.put(self._episode, "announce", tick, node.robot_id, targets[m])
+            node.peer_pub.publish(DccAnnounce(episode=self._episode, tick=tick,
+                                              robot_id=node.robot_id, targets=targets[m]))
+        for m, node in enumerate(self.nodes):
+            for j in targets[m]:
+                self._send("request", node, j, tick, vectors[m], positions)
+        # Requesters of a robot are among its FOV neighbours (the FOV is symmetric): their
+        # announcements tell how many requests to await.
+        neighbours = [set(neighbour[owner == m].tolist()) for m in range(m_count)]
+        announced = self.mailbox.wait_for("announce", tick, set().union(*neighbours),
+                                          self._deadline())
+        requests = []
+        for m, node in enumerate(self.nodes):
+            missing[m].update(neighbours[m] - set(announced))
+            requesters = [i for i, t in announced.items()
+                          if i in neighbours[m] and node.robot_id in t]
+            got = self.mailbox.wait_for(f"request{node.robot_id}", tick, requesters,
+                                        self._deadline())
+            missing[m].update(set(requesters) - set(got))
+            received[m] += len(got)
+            requests.append(got)
+        h1 = self._aggregate(model.request_comm, h, requests, positions)
+        vectors1 = h1.numpy().copy()
+        for m, node in enumerate(self.nodes):
+            for i in requests[m]:
+                self._send("reply", node, i, tick, vectors1[m], positions)
+        replies = []
+        for m, node in enumerate(self.nodes):
+            got = self.mailbox.wait_for(f"reply{node.robot_id}", tick, targets[m],
+                                        self._deadline())
+            missing[m].update(set(targets[m]) - set(got))
+            received[m] += len(got)
+            replies.append(got)
+        h2 = self._aggregate(model.reply_comm, h1, replies, positions)
+        return h2, targets, received, missing
+
+    def _aggregate(self, layer, h, messages, positions):
+        """Run a DCC comm layer for the local robots that received messages (senders in index
+        order, padded and masked as in the batched step); the others keep h."""
+        from mapf_fleet.models.comm import relative_position_index
+
+        rows = [m for m in range(len(self.ids)) if messages[m]]
+        if not rows:
+            return h
+        width = max(len(messages[m]) for m in rows)
+        sender_h = np.zeros((len(rows), width, h.shape[1]), dtype=np.float32)
+        offsets = np.zeros((len(rows), width, 2), dtype=np.int64)
+        valid = np.zeros((len(rows), width), dtype=bool)
+        for k, m in enumerate(rows):
+            for s, sender in enumerate(sorted(messages[m])):
+                sender_h[k, s] = messages[m][sender]
+                offsets[k, s] = positions[sender] - positions[self.ids[m]]
+                valid[k, s] = True
+        index = torch.as_tensor(rows)
+        own = h[index]
+        sender_t = torch.from_numpy(sender_h)
+        position_index = relative_position_index(torch.from_numpy(offsets), self.radius)
+        valid_t = torch.from_numpy(valid)
+        if self.model.config.attend_self:
+            sender_t, position_index, valid_t = self.model._with_self(own, sender_t,
+                                                                      position_index, valid_t)
+        return h.index_put((index,), layer(own, sender_t, position_index, valid_t))
+
+    def _send(self, kind: str, node, peer: int, tick: int, vector: np.ndarray, positions):
+        """A DCC message from local robot `node` to robot `peer`: straight into the mailbox when
+        the peer lives in this process, else a (fire-and-forget) call of its service."""
+        if int(peer) in self.index_of:
+            self.mailbox.put(self._episode, f"{kind}{int(peer)}", tick, node.robot_id, vector)
+            self.sent["local"] += 1
+            return
+        offset = positions[node.robot_id] - positions[int(peer)]
+        if node.call_peer_service(kind, int(peer), self._episode, tick, offset, vector):
+            self.sent["service"] += 1

@@ -1,0 +1,265 @@
+"""`mapf-fleet card` and the paper's tables as data.
+
+The card is built from a synthetic run directory (TensorBoard scalars written with
+SummaryWriter), random small checkpoints and an evaluation JSON made by the real evaluator on 2
+instances per scenario."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+from pathlib import Path
+
+import pytest
+import yaml
+
+from mapf_fleet.evaluation import paper_results
+from mapf_fleet.evaluation.model_card import CardError, build_card, main
+
+PAPER_TEXT = Path("/work/shared/paper/cooperative-mapf-paper.txt")
+NUMBER = re.compile(r"^\d+\.\d+$")  # values have decimals; agent counts do not
+
+
+# ---- the paper's numbers ---------------------------------------------------------------------
+
+
+def _numeric_rows(lines: list[str]) -> list[list[float]]:
+    """The numbers of each line that has any (tab-separated cells of the text export)."""
+    rows = []
+    for line in lines:
+        numbers = [float(c) for c in line.split("\t") if NUMBER.match(c.strip())]
+        if numbers:
+            rows.append(numbers)
+    return rows
+
+
+def _block_after(text: list[str], heading: str, count: int, start: int = 0) -> list[list[float]]:
+    """The first `count` numeric rows after the first line at or after `start` containing `heading`."""
+    index = next(i for i in range(start, len(text)) if heading in text[i])
+    rows = []
+    for line in text[index + 1:]:
+        found = _numeric_rows([line])
+        if found:
+            rows.append(found[0])
+            if len(rows) == count:
+                return rows
+    raise AssertionError(f"fewer than {count} rows after {heading!r}")
+
+
+@pytest.fixture(scope="module")
+def paper_lines() -> list[str]:
+    if not PAPER_TEXT.is_file():
+        pytest.skip(f"{PAPER_TEXT} not present")
+    return PAPER_TEXT.read_text().splitlines()
+
+
+def _as_rows(rows: list[paper_results.PaperRow], metric: str) -> list[list[float]]:
+    return [[getattr(r, metric)[n] for n in sorted(getattr(r, metric))] for r in rows]
+
+
+def test_table_4_matches_the_paper_text(paper_lines):
+    parsed = _block_after(paper_lines, "Table 4:", 9)
+    # Each line of Table 4 holds the 5 success rates, then the 5 average steps.
+    mine = paper_results.paper_rows(map_size=40)
+    assert [r.label for r in mine][:2] == ["DHC baseline", "DHC α=0.1"]
+    assert [s + t for s, t in zip(_as_rows(mine, "success_rate"), _as_rows(mine, "average_steps"))] == parsed
+
+
+def test_table_1_matches_the_paper_text(paper_lines):
+    start = next(i for i, line in enumerate(paper_lines) if line.startswith("Table 1:"))
+    success = _block_after(paper_lines, "Success Rate", 9, start)
+    steps = _block_after(paper_lines, "Average Time Steps", 9, start)
+    mine = paper_results.paper_rows(map_size=80, methods=(paper_results.BASELINE, paper_results.CURRICULUM))
+    assert _as_rows(mine, "success_rate") == success
+    assert _as_rows(mine, "average_steps") == steps
+    assert paper_results.paper_row("dcc", 80, 0.2).success_rate[128] == 0.865
+
+
+def test_table_2_rows_are_identified_by_their_values(paper_lines):
+    """The text's Table 2 alternates w/o CL and Proposed rows (labels shifted, the last Proposed
+    row missing): Proposed rows must equal Table 1, the others are our w/o CL rows."""
+    start = next(i for i, line in enumerate(paper_lines) if line.startswith("Table 2:"))
+    for metric, heading in (("success_rate", "Success Rate"), ("average_steps", "Average Time Steps")):
+        # the alpha label (0.2, 0.3...) shares some lines: the values are the last 6 numbers
+        parsed = [row[-6:] for row in _block_after(paper_lines, heading, 9, start)]
+        fixed = [r for r in paper_results.paper_rows(map_size=80, methods=(paper_results.FIXED,))]
+        proposed = [paper_results.paper_row(r.algorithm, 80, r.alpha) for r in fixed[:4]]
+        assert parsed[0::2] == _as_rows(fixed, metric)
+        assert parsed[1::2] == _as_rows(proposed, metric)
+
+
+def test_paper_row_lookup():
+    assert paper_results.paper_row("dhc", 40, 0.3).success_rate[64] == 0.645
+    assert paper_results.paper_row("dhc", 40, 0.0).method == paper_results.BASELINE
+    assert paper_results.paper_row("dcc", 40, 0.4) is None  # DCC stops at 0.3
+    assert paper_results.paper_row("dhc", 80, 0.3, paper_results.FIXED).success_rate[128] == 0.535
+    with pytest.raises(ValueError, match="algorithm"):
+        paper_results.paper_rows("ppo")
+
+
+# ---- the card ----------------------------------------------------------------------------------
+
+
+def _trainer_like_checkpoint(path: Path, algo: str = "dhc") -> Path:
+    """A random small network with the metadata the trainer writes after stage 2."""
+    import torch
+
+    from mapf_fleet.models.checkpoint import build_model, save_checkpoint
+    from mapf_fleet.models.config import ModelConfig
+    from mapf_fleet.training.config import load_config
+
+    torch.manual_seed(1)
+    config = load_config(Path(__file__).resolve().parents[1] / "config" / "training" / f"{algo}_cpu.yaml")
+    config = config.replace(max_wall_seconds=7200.0)
+    metadata = {
+        "alpha": 0.2,
+        "curriculum": {"stage": "done", "setting": [12, 40], "alpha_passed": [0.0, 0.1, 0.2], "alpha_star": 0.2},
+        "learner_steps": 4321,
+        "training_config": config.to_dict(),
+    }
+    return save_checkpoint(path, build_model(ModelConfig.preset(algo, "small")), metadata)
+
+
+def _run_dir(root: Path, checkpoint: Path, config: dict) -> Path:
+    from torch.utils.tensorboard import SummaryWriter
+
+    run = root / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    shutil.copy(checkpoint, run / "checkpoints" / "alpha_0.2.pt")
+    (run / "config.yaml").write_text(yaml.safe_dump(config))
+    (run / "result.json").write_text(json.dumps({
+        "stage": "done", "alpha_star": 0.2, "stop_reason": "alpha 0.3 did not pass",
+        "counters": {"episodes": 900, "env_steps": 55000, "agent_steps": 400000, "elapsed_seconds": 5400.0},
+    }))
+    writer = SummaryWriter(str(run / "tb"))
+    for step in range(0, 500, 100):
+        writer.add_scalar("curriculum/gate_success_rate", 0.5 + step / 1000, step)
+        writer.add_scalar("curriculum/num_agents", 1 + step // 100, step)
+        writer.add_scalar("curriculum/map_size", 10 + 5 * (step // 200), step)
+        writer.add_scalar("curriculum/alpha", 0.0 if step < 300 else 0.1, step)
+        writer.add_scalar("learner/loss", 1.0 / (step + 1), step)
+    writer.close()
+    return run
+
+
+@pytest.fixture(scope="module")
+def evaluated(tmp_path_factory):
+    """Two checkpoints and one evaluation JSON of the first (2 instances, 40x40 and 80x80)."""
+    import torch
+
+    from mapf_fleet.evaluation.cli import main as evaluate_main
+    from mapf_fleet.evaluation.random_checkpoint import save_random_checkpoint
+
+    torch.set_num_threads(1)
+    root = tmp_path_factory.mktemp("card")
+    trained = _trainer_like_checkpoint(root / "dhc_coop.pt")
+    other = save_random_checkpoint(root / "other.pt", "dhc", "small", seed=3)
+    eval_json = root / "dhc_coop_eval.json"
+    code = evaluate_main(["--checkpoint", str(trained), "--sizes", "40", "80", "--agents", "4",
+                          "--instances", "2", "--cache-dir", str(root / "cache"),
+                          "--json", str(eval_json), "--quiet"])
+    assert code == 0
+    return root, trained, other, eval_json
+
+
+def test_card_holds_the_measured_and_the_paper_values(evaluated, tmp_path):
+    root, checkpoint, _, eval_json = evaluated
+    from mapf_fleet.training.config import load_config
+
+    config = load_config(Path(__file__).resolve().parents[1] / "config" / "training" / "dhc_cpu.yaml").to_dict()
+    run = _run_dir(tmp_path, checkpoint, config)
+    out, curves = tmp_path / "models" / "dhc_coop.md", tmp_path / "models" / "dhc_coop_curves.png"
+    assert main(["--checkpoint", str(checkpoint), "--eval", str(eval_json), "--run-dir", str(run),
+                 "--out", str(out), "--curves", str(curves)]) == 0
+    card = out.read_text()
+    data = json.loads(eval_json.read_text())
+
+    # Every measured cell of the JSON (this checkpoint and the references) appears in its row.
+    for row in data["results"]:
+        name = "**dhc_coop** (this checkpoint)" if row["policy"] == "dhc_coop" else f"{row['policy']} (reference)"
+        table_rows = [line for line in card.splitlines() if line.startswith(f"| {name} |")]
+        assert f"{row['success_rate']:.3f}" in table_rows[0] or f"{row['success_rate']:.3f}" in table_rows[2]
+        assert any(f"{row['average_steps']:.2f}" in line for line in table_rows)
+    assert "LaCAM (reference)" in card and "heuristic (reference)" in card
+    # The issue's first target, judged on the JSON's rows: 40x40 and 80x80 at 4 agents each.
+    by = {(r["policy"], r["map"]): r["success_rate"] for r in data["results"]}
+    expected = [f"Success rate above the non-learned heuristic: "
+                f"{'at every agent count' if by[('dhc_coop', m)] > by[('heuristic', m)] else 'at no agent count'} (of 4)."
+                for m in ("40x40", "80x80")]
+    assert [line for line in card.splitlines() if line.startswith("Success rate above")] == expected
+    # The paper's rows of the same algorithm, at the measured agent count (4).
+    assert "| paper Table 4: DHC α=0.2 ◀ same α | 1.000 |" in card
+    assert "| paper Table 1: DHC baseline | 0.990 |" in card
+    assert "| paper Table 4: DHC baseline | 52.33 |" in card
+    assert "DCC" not in "".join(line for line in card.splitlines() if line.startswith("| paper"))
+    # The evaluate command recorded by the evaluator, to re-run it.
+    assert data["metadata"]["command"] in card
+    # What the checkpoint is.
+    assert "12 agents on 40x40" in card and "| alpha* (stage 2) | 0.2 |" in card
+    assert "| learner steps | 4,321 |" in card and "preset `small`" in card
+    # Compute: 5400 s x num_cpus 2 = 3.00 CPU-hours, from result.json.
+    assert "**3.00 CPU-hours**" in card and "result.json counters.elapsed_seconds" in card
+    # Training config: closest file and the fields that differ from the paper's recipe.
+    assert "`config/training/dhc_cpu.yaml` (differs in `max_wall_seconds`)" in card
+    from mapf_fleet.training.config import config_from_dict
+
+    paper_batch = config_from_dict({"preset": "dhc"}).batch_size
+    assert config["batch_size"] != paper_batch  # the CPU config is smaller than the paper's
+    assert f"| `batch_size` | `{config['batch_size']!r}` | `{paper_batch!r}` |" in card
+    assert "`checkpoints/alpha_0.2.pt` (same bytes)" in card
+    # Curves: PNG written, linked relative to the card, last values from TensorBoard.
+    assert curves.is_file() and curves.stat().st_size > 1000
+    assert "![training curves](dhc_coop_curves.png)" in card
+    assert "| `curriculum/gate_success_rate` | 0.9 | 400 |" in card
+
+
+def test_card_of_a_random_checkpoint_without_run_dir(tmp_path):
+    import torch
+
+    from mapf_fleet.evaluation.cli import main as evaluate_main
+    from mapf_fleet.evaluation.random_checkpoint import save_random_checkpoint
+
+    torch.set_num_threads(1)
+    checkpoint = save_random_checkpoint(tmp_path / "rand.pt", "dcc", "small")
+    eval_json = tmp_path / "rand.json"
+    assert evaluate_main(["--checkpoint", str(checkpoint), "--sizes", "40", "--agents", "4",
+                          "--instances", "2", "--no-references", "--json", str(eval_json), "--quiet"]) == 0
+    card = build_card(checkpoint, eval_json)
+    value = json.loads(eval_json.read_text())["results"][0]["success_rate"]
+    assert f"| **rand** (this checkpoint) | {value:.3f} |" in card
+    assert "| paper Table 4: DCC baseline ◀ same α | 1.000 |" in card
+    assert "untrained: random weights" in card and "Compute" in card and "Not recorded" in card
+
+
+def test_eval_json_of_another_checkpoint_is_refused(evaluated, tmp_path):
+    _, _, other, eval_json = evaluated
+    with pytest.raises(CardError, match=r"evaluates checkpoint\(s\) .*dhc_coop\.pt, not .*other\.pt"):
+        build_card(other, eval_json)
+    # The command reports it and exits 2 without writing.
+    out = tmp_path / "x.md"
+    assert main(["--checkpoint", str(other), "--eval", str(eval_json), "--out", str(out)]) == 2
+    assert not out.exists()
+
+
+def test_run_dir_of_another_algorithm_is_refused(evaluated, tmp_path):
+    _, checkpoint, _, eval_json = evaluated
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.yaml").write_text(yaml.safe_dump({"algo": "dcc", "model_preset": "small"}))
+    with pytest.raises(CardError, match=r"config.yaml: algo 'dcc', but the checkpoint is 'dhc'"):
+        build_card(checkpoint, eval_json, run_dir=run)
+
+
+def test_missing_inputs_are_named(evaluated, tmp_path):
+    _, checkpoint, _, eval_json = evaluated
+    with pytest.raises(CardError, match=r"--eval .*nope\.json: no such file"):
+        build_card(checkpoint, tmp_path / "nope.json")
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"results": []}))
+    with pytest.raises(CardError, match="keys 'metadata' and 'results'"):
+        build_card(checkpoint, bad)
+    with pytest.raises(CardError, match="--curves .*needs --run-dir"):
+        build_card(checkpoint, eval_json, curves=tmp_path / "c.png")
+    with pytest.raises(CardError, match="--checkpoint: .*no such checkpoint file"):
+        build_card(tmp_path / "missing.pt", eval_json)
