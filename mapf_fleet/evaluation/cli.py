@@ -12,11 +12,15 @@ unless --no-references. Prints the paper-layout tables (success rate, average st
 from __future__ import annotations
 
 import argparse
+import hashlib
 import os
 import platform
+import shlex
 import sys
 import time
 from pathlib import Path
+
+from mapf_fleet.version import code_version
 
 from .policies import REFERENCE_NAMES, parse_policy, unique_names
 from .protocol import (
@@ -91,6 +95,11 @@ def _scenarios(args, config: ProtocolConfig):
     return out
 
 
+def _sha256(path: str) -> str:
+    # lets a model card tell whether the file it describes is the file that was evaluated
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
 def _metadata(args, config: ProtocolConfig, specs, wall_time: float) -> dict:
     import numpy
 
@@ -101,11 +110,14 @@ def _metadata(args, config: ProtocolConfig, specs, wall_time: float) -> dict:
         except Exception:  # noqa: BLE001 - an absent optional library is just not listed
             pass
     return {
-        "command": "mapf-fleet evaluate " + " ".join(args.argv),
+        "command": shlex.join(["mapf-fleet", "evaluate", *args.argv]),
         "protocol_file": args.config,
         "density": config.density,
         "seed": config.seed if args.seed is None else args.seed,
-        "policies": [{"name": s.name, "kind": s.kind, "path": s.path, "algorithm": s.algorithm} for s in specs],
+        "policies": [{"name": s.name, "kind": s.kind, "path": s.path, "algorithm": s.algorithm,
+                      "sha256": _sha256(s.path) if s.path else None} for s in specs],
+        "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "code_version": code_version(),
         "workers": args.workers,
         "wall_time_s": round(wall_time, 3),
         "versions": versions,

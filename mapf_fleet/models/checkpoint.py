@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import datetime as _dt
 import os
-import subprocess
 import tempfile
 from pathlib import Path
 from typing import Any, Mapping
@@ -34,6 +33,7 @@ import torch
 from torch import nn
 
 import mapf_fleet
+from mapf_fleet.version import code_version  # noqa: F401 - re-exported
 from mapf_fleet.grid.actions import ACTION_NAMES
 
 from .config import ALGORITHMS, ModelConfig
@@ -57,23 +57,6 @@ def build_model(config: ModelConfig) -> nn.Module:
     from .dhc import DHCNetwork
 
     return DHCNetwork(config) if config.algo == "dhc" else DCCNetwork(config)
-
-
-def code_version() -> dict[str, Any]:
-    """Package version and the git commit of the source tree when it is a git checkout."""
-    commit = None
-    try:
-        # GIT_OPTIONAL_LOCKS=0: read only, never touch the index.
-        result = subprocess.run(
-            ["git", "rev-parse", "HEAD"], cwd=Path(mapf_fleet.__file__).resolve().parent,
-            capture_output=True, text=True, timeout=5,
-            env={**os.environ, "GIT_OPTIONAL_LOCKS": "0"},
-        )
-        if result.returncode == 0:
-            commit = result.stdout.strip() or None
-    except (OSError, subprocess.SubprocessError):
-        pass
-    return {"package": mapf_fleet.__version__, "git_commit": commit}
 
 
 def save_checkpoint(path, model: nn.Module, metadata: Mapping[str, Any]) -> Path:
