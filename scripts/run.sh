@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Set up (idempotent, seconds when nothing changed) and run one of the project's jobs:
-#   bash scripts/run.sh main [args]   the main job: `mapf-fleet demo` (grid world, heuristic policy)
+#   bash scripts/run.sh main [args]   the main job: `mapf-fleet up` (8 simulated robots over ROS 2)
 #   bash scripts/run.sh test [args]   the full pytest suite (extra args go to pytest)
 #   bash scripts/run.sh exec CMD ...  any command inside the project's environment
 set -euo pipefail
@@ -20,7 +20,7 @@ source "$REPO/scripts/env.sh"
 cd "$REPO"
 
 case "$job" in
-  main) exec mapf-fleet demo "$@" ;;
+  main) exec mapf-fleet up "$@" ;;
   test) exec python -m pytest "$@" ;;
   exec) exec "$@" ;;
 esac

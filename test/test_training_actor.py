@@ -75,3 +75,34 @@ def test_task_change_drops_running_episodes():
     assert worker.envs == []
     result = worker.run(12)
     assert all(ep["num_agents"] == 3 and ep["task_version"] == 1 for ep in result["episodes"])
+
+
+def test_per_env_epsilons_cover_the_schedule_and_gate_the_least_exploring():
+    cfg = TrainConfig(num_actors=2, envs_per_actor=4, epsilon_per_env=True)
+    assert cfg.num_explorers == 8
+    eps = sorted(cfg.slot_epsilon(a, k) for a in range(2) for k in range(4))
+    np.testing.assert_allclose(eps, sorted(0.4 ** (1 + 7 * i / 7) for i in range(8)))
+    gate = {(a, k) for a in range(2) for k in range(4) if cfg.is_gate_slot(a, k)}
+    assert len(gate) == 4
+    assert max(cfg.slot_epsilon(a, k) for a, k in gate) < \
+        min(cfg.slot_epsilon(a, k) for a in range(2) for k in range(4) if (a, k) not in gate)
+    # interleaved: each actor holds exploring and gate slots
+    assert {a for a, _ in gate} == {0, 1}
+    paper = TrainConfig(num_actors=4, envs_per_actor=3, epsilon_per_env=False)
+    assert paper.slot_epsilon(2, 0) == paper.slot_epsilon(2, 2) == paper.actor_epsilon(2)
+    worker = EpisodeWorker(_cfg(envs_per_actor=4, num_actors=1), actor_index=0, seed=1)
+    worker.set_task(Task(1, 10, 0.0))
+    result = worker.run(40)
+    assert {ep["gate"] for ep in result["episodes"]} <= {True, False}
+    assert all(ep["gate"] == (ep["epsilon"] <= np.median(worker.epsilons))
+               for ep in result["episodes"])
+
+
+def test_step_limit_grows_with_the_curriculum_map():
+    cfg = TrainConfig(max_steps_per_map_side=6.4)
+    assert [cfg.episode_step_limit(s) for s in (10, 15, 40, 80)] == [64, 96, 256, 256]
+    assert TrainConfig().episode_step_limit(10) == 256
+    worker = EpisodeWorker(_cfg(max_episode_steps=256, max_steps_per_map_side=1.0), 0, seed=2)
+    worker.set_task(Task(2, 10, 0.0))
+    result = worker.run(25)
+    assert result["episodes"] and all(ep["steps"] <= 10 for ep in result["episodes"])

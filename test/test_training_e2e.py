@@ -47,12 +47,16 @@ def test_tiny_config_runs_both_stages_on_ray(tmp_path, ray_shutdown, capsys):
 
 @pytest.mark.slow
 def test_one_agent_on_10x10_learns_past_0_9(tmp_path):
-    """Real learning: the gate (> 0.9 success over the last 100 greedy-ish episodes) must pass
-    within 2500 learner updates of 32 sequences x 8 steps (about 10 minutes on 2 cores)."""
+    """Real learning through the trainer's own loop (in-process actors, same code as Ray): the
+    gate (> 0.9 success over the last 100 episodes of the 8 least-exploring of 16 explorers) must
+    pass within 1500 learner updates of 32 sequences x 8 steps. Measured: passed at update 800
+    after 165 s on the shared 2 cores. Before the fixes (one epsilon of 0.016 for the single
+    actor's 16 environments, 256-step limit on 10x10, target sync every 100) it levelled off
+    at 0.6-0.75."""
     cfg = load_config(CONFIGS / "tiny.yaml").replace(
         use_ray=False, num_actors=1, envs_per_actor=16, updates_per_poll=4, final_agents=1,
         final_map_size=10, alpha_mode="fixed", fixed_alpha=0.0, success_window=100,
-        success_threshold=0.9, max_updates=2500, max_wall_seconds=1200,
-        alpha_max_updates=2500, plateau_windows=0, seed=1)
+        success_threshold=0.9, max_updates=1500, max_wall_seconds=600,
+        alpha_max_updates=1500, plateau_windows=0, seed=1)
     result = Trainer(cfg, tmp_path / "learn").run()
     assert result["alpha_passed"] == [0.0], result

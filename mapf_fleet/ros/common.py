@@ -85,6 +85,15 @@ def reliable_qos(depth: int = 100):
                       durability=DurabilityPolicy.VOLATILE)
 
 
+def quiet_publisher_events():
+    """Publisher options without the default QoS-event handlers: each handler is one more entity
+    that the Python executor re-adds to its wait set on every spin, which dominated the
+    one-process fleet's time with a few hundred publishers (benchmarks/bench_fleet.py)."""
+    from rclpy.event_handler import PublisherEventCallbacks
+
+    return PublisherEventCallbacks(use_default_callbacks=False)
+
+
 @dataclass(frozen=True)
 class MapGeometry:
     resolution: float = 1.0

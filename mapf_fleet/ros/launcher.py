@@ -3,8 +3,13 @@ progress, print the outcome and exit 0 on success.
 
 Process layout: by default each policy node runs in its own process; `--nodes-per-process K`
 hosts K robots' nodes per process (needed past ~32 processes, DESIGN.md section 2);
-`--single-process` runs the simulator and every policy node in this process. Every process gets
+`--single-process` runs the simulator and every policy node in this process. The policy nodes of
+one process share one hub (one subscription per shared topic, batched inference). With
+`--real-robots` the aggregator replaces the simulator: the robots publish their own poses on
+/robot_<i>/pose and follow /robot_<i>/waypoint. Every process gets
 ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST.
+
+With no arguments: 8 simulated robots on a generated 16x16 map, checkpoint models/default.pt.
 """
 
 from __future__ import annotations
@@ -25,7 +30,13 @@ from mapf_fleet.ros.instances import InstanceSource
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
+DEFAULT_CHECKPOINT = REPO_ROOT / "models" / "default.pt"
+
+
 def default_checkpoint() -> str:
+    """models/default.pt if present, else the first DHC (or any) checkpoint in models/."""
+    if DEFAULT_CHECKPOINT.is_file():
+        return str(DEFAULT_CHECKPOINT)
     found = sorted(glob.glob(str(REPO_ROOT / "models" / "*.pt")))
     preferred = [f for f in found if "dhc" in Path(f).name.lower()] or found
     return preferred[0] if preferred else ""
@@ -50,6 +61,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--nodes-per-process", type=int, default=1)
     parser.add_argument("--single-process", action="store_true",
                         help="simulator and all policy nodes in this process")
+    parser.add_argument("--real-robots", action="store_true",
+                        help="real-robot mode: the aggregator (robots' own /robot_<i>/pose "
+                        "feeds) instead of the simulator")
+    parser.add_argument("--arrival-timeout", type=float, default=10.0,
+                        help="real-robot mode: seconds for robots to reach their waypoints")
     parser.add_argument("--record", default="", help="write trajectory and outcome JSON here")
     parser.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID to use")
     parser.add_argument("--params-file", default="", help="ROS parameters YAML for all nodes")
@@ -70,8 +86,17 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(sys.argv[1:] if argv is None else argv)
     checkpoint = args.checkpoint or default_checkpoint()
     if not checkpoint or not Path(checkpoint).is_file():
-        print(f"mapf-fleet up: checkpoint not found: {checkpoint!r} (pass --checkpoint)",
-              file=sys.stderr)
+        if args.checkpoint:
+            problem = f"checkpoint not found: {args.checkpoint!r}"
+        else:
+            problem = f"no checkpoint in {REPO_ROOT / 'models'} (default {DEFAULT_CHECKPOINT.name})"
+        print(f"mapf-fleet up: {problem}. Pass --checkpoint FILE.pt (a file written by "
+              f"mapf_fleet.models.save_checkpoint, e.g. by training), or put one at "
+              f"{DEFAULT_CHECKPOINT}.", file=sys.stderr)
+        return 2
+    if args.real_robots and args.single_process:
+        print("mapf-fleet up: --real-robots runs the aggregator in its own process; drop "
+              "--single-process", file=sys.stderr)
         return 2
     if args.nodes_per_process < 1:
         print("mapf-fleet up: --nodes-per-process must be >= 1", file=sys.stderr)
@@ -93,6 +118,9 @@ def main(argv: list[str] | None = None) -> int:
                   "decision_timeout": args.decision_timeout,
                   "startup_timeout": args.startup_timeout, "record_file": record}
     sim_params = {k: v for k, v in sim_params.items() if v != ""}
+    if args.real_robots:
+        sim_params = {k: v for k, v in sim_params.items() if k in _aggregator_parameters()}
+        sim_params["arrival_timeout"] = args.arrival_timeout
     policy_params = {"checkpoint": checkpoint, "comm_timeout": args.comm_timeout}
     started = time.monotonic()
     if args.single_process:
@@ -102,6 +130,12 @@ def main(argv: list[str] | None = None) -> int:
         code = run_processes(num_robots, sim_params, policy_params, args, env)
     elapsed = time.monotonic() - started
     return report(record, elapsed) if code in (0, 1) else code
+
+
+def _aggregator_parameters() -> set[str]:
+    from mapf_fleet.ros.aggregator_node import PARAMETERS
+
+    return set(PARAMETERS)
 
 
 def run_processes(num_robots, sim_params, policy_params, args, env) -> int:
@@ -117,7 +151,8 @@ def run_processes(num_robots, sim_params, policy_params, args, env) -> int:
                 runner + ["policy", "--robots", ids] + _ros_args(policy_params, args.params_file),
                 env=env, stdout=quiet_out, stderr=quiet_out))
         simulator = subprocess.Popen(
-            runner + ["simulator"] + _ros_args(sim_params, args.params_file), env=env,
+            runner + ["aggregator" if args.real_robots else "simulator"]
+            + _ros_args(sim_params, args.params_file), env=env,
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         for line in simulator.stdout:
             if not args.quiet:
@@ -147,7 +182,7 @@ def run_single_process(num_robots, sim_params, policy_params, params_file) -> in
     import rclpy
     from rclpy.parameter import Parameter
 
-    from mapf_fleet.ros.policy_node import PolicyNode, spin_policy_nodes
+    from mapf_fleet.ros.policy_node import PolicyNode, host_kwargs, spin_policy_nodes
     from mapf_fleet.ros.simulator_node import SimulatorNode
 
     rclpy.init(args=["up"] + (["--ros-args", "--params-file", params_file] if params_file else []))
@@ -155,10 +190,11 @@ def run_single_process(num_robots, sim_params, policy_params, params_file) -> in
         simulator = SimulatorNode(parameter_overrides=[Parameter(k, value=v)
                                                        for k, v in sim_params.items()])
         overrides = [Parameter("comm_timeout", value=float(policy_params["comm_timeout"]))]
+        options = host_kwargs(num_robots)
         first = PolicyNode(robot_id=0, checkpoint=policy_params["checkpoint"],
-                           parameter_overrides=list(overrides))
+                           parameter_overrides=list(overrides), **options)
         policies = [first] + [PolicyNode(robot_id=i, model=first.model,
-                                         parameter_overrides=list(overrides))
+                                         parameter_overrides=list(overrides), **options)
                               for i in range(1, num_robots)]
         # one hub drives every robot of this process; the simulator shares the executor
         spin_policy_nodes(policies, until=simulator.finished.is_set, extra_nodes=[simulator],

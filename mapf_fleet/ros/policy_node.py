@@ -1,8 +1,10 @@
-"""PolicyNode: one robot's learned policy. Builds its own FOV observation from /fleet/map and the
-fleet state, talks to its peers (DHC: hidden vectors over a shared topic, two rounds; DCC:
-requests and replies as ROS services, with an announcement topic so receivers know how many
-requests to await), and publishes its move for the tick and its next waypoint.
+"""PolicyNode: one robot's learned policy as a ROS node: its parameters (robot_id, checkpoint,
+timeouts), its move / waypoint / heartbeat publishers, its peer publisher (DHC: hidden vectors
+on a shared topic, two rounds; DCC: announcements) and, for DCC, its request and reply services.
 
+The robots hosted in one process are driven by one `mapf_fleet.ros.hub.PolicyHub` (shared
+subscriptions, batched inference, see docs/architecture.md): `spin_policy_nodes` sets it up for
+one robot (`ros2 run mapf_fleet policy`) or many (`mapf-fleet node policy --robots 0-7`).
 Every peer message carries (episode, tick); a message of an older tick is stale and ignored. A
 peer missing after `comm_timeout` is left out and reported in the move (missing_peers). A node
 started mid-run joins at the newest tick it receives (with a fresh recurrent state).
@@ -20,7 +22,7 @@ from mapf_fleet_interfaces.msg import DccAnnounce, DhcHidden, RobotMove, RobotSt
 from mapf_fleet_interfaces.srv import DccMessage
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.callback_groups import ReentrantCallbackGroup
-from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
 from mapf_fleet.ros import common
@@ -60,6 +62,7 @@ class PolicyNode(Node):
             if checkpoint is not None:
                 overrides.append(Parameter("checkpoint", value=str(checkpoint)))
         name = f"mapf_policy_{robot_id}" if robot_id is not None else "mapf_policy"
+        self.has_parameter_services = node_kwargs.get("start_parameter_services", True)
         super().__init__(name, parameter_overrides=overrides, **node_kwargs)
         for pname, (default, text) in PARAMETERS.items():
             self.declare_parameter(pname, default, ParameterDescriptor(description=text))
@@ -81,18 +84,20 @@ class PolicyNode(Node):
         self.algo = model.config.algo
         self.hub = None  # set by PolicyHub
         self._peer_clients: dict[tuple[str, int], object] = {}
-        self.move_pub = self.create_publisher(RobotMove, common.MOVES_TOPIC, common.reliable_qos(100))
+        quiet = common.quiet_publisher_events()
+        self.move_pub = self.create_publisher(RobotMove, common.MOVES_TOPIC, common.reliable_qos(100),
+                                              event_callbacks=quiet)
         self.waypoint_pub = self.create_publisher(PoseStamped, common.waypoint_topic(self.robot_id),
-                                                  common.reliable_qos(10))
+                                                  common.reliable_qos(10), event_callbacks=quiet)
         self.status_pub = self.create_publisher(RobotStatus, common.STATUS_TOPIC,
-                                                common.reliable_qos(100))
+                                                common.reliable_qos(100), event_callbacks=quiet)
         if self.algo == "dhc":
             self.peer_pub = self.create_publisher(DhcHidden, common.DHC_HIDDEN_TOPIC,
-                                                  common.reliable_qos(1000))
+                                                  common.reliable_qos(1000), event_callbacks=quiet)
         else:
             group = ReentrantCallbackGroup()
             self.peer_pub = self.create_publisher(DccAnnounce, common.DCC_ANNOUNCE_TOPIC,
-                                                  common.reliable_qos(1000))
+                                                  common.reliable_qos(1000), event_callbacks=quiet)
             self.create_service(DccMessage, common.dcc_request_service(self.robot_id),
                                 self._on_dcc_request, callback_group=group)
             self.create_service(DccMessage, common.dcc_reply_service(self.robot_id),
@@ -129,23 +134,31 @@ class PolicyNode(Node):
         return True
 
 
-def executor_for(node_count: int):
-    """Callbacks only store and notify (the hub thread computes), so a few threads suffice;
-    one thread per node would just contend for the GIL."""
-    if node_count <= 2:
-        return SingleThreadedExecutor()
-    return MultiThreadedExecutor(num_threads=2)
+def needs_spinning(node: PolicyNode) -> bool:
+    """A DHC policy node only publishes (the hub subscribes for it); a DCC node serves its
+    request and reply services. Nodes hosted with others have no parameter services (see
+    `host_kwargs`), so a DHC node then has nothing to spin and stays out of the executor, whose
+    per-spin cost grows with every entity it holds."""
+    return node.algo == "dcc" or node.has_parameter_services
+
+
+def host_kwargs(count: int) -> dict:
+    """Node options when `count` robots share a process: without the six parameter services
+    per node (the parameters are still declared and loaded from the YAML and command line)."""
+    return {} if count <= 1 else {"start_parameter_services": False}
 
 
 def spin_policy_nodes(nodes: list[PolicyNode], until=None, extra_nodes=(), on_started=None) -> None:
     """Spin policy nodes hosted in this process (one PolicyHub for all of them) plus
-    `extra_nodes` (e.g. a simulator) until `until()` is true or Ctrl-C."""
+    `extra_nodes` (e.g. a simulator) until `until()` is true or Ctrl-C. One single-threaded
+    executor: the callbacks only store and notify (the hub thread computes), and a thread pool
+    costs more than it saves under the GIL."""
     from mapf_fleet.ros.hub import PolicyHub
 
     hub = PolicyHub(nodes, nodes[0].model)
-    everything = list(extra_nodes) + hub.all_nodes
-    executor = executor_for(len(everything))
-    for node in everything:
+    spun = list(extra_nodes) + [hub.node] + [n for n in nodes if needs_spinning(n)]
+    executor = SingleThreadedExecutor()
+    for node in spun:
         executor.add_node(node)
     spinner = common.SpinThread(executor).start()
     hub.start()
@@ -159,7 +172,7 @@ def spin_policy_nodes(nodes: list[PolicyNode], until=None, extra_nodes=(), on_st
     finally:
         hub.stop()
         spinner.stop()
-        for node in everything:
+        for node in list(extra_nodes) + hub.all_nodes:
             node.destroy_node()
 
 

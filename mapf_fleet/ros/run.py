@@ -39,14 +39,16 @@ def parse_robot_ids(text: str) -> list[int]:
 def host_policy_nodes(robot_ids: list[int], ros_args: list[str]) -> int:
     import rclpy
 
-    from mapf_fleet.ros.policy_node import PolicyNode, spin_policy_nodes
+    from mapf_fleet.ros.policy_node import PolicyNode, host_kwargs, spin_policy_nodes
 
     rclpy.init(args=["policy"] + ros_args)
     try:
-        first = PolicyNode(robot_id=robot_ids[0])
+        options = host_kwargs(len(robot_ids))
+        first = PolicyNode(robot_id=robot_ids[0], **options)
         # one model object shared by the nodes of this process (inference only, no state in it)
         model = first.model
-        nodes = [first] + [PolicyNode(robot_id=i, model=model) for i in robot_ids[1:]]
+        nodes = [first] + [PolicyNode(robot_id=i, model=model, **options)
+                         for i in robot_ids[1:]]
         spin_policy_nodes(nodes)
     finally:
         rclpy.try_shutdown()

@@ -93,11 +93,12 @@ class SimulatorNode(Node):
                                                  common.latched_qos())
         self.markers_pub = self.create_publisher(MarkerArray, common.MARKERS_TOPIC,
                                                  common.reliable_qos(2))
+        quiet = common.quiet_publisher_events()  # per-robot publishers: keep the wait set small
         self.pose_pubs = [self.create_publisher(PoseStamped, common.pose_topic(i),
-                                                common.reliable_qos(10))
+                                                common.reliable_qos(10), event_callbacks=quiet)
                           for i in range(self.num_robots)]
         self.goal_pubs = [self.create_publisher(PoseStamped, common.goal_topic(i),
-                                                common.latched_qos())
+                                                common.latched_qos(), event_callbacks=quiet)
                           for i in range(self.num_robots)]
         self.create_subscription(RobotMove, common.MOVES_TOPIC, self._on_move,
                                  common.reliable_qos(1000))
@@ -258,28 +259,33 @@ class SimulatorNode(Node):
         self.markers_pub.publish(self._markers(stamp))
 
     def _markers(self, stamp) -> MarkerArray:
-        array = MarkerArray()
-        for i in range(self.num_robots):
-            for kind, cell, shape in (("robot", self.positions[i], Marker.CYLINDER),
-                                      ("goal", self.goals[i], Marker.CUBE)):
-                marker = Marker()
-                marker.header.frame_id = common.FRAME_ID
-                marker.header.stamp = stamp
-                marker.ns = kind
-                marker.id = i
-                marker.type = shape
-                marker.action = Marker.ADD
-                x, y = self.geometry.cell_to_xy(int(cell[0]), int(cell[1]))
-                marker.pose.position.x, marker.pose.position.y = x, y
-                marker.pose.orientation.w = 1.0
-                scale = self.geometry.resolution * (0.8 if kind == "robot" else 0.4)
-                marker.scale.x = marker.scale.y = scale
-                marker.scale.z = 0.2 * self.geometry.resolution
-                hue = (i * 0.618) % 1.0
-                marker.color.r, marker.color.g, marker.color.b = hue, 1.0 - hue, 0.5
-                marker.color.a = 1.0 if kind == "robot" else 0.6
-                array.markers.append(marker)
-        return array
+        return fleet_markers(self.positions, self.goals, self.geometry, stamp)
+
+
+def fleet_markers(positions, goals, geometry, stamp) -> MarkerArray:
+    """Robots (cylinders) and goals (cubes), one colour per robot, for viewers."""
+    array = MarkerArray()
+    for i in range(len(positions)):
+        for kind, cell, shape in (("robot", positions[i], Marker.CYLINDER),
+                                  ("goal", goals[i], Marker.CUBE)):
+            marker = Marker()
+            marker.header.frame_id = common.FRAME_ID
+            marker.header.stamp = stamp
+            marker.ns = kind
+            marker.id = i
+            marker.type = shape
+            marker.action = Marker.ADD
+            x, y = geometry.cell_to_xy(int(cell[0]), int(cell[1]))
+            marker.pose.position.x, marker.pose.position.y = x, y
+            marker.pose.orientation.w = 1.0
+            scale = geometry.resolution * (0.8 if kind == "robot" else 0.4)
+            marker.scale.x = marker.scale.y = scale
+            marker.scale.z = 0.2 * geometry.resolution
+            hue = (i * 0.618) % 1.0
+            marker.color.r, marker.color.g, marker.color.b = hue, 1.0 - hue, 0.5
+            marker.color.a = 1.0 if kind == "robot" else 0.6
+            array.markers.append(marker)
+    return array
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -77,6 +77,14 @@ class TrainConfig:
     priority_eta: float = 0.9  # sequence priority = eta * max|td| + (1 - eta) * mean|td| (R2D2)
     priority_epsilon: float = 1e-6
 
+    # --- demonstration warm start (DQfD-style, mapf_fleet.training.demos), off by default ---
+    demo_source: str = "none"  # "none" | "heuristic" (non-learned policy) | "planner" (LaCAM)
+    demo_episodes: int = 200  # demonstration episodes, spread over the stage-1 settings
+    demo_max_agents: int = 0  # demos use stage-1 settings up to this many agents (0 = all)
+    demo_pretrain_updates: int = 1000  # learner updates on demonstrations before stage 1
+    demo_margin: float = 0.8  # large margin of J_E (DQfD)
+    demo_weight: float = 1.0  # lambda: loss = n-step TD + demo_weight * J_E
+
     # --- stage 1: scale expansion -----------------------------------------------------------
     start_agents: int = 1
     start_map_size: int = 10
@@ -117,6 +125,12 @@ class TrainConfig:
             raise bad("algo", "must be 'dhc' or 'dcc'")
         if self.alpha_mode not in ("curriculum", "fixed", "none"):
             raise bad("alpha_mode", "must be 'curriculum', 'fixed' or 'none'")
+        if self.demo_source not in ("none", "heuristic", "planner"):
+            raise bad("demo_source", "must be 'none', 'heuristic' or 'planner'")
+        for name in ("demo_margin", "demo_weight"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 0:
+                raise bad(name, "must be a number >= 0")
         if self.finish_reward not in ("team", "per_agent"):
             raise bad("finish_reward", "must be 'team' or 'per_agent'")
         if isinstance(self.obstacle_density, str):
@@ -133,6 +147,7 @@ class TrainConfig:
             if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
                 raise bad(name, "must be an integer >= 1")
         non_negative = ["num_actors", "burn_in", "learning_starts", "map_size_step",
+                        "demo_episodes", "demo_max_agents", "demo_pretrain_updates",
                         "alpha_max_updates", "plateau_windows", "seed"]
         for name in non_negative:
             if not isinstance(getattr(self, name), int) or getattr(self, name) < 0:
@@ -152,6 +167,9 @@ class TrainConfig:
                 raise bad(name, "must be > 0")
         if self.max_wall_seconds < 0:
             raise bad("max_wall_seconds", "must be >= 0 (0 = no limit)")
+        if self.demo_source != "none" and (self.demo_episodes < 1
+                                            or self.demo_pretrain_updates < 1):
+            raise bad("demo_source", "needs demo_episodes >= 1 and demo_pretrain_updates >= 1")
         if self.max_steps_per_map_side < 0:
             raise bad("max_steps_per_map_side", "must be >= 0 (0 = max_episode_steps always)")
         if self.epsilon_exponent < 0:

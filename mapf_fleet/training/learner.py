@@ -12,6 +12,22 @@ but it trains seq_len x N agent-transitions instead of 1. Approximations, both s
   - one priority per sequence, eta * max|td| + (1 - eta) * mean|td| over its agents and steps,
     and one importance weight per sequence (R2D2).
 Every agent is trained, so actors explore with epsilon on every agent (`explore_all_agents`).
+
+DCC decision-causal masks: the learner *recomputes* them with the network being unrolled (the
+online net for Q(s, a), the target net for the bootstrap) instead of replaying the masks the actor
+recorded. Decided so because (1) at inference, in the evaluator and on the fleet, the masks always
+come from the acting weights, so recomputing trains exactly the function that is deployed;
+(2) the bootstrap max_a Q_target(o_{t+n}, a) has to be the target network's own greedy value,
+which includes its own communication choice, and the actor never recorded a mask for the final
+observation of a time-limited episode; (3) replayed masks are stale by the actor's weight lag plus
+the sequence's age in replay, so the online net would be fitted on communication graphs it would
+no longer choose. The price is the causal check (one extra pass per FOV neighbour) in every
+learner step; `DCCNetwork.step(comm_mask=...)` would let a later change replay recorded masks
+(behaviour-policy masks, cheaper) if the learner becomes the bottleneck.
+
+Correctness of the alignment (obs/action/reward/next obs, stored hidden + burn-in, padding of
+short sequences, terminal cut, time-limit bootstrap) is checked against an independent
+full-episode unroll in test/test_training_learner.py.
 """
 
 from __future__ import annotations
@@ -68,9 +84,11 @@ class Learner:
             qs.append(out.q)
         return torch.stack(qs, 1), h
 
-    def compute_loss(self, batch: SequenceBatch):
-        """Return (loss, per-sequence priorities (B,) numpy, stats dict)."""
-        cfg, d = self.cfg, self._tensors(batch)
+    def q_and_targets(self, batch: SequenceBatch, d: dict | None = None):
+        """Online Q of the taken actions (B, L, N) (with autograd), n-step targets (B, L, N)
+        and the loss mask (B, L, N) float: what the loss compares, exposed for tests."""
+        cfg = self.cfg
+        d = self._tensors(batch) if d is None else d
         burn, length, window = cfg.burn_in, cfg.seq_len, cfg.window_len
         h0 = d["hidden"]
         with torch.no_grad():
@@ -86,6 +104,15 @@ class Learner:
         q_online, _ = self._unroll(self.model, d, burn, burn + length, h)  # (B, L, N, 5)
         q_taken = q_online.gather(-1, d["actions"][..., None]).squeeze(-1)
         mask = (d["step_mask"][:, :, None] & d["agent_mask"][:, None, :]).float()
+        self._last_q_online = q_online  # the margin loss of demo updates needs every action
+        return q_taken, target, mask
+
+    def compute_loss(self, batch: SequenceBatch, demo_weight: float = 0.0,
+                     demo_margin: float = 0.8):
+        """Return (loss, per-sequence priorities (B,) numpy, stats dict). With demo_weight > 0
+        the batch holds demonstrations and the DQfD margin loss on its actions is added."""
+        cfg, d = self.cfg, self._tensors(batch)
+        q_taken, target, mask = self.q_and_targets(batch, d)
         td = target - q_taken
         elementwise = F.huber_loss(q_taken, target, reduction="none", delta=cfg.huber_delta)
         count = mask.sum().clamp(min=1.0)
@@ -98,12 +125,25 @@ class Learner:
             mean_q = (q_taken * mask).sum() / count
         stats = {"loss": float(loss.detach()), "mean_q": float(mean_q),
                  "mean_abs_td": float(abs_td.sum() / count), "transitions": int(mask.sum())}
+        if demo_weight > 0:
+            from .demos import margin_loss
+
+            q_online = self._last_q_online
+            supervised = margin_loss(q_online, d["actions"], mask, demo_margin)
+            stats["td_loss"] = stats["loss"]
+            stats["margin_loss"] = float(supervised.detach())
+            with torch.no_grad():
+                agree = (q_online.argmax(-1) == d["actions"]).float()
+                stats["demo_agreement"] = float((agree * mask).sum() / count)
+            loss = loss + demo_weight * supervised
+            stats["loss"] = float(loss.detach())
+        self._last_q_online = None
         return loss, priorities.cpu().numpy(), stats
 
-    def update(self, batch: SequenceBatch):
+    def update(self, batch: SequenceBatch, demo_weight: float = 0.0, demo_margin: float = 0.8):
         """One gradient step; returns (priorities, stats)."""
         self.model.train()
-        loss, priorities, stats = self.compute_loss(batch)
+        loss, priorities, stats = self.compute_loss(batch, demo_weight, demo_margin)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         stats["grad_norm"] = float(torch.nn.utils.clip_grad_norm_(self.model.parameters(),

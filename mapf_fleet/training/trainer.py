@@ -254,6 +254,14 @@ class Trainer:
 
             self.bar = tqdm(total=cfg.max_updates, initial=self.learner.updates, unit="upd",
                             dynamic_ncols=True)
+        if cfg.demo_source != "none" and not self.counters.get("demo_pretrained"):
+            # before any actor plays: the first broadcast then carries the warm-started weights
+            from .demos import pretrain
+
+            summary = pretrain(self.learner, cfg, writer, log=self._log_event)
+            self.counters["demo_pretrained"] = 1
+            self._log_event(f"demo warm start done: {summary}")
+            self.save_state()
         actors = _RayActors(cfg) if cfg.use_ray else _LocalActors(cfg)
         start = time.monotonic()
         elapsed0 = self.counters["elapsed_seconds"]

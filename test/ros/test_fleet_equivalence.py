@@ -15,8 +15,10 @@ from mapf_fleet.grid.instance import generate_instance
 from mapf_fleet.models.checkpoint import load_checkpoint
 
 
-def batched_rollout(checkpoint: str, instance, max_steps: int):
-    """Actions and positions of the batched evaluator path (MAPFEnv + network.step)."""
+def batched_rollout(checkpoint: str, instance, max_steps: int, comm=None):
+    """Actions and positions of the batched evaluator path (MAPFEnv + network.step); when
+    `comm` is a list, each step's communication (per robot the sorted partners / requested
+    peers) is appended to it."""
     torch.set_num_threads(1)
     model, _ = load_checkpoint(checkpoint)
     env = MAPFEnv(instance)
@@ -31,6 +33,8 @@ def batched_rollout(checkpoint: str, instance, max_steps: int):
                 out = model.step(obs[None], env.positions[None], hidden, env.last_actions[None])
         hidden = out.hidden
         act = out.actions[0].numpy()
+        if comm is not None:
+            comm.append([np.flatnonzero(row).tolist() for row in out.comm_mask[0].numpy()])
         obs, _, done, _ = env.step(act)
         actions.append(act.tolist())
         positions.append(env.positions.tolist())
@@ -52,16 +56,42 @@ def run_fleet(tmp_path, env, checkpoint, seed, num_robots, size, max_steps, extr
 
 @pytest.mark.ros
 @pytest.mark.slow
-@pytest.mark.parametrize("algo", ["dhc", "dcc"])
+@pytest.mark.parametrize("algo", ["dhc", "dcc_sensitive"])
 def test_separate_processes_match_batched_rollout(tmp_path, ros_env, checkpoints, algo):
+    """DCC runs a checkpoint whose causal sets are not empty (make_sensitive), so requests and
+    replies really travel over the services; the recorded communication must equal the batched
+    step's comm_mask, and the actions and trajectory must be the same."""
     # one robot per process, then 4 robots' nodes per process (the large-fleet layout)
     for seed, per_process in ((3, 1), (11, 4)):
         instance = generate_instance(10, 8, 0.2, seed)
-        expected_actions, expected_positions = batched_rollout(checkpoints[algo], instance, 16)
+        expected_comm = []
+        expected_actions, expected_positions = batched_rollout(checkpoints[algo], instance, 16,
+                                                               expected_comm)
         record, proc = run_fleet(tmp_path, ros_env, checkpoints[algo], seed, 8, 10, 16,
                                  extra=["--density", "0.2", "--nodes-per-process", str(per_process)])
         assert record["missed_decisions"] == 0, proc.stdout
         assert record["actions"] == expected_actions, f"seed {seed}"
         assert record["positions"] == expected_positions, f"seed {seed}"
+        assert [[sorted(r) for r in tick] for tick in record["requested"]] == expected_comm
         # the test can fail: a random policy on 8 robots does move (not all stay)
         assert np.any(np.asarray(record["actions"]) != 0)
+        # messages really went between robots: DCC requests + replies (2 per request), DHC
+        # partner vectors (one per partner and round)
+        requests = sum(len(r) for tick in record["requested"] for r in tick)
+        assert requests > 0, "nobody communicated: the test would prove nothing"
+        # DCC: a request and its reply; DHC: the partner's vector in each of the 2 rounds
+        assert sum(map(sum, record["messages"])) == 2 * requests
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_single_process_matches_batched_rollout(tmp_path, ros_env, checkpoints):
+    """Every robot in one process (one hub, local delivery, batched inference): same actions."""
+    for algo in ("dhc", "dcc_sensitive"):
+        instance = generate_instance(10, 8, 0.2, 5)
+        expected_actions, expected_positions = batched_rollout(checkpoints[algo], instance, 16)
+        record, proc = run_fleet(tmp_path, ros_env, checkpoints[algo], 5, 8, 10, 16,
+                                 extra=["--density", "0.2", "--single-process"])
+        assert record["missed_decisions"] == 0, proc.stdout
+        assert record["actions"] == expected_actions, algo
+        assert record["positions"] == expected_positions, algo

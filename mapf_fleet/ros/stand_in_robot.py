@@ -1,0 +1,91 @@
+"""Stand-in robots for real-robot mode (tests, demos): each publishes its pose on
+`/robot_<i>/pose` and, when a waypoint arrives on `/robot_<i>/waypoint`, moves there after a
+random delay. `--off-grid ID` makes robot ID report a pose outside the map from its first move
+on (to exercise the aggregator's rejection).
+
+    python -m mapf_fleet.ros.stand_in_robot --instance config/fleet/instance_small.yaml \\
+        --max-delay 0.3 [--off-grid 2] [--resolution 1.0]
+"""
+
+from __future__ import annotations
+
+import argparse
+import random
+import sys
+import threading
+import time
+
+from mapf_fleet.ros import common
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="stand_in_robot", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--instance", required=True, help="instance YAML: robots start there")
+    parser.add_argument("--max-delay", type=float, default=0.3, help="seconds, uniform delay")
+    parser.add_argument("--off-grid", type=int, default=-1, help="robot reporting off the map")
+    parser.add_argument("--resolution", type=float, default=1.0)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(sys.argv[1:] if argv is None else argv)
+    if args.max_delay < 0:
+        parser.error(f"--max-delay must be >= 0, got {args.max_delay}")
+    common.prepare_environment()
+    import rclpy
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.executors import SingleThreadedExecutor
+
+    from mapf_fleet.ros.instances import load_instance_yaml
+
+    instance = load_instance_yaml(args.instance)
+    geometry = common.MapGeometry(args.resolution)
+    rng = random.Random(args.seed)
+    lock = threading.Lock()
+    rclpy.init(args=["stand_in_robot"])
+    node = rclpy.create_node("mapf_stand_in_robots")
+    poses = {i: common.cell_pose(int(r), int(c), geometry)
+             for i, (r, c) in enumerate(instance.starts)}
+    pubs = {i: node.create_publisher(PoseStamped, common.pose_topic(i), common.reliable_qos(10))
+            for i in poses}
+    moved = set()
+
+    def arrive(i, msg):
+        with lock:
+            pose = PoseStamped()
+            pose.header.frame_id = common.FRAME_ID
+            pose.pose = msg.pose
+            if i == args.off_grid:
+                pose.pose.position.x = -5.0 * geometry.resolution  # left of the map
+            poses[i] = pose
+            moved.add(i)
+        publish(i)
+
+    def on_waypoint(i, msg):
+        with lock:
+            delay = rng.uniform(0.0, args.max_delay)
+        threading.Timer(delay, arrive, (i, msg)).start()
+
+    def publish(i):
+        with lock:
+            pose = poses[i]
+            pose.header.stamp = node.get_clock().now().to_msg()
+            pubs[i].publish(pose)
+
+    for i in poses:
+        node.create_subscription(PoseStamped, common.waypoint_topic(i),
+                                 lambda msg, i=i: on_waypoint(i, msg), common.reliable_qos(10))
+    # a pose feed publishes continuously, like a localisation stack
+    node.create_timer(0.2, lambda: [publish(i) for i in poses])
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    try:
+        executor.spin()
+    except (KeyboardInterrupt, Exception):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
