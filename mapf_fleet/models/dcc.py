@@ -110,7 +110,7 @@ class DCCNetwork(nn.Module):
 
     # ---- shared pieces ------------------------------------------------------------------
 
-    def _encode(self, obs: torch.Tensor, last_action: torch.Tensor,
+    def encode_batch(self, obs: torch.Tensor, last_action: torch.Tensor,
                 hidden: torch.Tensor) -> torch.Tensor:
         """obs (M, 6, fov, fov), last_action (M,) long in -1..4 (-1: none), hidden (M, H)."""
         one_hot = F.one_hot(last_action.clamp(min=0), NUM_ACTIONS).to(obs.dtype)
@@ -119,7 +119,7 @@ class DCCNetwork(nn.Module):
         latent = torch.cat([features, one_hot], dim=1)
         return self.recurrent(latent, hidden)
 
-    def _greedy(self, h: torch.Tensor) -> torch.Tensor:
+    def greedy_actions(self, h: torch.Tensor) -> torch.Tensor:
         return self.head(h).argmax(-1)
 
     def _erased_variants(self, obs: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
@@ -129,7 +129,7 @@ class DCCNetwork(nn.Module):
         variants[torch.arange(len(variants), device=obs.device), 0, cell[:, 0], cell[:, 1]] = 0.0
         return variants
 
-    def _encode_with_variants(self, obs, last_action, hidden, owner, offsets):
+    def encode_with_variants(self, obs, last_action, hidden, owner, offsets):
         """Encode every agent (M rows) and its erased variants (E rows, owner[e] in 0..M-1).
 
         Returns (h (M, H), greedy action of each variant (E,)). The variants never need
@@ -138,15 +138,15 @@ class DCCNetwork(nn.Module):
         """
         variants = self._erased_variants(obs[owner], offsets)
         if torch.is_grad_enabled():
-            h = self._encode(obs, last_action, hidden)
+            h = self.encode_batch(obs, last_action, hidden)
             with torch.no_grad():
-                variant_h = self._encode(variants, last_action[owner], hidden[owner])
+                variant_h = self.encode_batch(variants, last_action[owner], hidden[owner])
         else:
-            both = self._encode(torch.cat([obs, variants]),
+            both = self.encode_batch(torch.cat([obs, variants]),
                                 torch.cat([last_action, last_action[owner]]),
                                 torch.cat([hidden, hidden[owner]]))
             h, variant_h = both[: len(obs)], both[len(obs):]
-        return h, self._greedy(variant_h)
+        return h, self.greedy_actions(variant_h)
 
     # ---- batched ------------------------------------------------------------------------
 
@@ -192,10 +192,10 @@ class DCCNetwork(nn.Module):
         if comm_mask is None:
             b_e, i_e, k_e = slot_valid.nonzero(as_tuple=True)
             owner = b_e * num_agents + i_e
-            h_flat, variant_actions = self._encode_with_variants(
+            h_flat, variant_actions = self.encode_with_variants(
                 flat_obs, flat_last, flat_hidden, owner, offsets[b_e, i_e, k_e])
             with torch.no_grad():
-                own_actions = self._greedy(h_flat)
+                own_actions = self.greedy_actions(h_flat)
             requests = torch.zeros_like(slot_valid)
             requests[b_e, i_e, k_e] = variant_actions != own_actions[owner]
             comm_mask = torch.zeros(batch, num_agents, num_agents + 1, dtype=torch.bool,
@@ -207,7 +207,7 @@ class DCCNetwork(nn.Module):
             if tuple(comm_mask.shape) != (batch, num_agents, num_agents):
                 raise ValueError(f"comm_mask: expected {(batch, num_agents, num_agents)}, "
                                  f"got {tuple(comm_mask.shape)}")
-            h_flat = self._encode(flat_obs, flat_last, flat_hidden)
+            h_flat = self.encode_batch(flat_obs, flat_last, flat_hidden)
             requests = slot_valid & comm_mask[batch_index, agent_index, table0]
         h = h_flat.view(batch, num_agents, -1)
 
@@ -233,10 +233,10 @@ class DCCNetwork(nn.Module):
         valid = senders[rows]
         own = h[rows]
         if self.config.attend_self:
-            sender_h, position_index, valid = self._with_self(own, sender_h, position_index, valid)
+            sender_h, position_index, valid = self.with_self(own, sender_h, position_index, valid)
         return h.index_put(rows, layer(own, sender_h, position_index, valid))
 
-    def _with_self(self, own, sender_h, position_index, valid):
+    def with_self(self, own, sender_h, position_index, valid):
         """Prepend each receiver's own message at offset (0, 0) (the FOV centre)."""
         centre = self.config.obs_radius * (self.config.fov + 1)
         self_index = torch.full_like(position_index[:, :1], centre)
@@ -263,7 +263,7 @@ class DCCNetwork(nn.Module):
     def encode(self, obs_i, last_action_i=None, hidden_i=None) -> torch.Tensor:
         """Own observation, last action (-1/None: none) and previous hidden (None: zeros) -> h."""
         obs_i, last, hidden_i = self._robot_inputs(obs_i, last_action_i, hidden_i)
-        return self._encode(obs_i[None], last, hidden_i[None])[0]
+        return self.encode_batch(obs_i[None], last, hidden_i[None])[0]
 
     def causal_set(self, obs_i, last_action_i, hidden_i, neighbour_offsets) -> np.ndarray:
         """Which FOV neighbours this robot requests from: bool (M,) over `neighbour_offsets`.
@@ -279,9 +279,9 @@ class DCCNetwork(nn.Module):
         relative_position_index(offsets, self.config.obs_radius)  # raises outside the FOV
         owner = torch.zeros(offsets.shape[0], dtype=torch.long, device=obs_i.device)
         with torch.no_grad():
-            h, variant_actions = self._encode_with_variants(
+            h, variant_actions = self.encode_with_variants(
                 obs_i[None], last, hidden_i[None], owner, offsets)
-            own_action = self._greedy(h)[0]
+            own_action = self.greedy_actions(h)[0]
         return (variant_actions != own_action).cpu().numpy()
 
     def _aggregate(self, layer: DCCCommLayer, h_own, messages, name: str) -> torch.Tensor:
@@ -297,7 +297,7 @@ class DCCNetwork(nn.Module):
         sender_h, valid = sender_h[None], torch.ones_like(position_index, dtype=torch.bool)
         own = h_own[None]
         if self.config.attend_self:
-            sender_h, position_index, valid = self._with_self(own, sender_h, position_index, valid)
+            sender_h, position_index, valid = self.with_self(own, sender_h, position_index, valid)
         return layer(own, sender_h, position_index, valid)[0]
 
     def aggregate_requests(self, h_own, requests) -> torch.Tensor:

@@ -101,12 +101,12 @@ class DHCNetwork(nn.Module):
 
     # ---- shared pieces ------------------------------------------------------------------
 
-    def _encode(self, obs: torch.Tensor, hidden: torch.Tensor) -> torch.Tensor:
+    def encode_batch(self, obs: torch.Tensor, hidden: torch.Tensor) -> torch.Tensor:
         """obs (M, 6, fov, fov), hidden (M, H) -> (M, H)."""
         features = self.obs_encoder(obs.contiguous(memory_format=torch.channels_last))
         return self.recurrent(features, hidden)
 
-    def _round(self, query_h: torch.Tensor, member_h: torch.Tensor,
+    def round_batch(self, query_h: torch.Tensor, member_h: torch.Tensor,
                member_valid: torch.Tensor) -> torch.Tensor:
         """One communication round for receivers that have at least one partner."""
         return self.update(self.attention(query_h, member_h, member_valid), query_h)
@@ -135,7 +135,7 @@ class DHCNetwork(nn.Module):
         else:
             partners = as_long(partners, "partners", device)
 
-        h = self._encode(obs.flatten(0, 1), hidden.flatten(0, 1)).view(batch, num_agents, -1)
+        h = self.encode_batch(obs.flatten(0, 1), hidden.flatten(0, 1)).view(batch, num_agents, -1)
         receivers = (partners >= 0).any(-1)
         rows = receivers.nonzero(as_tuple=True)  # (b, i) of agents that communicate
         if rows[0].numel():
@@ -145,7 +145,7 @@ class DHCNetwork(nn.Module):
             member_index = members.clamp(min=0)
             for _ in range(self.config.comm_rounds):
                 member_h = h[rows[0][:, None], member_index]
-                updated = self._round(h[rows], member_h, member_valid)
+                updated = self.round_batch(h[rows], member_h, member_valid)
                 h = h.index_put(rows, updated)
         q = self.head(h)
         if agent_mask is not None:
@@ -169,7 +169,7 @@ class DHCNetwork(nn.Module):
         if hidden_i is None:
             hidden_i = torch.zeros(self.config.hidden_dim, device=device)
         hidden_i = as_vector(hidden_i, "hidden_i", self.config.hidden_dim, device)
-        return self._encode(obs_i[None], hidden_i[None])[0]
+        return self.encode_batch(obs_i[None], hidden_i[None])[0]
 
     def comm_round(self, round_index: int, h_own, partner_vectors) -> torch.Tensor:
         """One round: own vector (H,) and the partners' vectors of this round (list or (M, H)).
@@ -187,7 +187,7 @@ class DHCNetwork(nn.Module):
             return h_own
         member_h = torch.cat([h_own[None], partners])[None]
         valid = torch.ones(member_h.shape[:2], dtype=torch.bool, device=device)
-        return self._round(h_own[None], member_h, valid)[0]
+        return self.round_batch(h_own[None], member_h, valid)[0]
 
     def q_values(self, h) -> torch.Tensor:
         """Q-values (5,) of a final hidden (H,) (or (..., H) -> (..., 5))."""

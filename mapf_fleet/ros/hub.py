@@ -261,7 +261,7 @@ class PolicyHub:
         from mapf_fleet_interfaces.msg import DhcHidden
 
         model, m_count = self.model, len(self.ids)
-        h = model._encode(obs, self._hidden)
+        h = model.encode_batch(obs, self._hidden)
         partners = dhc_partners(positions, self.radius, model.config.max_partners)[self.ids]
         wanted = {int(j) for j in partners.reshape(-1) if j >= 0}
         missing = [set() for _ in range(m_count)]
@@ -289,7 +289,7 @@ class PolicyHub:
                         missing[m].add(int(j))
             rows = torch.from_numpy(np.flatnonzero(valid[:, 1:].any(1)))
             if rows.numel():
-                updated = model._round(h[rows], torch.from_numpy(members)[rows],
+                updated = model.round_batch(h[rows], torch.from_numpy(members)[rows],
                                        torch.from_numpy(valid)[rows])
                 h = h.index_put((rows,), updated)
         requested = [[int(j) for j in row if j >= 0] for row in partners]
@@ -304,10 +304,10 @@ class PolicyHub:
         inside = (np.abs(delta) <= self.radius).all(-1)
         inside[np.arange(m_count), self.ids] = False
         owner, neighbour = np.nonzero(inside)  # index order per robot, as the batched step
-        h, variant_actions = model._encode_with_variants(
+        h, variant_actions = model.encode_with_variants(
             obs, last, self._hidden, torch.from_numpy(owner),
             torch.from_numpy(delta[owner, neighbour]))
-        own_actions = model._greedy(h).numpy()
+        own_actions = model.greedy_actions(h).numpy()
         chosen = variant_actions.numpy() != own_actions[owner]
         targets = [[] for _ in range(m_count)]
         for m, j in zip(owner[chosen], neighbour[chosen]):
@@ -375,7 +375,7 @@ class PolicyHub:
         position_index = relative_position_index(torch.from_numpy(offsets), self.radius)
         valid_t = torch.from_numpy(valid)
         if self.model.config.attend_self:
-            sender_t, position_index, valid_t = self.model._with_self(own, sender_t,
+            sender_t, position_index, valid_t = self.model.with_self(own, sender_t,
                                                                       position_index, valid_t)
         return h.index_put((index,), layer(own, sender_t, position_index, valid_t))
 
