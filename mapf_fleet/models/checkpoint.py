@@ -24,15 +24,13 @@ half a file.
 from __future__ import annotations
 
 import datetime as _dt
-import os
-import tempfile
 from pathlib import Path
 from typing import Any, Mapping
 
 import torch
 from torch import nn
 
-import mapf_fleet
+from mapf_fleet.files import atomic_write
 from mapf_fleet.version import code_version  # noqa: F401 - re-exported
 from mapf_fleet.grid.actions import ACTION_NAMES
 
@@ -95,17 +93,7 @@ def save_checkpoint(path, model: nn.Module, metadata: Mapping[str, Any]) -> Path
         "state_dict": {k: v.detach().cpu().clone() for k, v in model.state_dict().items()},
         "metadata": full,
     }
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            torch.save(payload, handle)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write(path, lambda handle: torch.save(payload, handle))
     return path
 
 

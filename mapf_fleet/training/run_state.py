@@ -13,12 +13,12 @@
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import torch
+
+from mapf_fleet.files import atomic_write
 
 CONFIG_FILE = "config.yaml"
 STATE_FILE = "train_state.pt"
@@ -27,22 +27,8 @@ CHECKPOINT_DIR = "checkpoints"
 TB_DIR = "tb"
 
 
-def _atomic_write(path: Path, write) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            write(handle)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def save_state(run_dir: Path, state: dict[str, Any]) -> None:
-    _atomic_write(Path(run_dir) / STATE_FILE, lambda f: torch.save(state, f))
+    atomic_write(Path(run_dir) / STATE_FILE, lambda f: torch.save(state, f))
 
 
 def load_state(run_dir: Path) -> dict[str, Any]:
@@ -53,7 +39,7 @@ def load_state(run_dir: Path) -> dict[str, Any]:
 
 
 def write_result(run_dir: Path, result: dict[str, Any]) -> None:
-    _atomic_write(Path(run_dir) / RESULT_FILE,
+    atomic_write(Path(run_dir) / RESULT_FILE,
                   lambda f: f.write(json.dumps(result, indent=2).encode()))
 
 
