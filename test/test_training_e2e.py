@@ -33,6 +33,7 @@ def test_tiny_config_runs_both_stages_on_ray(tmp_path, ray_shutdown, capsys):
     result = json.loads((run / run_state.RESULT_FILE).read_text())
     assert result["finished"], result["stop_reason"]
     assert result["setting"] == [2, 15]
+    assert result["alpha_passed"], "stage 2 passed no alpha at the 0.9 gate"
     assert "stage1.pt" in result["checkpoints"]
     for alpha in result["alpha_passed"]:
         assert (run / "checkpoints" / run_state.alpha_checkpoint_name(alpha)).exists()
@@ -57,6 +58,7 @@ def test_one_agent_on_10x10_learns_past_0_9(tmp_path):
         use_ray=False, num_actors=1, envs_per_actor=16, updates_per_poll=4, final_agents=1,
         final_map_size=10, alpha_mode="fixed", fixed_alpha=0.0, success_window=100,
         success_threshold=0.9, max_updates=1500, max_wall_seconds=600,
-        alpha_max_updates=1500, plateau_windows=0, seed=1)
+        alpha_max_updates=1500, plateau_windows=0, seed=1,
+        demo_source="none")  # from scratch: tiny.yaml's warm start is off here
     result = Trainer(cfg, tmp_path / "learn").run()
     assert result["alpha_passed"] == [0.0], result

@@ -51,7 +51,8 @@ def _tiny_overrides():
     return ["--set", "use_ray=false", "--set", "num_actors=1", "--set", "envs_per_actor=4",
             "--set", "actor_steps_per_call=8", "--set", "learning_starts=50",
             "--set", "state_interval_updates=5", "--set", "batch_size=4",
-            "--set", "max_updates=100000", "--set", "alpha_max_updates=100000"]
+            "--set", "max_updates=100000", "--set", "alpha_max_updates=100000",
+            "--set", "demo_source=none"]
 
 
 def test_resume_after_kill_9(tmp_path):
