@@ -93,3 +93,14 @@ def test_resume_after_kill_9(tmp_path):
     result = trainer.run()
     assert result["learner_updates"] == saved["learner"]["updates"] + 3
     assert (run / "checkpoints" / "final.pt").exists()
+    # `mapf-fleet train --export RUN --out F`: the last saved state as a checkpoint file
+    from mapf_fleet.models.checkpoint import load_checkpoint
+    from mapf_fleet.training.trainer import export_checkpoint
+
+    path, _ = export_checkpoint(run, tmp_path / "exported.pt")
+    model, meta = load_checkpoint(path)
+    assert meta["learner_steps"] == result["learner_updates"]
+    for name, value in model.state_dict().items():
+        assert torch.equal(trainer.learner.model.state_dict()[name], value)
+    with pytest.raises(FileNotFoundError, match="not_a_run.*a run directory"):
+        export_checkpoint(tmp_path / "not_a_run", tmp_path / "x.pt")

@@ -3,6 +3,7 @@
     mapf-fleet train --config config/training/dhc_cpu.yaml --run-dir runs/dhc_cpu
     mapf-fleet train --resume runs/dhc_cpu
     mapf-fleet train --config config/training/tiny.yaml --run-dir /tmp/t --set max_updates=100
+    mapf-fleet train --export runs/dhc_cpu --out models/dhc.pt   # latest saved weights, any time
 """
 
 from __future__ import annotations
@@ -31,9 +32,26 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--config", help="training config YAML (config/training/*.yaml)")
     parser.add_argument("--run-dir", help="run directory to create (config, state, checkpoints, tb)")
     parser.add_argument("--resume", metavar="RUN", help="continue the run in this directory")
+    parser.add_argument("--export", metavar="RUN",
+                        help="write RUN's latest saved state (train_state.pt) as a checkpoint file "
+                             "--out, without training; safe while RUN is still training")
+    parser.add_argument("--out", help="checkpoint file written by --export")
     parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                         help="override a config field (repeatable)")
     args = parser.parse_args(argv)
+    if args.export:
+        if not args.out or args.config or args.run_dir or args.resume or args.set:
+            parser.error("--export RUN takes only --out FILE")
+        from .trainer import export_checkpoint
+
+        try:
+            path, meta = export_checkpoint(args.export, args.out)
+        except FileNotFoundError as exc:
+            print(f"mapf-fleet train: {exc}", file=sys.stderr)
+            return 2
+        print(f"{path}: {meta['learner_steps']} learner updates, "
+              f"curriculum {json.dumps(meta['curriculum'])}")
+        return 0
     if args.resume and (args.config or args.run_dir):
         parser.error("--resume RUN takes the config from RUN; do not combine with --config/--run-dir")
     if not args.resume and not (args.config and args.run_dir):

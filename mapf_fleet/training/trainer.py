@@ -384,3 +384,19 @@ def train(config_path: str | Path | None = None, run_dir: str | Path | None = No
     if overrides:
         cfg = config_from_dict({**cfg.to_dict(), **overrides}, source="overrides")
     return Trainer(cfg, run_dir, resume=resume is not None).run()
+
+
+def export_checkpoint(run_dir: str | Path, out: str | Path) -> tuple[Path, dict]:
+    """Write the weights of RUN's last saved training state as a checkpoint file `out`, with
+    the same metadata a curriculum checkpoint gets. Reads RUN only (the state file is written
+    atomically), so it is safe while the run is still training."""
+    from mapf_fleet.models.checkpoint import save_checkpoint
+
+    run_dir = Path(run_dir)
+    for name in (run_state.CONFIG_FILE, run_state.STATE_FILE):
+        if not (run_dir / name).is_file():
+            raise FileNotFoundError(f"{run_dir / name}: no such file (is {run_dir} a run directory?)")
+    # constructing with resume=True only reads the run directory; training starts in run()
+    trainer = Trainer(load_config(run_dir / run_state.CONFIG_FILE), run_dir, resume=True)
+    meta = trainer._metadata()
+    return save_checkpoint(out, trainer.learner.model, meta), meta
