@@ -14,7 +14,8 @@ def code_version() -> dict[str, Any]:
     """Package version and the git commit of the source tree when it is a git checkout."""
     commit = None
     try:
-        # GIT_OPTIONAL_LOCKS=0: read only, never touch the index.
+        # GIT_OPTIONAL_LOCKS=0: read only, never touch the index. (git is no ROS process;
+        # ROS_AUTOMATIC_DISCOVERY_RANGE does not concern it.)
         result = subprocess.run(
             ["git", "rev-parse", "HEAD"], cwd=Path(mapf_fleet.__file__).resolve().parent,
             capture_output=True, text=True, timeout=5,
