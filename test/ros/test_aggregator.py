@@ -27,6 +27,7 @@ def test_aggregator_follows_stand_in_robots_and_rejects_off_grid(tmp_path, ros_e
     instance = load_instance_yaml(INSTANCE)
     record = tmp_path / "real.json"
     off_grid, steps = 2, 8
+    # ros_env (test/conftest.py) sets ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and ROS_DOMAIN_ID
     robots = subprocess.Popen(
         [sys.executable, "-m", "mapf_fleet.ros.stand_in_robot", "--instance", str(INSTANCE),
          "--max-delay", "0.3", "--off-grid", str(off_grid), "--seed", "1"],

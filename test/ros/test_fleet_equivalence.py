@@ -48,6 +48,7 @@ def run_fleet(tmp_path, env, checkpoint, seed, num_robots, size, max_steps, extr
     cmd = [sys.executable, "-m", "mapf_fleet.cli", "up", "--checkpoint", checkpoint,
            "--num-robots", str(num_robots), "--size", str(size), "--seed", str(seed),
            "--max-steps", str(max_steps), "--record", str(record), "--quiet", *extra]
+    # ros_env (test/conftest.py) sets ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and ROS_DOMAIN_ID
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True,
                           timeout=240)
     assert record.exists(), proc.stdout + proc.stderr

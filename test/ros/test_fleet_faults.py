@@ -15,6 +15,7 @@ RUN = [sys.executable, "-m", "mapf_fleet.ros.run"]
 
 
 def _policy(env, checkpoint, robot_id):
+    # env is ros_env (test/conftest.py): ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, own domain
     return subprocess.Popen(RUN + ["policy", "--ros-args", "-p", f"robot_id:={robot_id}",
                                    "-p", f"checkpoint:={checkpoint}", "-p", "comm_timeout:=0.3"],
                             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -26,6 +27,7 @@ def test_killed_node_stands_and_restarted_node_rejoins(tmp_path, ros_env, checkp
     record = tmp_path / "run.json"
     num_robots, max_steps = 4, 45
     policies = {i: _policy(ros_env, checkpoints["dhc"], i) for i in range(num_robots)}
+    # ros_env (test/conftest.py) sets ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and ROS_DOMAIN_ID
     simulator = subprocess.Popen(
         RUN + ["simulator", "--ros-args", "-p", f"num_robots:={num_robots}", "-p", "size:=10",
                "-p", "seed:=4", "-p", f"max_steps:={max_steps}", "-p", "decision_timeout:=1.5",

@@ -1,0 +1,180 @@
+"""The ROS side the simulator and the aggregator share: parameter declaration, the fleet topics
+they publish and subscribe (map, goals, state, markers, progress, outcome; moves, heartbeats),
+the lockstep tick loop, the tick thread and the process `main`. What differs between the two
+nodes is the `step` they give `run_lockstep`: how a tick's moves become the next positions.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+import rclpy
+from geometry_msgs.msg import PoseStamped
+from mapf_fleet_interfaces.msg import (FleetOutcome, FleetProgress, FleetState, RobotMove,
+                                       RobotStatus)
+from nav_msgs.msg import OccupancyGrid
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.executors import SingleThreadedExecutor
+from visualization_msgs.msg import Marker, MarkerArray
+
+from mapf_fleet.ros import common
+from mapf_fleet.ros.lockstep import FleetTicker, RunRecorder
+
+
+def declare_parameters(node, table: dict) -> dict:
+    """Declare `table` ({name: (default, description)}) on `node`; {name: value}."""
+    for name, (default, text) in table.items():
+        node.declare_parameter(name, default, ParameterDescriptor(description=text))
+    return {name: node.get_parameter(name).value for name in table}
+
+
+class FleetChannels:
+    """The fleet-level publishers and the move/heartbeat subscriptions (feeding `ticker`)."""
+
+    def __init__(self, node, ticker: FleetTicker, geometry: common.MapGeometry):
+        self.node = node
+        self.ticker = ticker
+        self.geometry = geometry
+        n = ticker.num_robots
+        self.map_pub = node.create_publisher(OccupancyGrid, common.MAP_TOPIC, common.latched_qos())
+        self.state_pub = node.create_publisher(FleetState, common.STATE_TOPIC,
+                                               common.reliable_qos(10))
+        self.progress_pub = node.create_publisher(FleetProgress, common.PROGRESS_TOPIC,
+                                                  common.reliable_qos(10))
+        self.outcome_pub = node.create_publisher(FleetOutcome, common.OUTCOME_TOPIC,
+                                                 common.latched_qos())
+        self.markers_pub = node.create_publisher(MarkerArray, common.MARKERS_TOPIC,
+                                                 common.reliable_qos(2))
+        quiet = common.quiet_publisher_events()  # per-robot publishers: keep the wait set small
+        self.goal_pubs = [node.create_publisher(PoseStamped, common.goal_topic(i),
+                                                common.latched_qos(), event_callbacks=quiet)
+                          for i in range(n)]
+        node.create_subscription(RobotMove, common.MOVES_TOPIC, self._on_move,
+                                 common.reliable_qos(1000))
+        node.create_subscription(RobotStatus, common.STATUS_TOPIC, ticker.on_status,
+                                 common.reliable_qos(1000))
+
+    def _on_move(self, msg: RobotMove):  # executor thread: store and notify only
+        warning = self.ticker.on_move(msg)
+        if warning:
+            self.node.get_logger().warning(warning)
+
+    def publish_map_and_goals(self, grid, goals) -> None:
+        self.map_pub.publish(common.grid_to_occupancy(np.asarray(grid), self.geometry))
+        for i, pub in enumerate(self.goal_pubs):
+            pub.publish(common.cell_pose(*goals[i], self.geometry))
+
+    def publish_state(self, positions, goals, last_actions, done: bool):
+        """FleetState of the ticker's tick and the markers; returns the stamp used."""
+        stamp = self.node.get_clock().now().to_msg()
+        msg = FleetState(episode=self.ticker.episode, tick=self.ticker.tick, done=done,
+                         rows=positions[:, 0].tolist(), cols=positions[:, 1].tolist(),
+                         goal_rows=goals[:, 0].tolist(), goal_cols=goals[:, 1].tolist(),
+                         last_actions=np.asarray(last_actions).tolist())
+        msg.header.stamp = stamp
+        msg.header.frame_id = common.FRAME_ID
+        self.state_pub.publish(msg)
+        self.markers_pub.publish(fleet_markers(positions, goals, self.geometry, stamp))
+        return stamp
+
+
+def run_lockstep(node, channels: FleetChannels, recorder: RunRecorder, positions, step,
+                 publish_state, *, decision_timeout: float, tick_period: float = 0.0,
+                 progress_every: int = 10, record_file: str = "",
+                 summary_extra=lambda: "") -> FleetOutcome:
+    """Tick until every robot is on its goal or `recorder.max_steps` ticks.
+
+    Each tick: `publish_state(done=False)`, collect the moves, then
+    `step(decisions) -> (positions, collisions, series)` makes the next tick (it must call
+    `ticker.advance()`); progress is published and logged. At the end: the final state, the
+    outcome (published, latched; `summary_extra()` is appended to its summary) and the record.
+    """
+    logger = node.get_logger()
+    ticker = channels.ticker
+    recorder.start(positions)
+    while (not recorder.all_on_goal(positions) and recorder.steps < recorder.max_steps
+           and rclpy.ok()):
+        started = time.monotonic()
+        publish_state(done=False)
+        decisions = ticker.collect(decision_timeout)
+        if decisions.missing:
+            logger.warning(recorder.missing_text(decisions, decision_timeout))
+        positions, collisions, series = step(decisions)
+        progress = recorder.add_tick(decisions, positions, collisions, **series)
+        channels.progress_pub.publish(FleetProgress(**progress))
+        if recorder.steps % progress_every == 0:
+            logger.info(recorder.progress_text(progress["tick"], positions))
+        if tick_period > 0:
+            time.sleep(max(0.0, tick_period - (time.monotonic() - started)))
+    publish_state(done=True)
+    outcome = FleetOutcome(**recorder.finish(positions, extra=summary_extra()))
+    channels.outcome_pub.publish(outcome)
+    logger.info(outcome.summary)
+    if record_file:
+        recorder.write(record_file)
+    return outcome
+
+
+def run_reporting_failure(node, name: str, run) -> None:
+    """Target of a node's tick thread: `run()`, turning an exception into a failed
+    `node.outcome` (so the process lives to report it), and set `node.finished` in any case."""
+    try:
+        run()
+    except Exception as exc:  # keep the process alive long enough to report
+        node.get_logger().error(f"{name} failed: {exc!r}")
+        node.outcome = FleetOutcome(episode=node.episode, success=False,
+                                    summary=f"{name} failed: {exc!r}")
+    finally:
+        node.finished.set()
+
+
+def spin_until_finished(make_node, name: str, argv: list[str] | None = None) -> int:
+    """Process main of a lockstep node: spin it, run its ticks, exit 0 on success."""
+    common.prepare_environment()
+    args = sys.argv if argv is None else [name] + list(argv)
+    rclpy.init(args=args)
+    node = make_node()
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    spinner = common.SpinThread(executor).start()
+    node.start()
+    try:
+        while not node.finished.wait(0.2):
+            pass
+        time.sleep(0.5)  # let the latched outcome reach late subscribers
+    except KeyboardInterrupt:
+        pass
+    finally:
+        spinner.stop()
+        success = bool(node.outcome is not None and node.outcome.success)
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0 if success else 1
+
+
+def fleet_markers(positions, goals, geometry, stamp) -> MarkerArray:
+    """Robots (cylinders) and goals (cubes), one colour per robot, for viewers."""
+    array = MarkerArray()
+    for i in range(len(positions)):
+        for kind, cell, shape in (("robot", positions[i], Marker.CYLINDER),
+                                  ("goal", goals[i], Marker.CUBE)):
+            marker = Marker()
+            marker.header.frame_id = common.FRAME_ID
+            marker.header.stamp = stamp
+            marker.ns = kind
+            marker.id = i
+            marker.type = shape
+            marker.action = Marker.ADD
+            x, y = geometry.cell_to_xy(int(cell[0]), int(cell[1]))
+            marker.pose.position.x, marker.pose.position.y = x, y
+            marker.pose.orientation.w = 1.0
+            scale = geometry.resolution * (0.8 if kind == "robot" else 0.4)
+            marker.scale.x = marker.scale.y = scale
+            marker.scale.z = 0.2 * geometry.resolution
+            hue = (i * 0.618) % 1.0
+            marker.color.r, marker.color.g, marker.color.b = hue, 1.0 - hue, 0.5
+            marker.color.a = 1.0 if kind == "robot" else 0.6
+            array.markers.append(marker)
+    return array

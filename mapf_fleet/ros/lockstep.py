@@ -1,0 +1,221 @@
+"""The lockstep bookkeeping the simulator and the aggregator share (plain Python, no rclpy).
+
+Both nodes run the same tick: publish the fleet state of tick k, collect every robot's RobotMove
+for k (a move missing after `decision_timeout` is "stay" and reported), turn the moves into the
+positions of k + 1 (this is where they differ: the simulator applies grid.resolve_moves, the
+aggregator waits for the real robots' poses), then report progress; at the end the outcome and
+the run record. `FleetTicker` holds the per-tick decisions and readiness, `RunRecorder` the
+counts, the record and the texts; the nodes feed them messages and publish what they return.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from mapf_fleet.ros.instances import InstanceSource
+
+# name: (default, description); both nodes take their instance and their tick from these
+INSTANCE_PARAMETERS = {
+    "instance_file": ("", "instance YAML (grid rows, starts, goals); overrides the rest"),
+    "map_file": ("", "MovingAI .map file (with scen_file)"),
+    "scen_file": ("", "MovingAI .scen file (with map_file)"),
+    "num_robots": (8, "robots to generate or to take from the .scen file"),
+    "size": (16, "side of a generated square map"),
+    "density": (0.3, "obstacle density of a generated map"),
+    "seed": (0, "seed of a generated instance"),
+}
+RUN_PARAMETERS = {
+    "max_steps": (256, "tick limit: the run fails when robots are not all on goal by then"),
+    "decision_timeout": (5.0, "seconds to wait for a robot's move before it counts as stay"),
+    "startup_timeout": (60.0, "seconds to wait for every policy node to report ready"),
+    "resolution": (1.0, "metres per cell in poses and the map"),
+    "record_file": ("", "write the run's trajectory and outcome to this JSON file"),
+    "progress_every": (10, "log progress every this many ticks"),
+}
+
+
+def instance_source(params: dict) -> InstanceSource:
+    """The (validated) instance source named by a node's INSTANCE_PARAMETERS values."""
+    return InstanceSource(params["instance_file"], params["map_file"], params["scen_file"],
+                          int(params["num_robots"]), int(params["size"]),
+                          float(params["density"]), int(params["seed"]))
+
+
+def require_positive(params: dict, names) -> None:
+    for name in names:
+        if not float(params[name]) > 0:
+            raise ValueError(f"parameter {name} must be > 0, got {params[name]}")
+
+
+@dataclass(frozen=True)
+class Decisions:
+    """The moves collected for one tick; a missing robot's action is 0 (stay)."""
+
+    tick: int
+    actions: np.ndarray            # (N,) int64
+    missing: list[int]             # robots without a move by the deadline
+    requested: list[list[int]]     # per robot: DHC partners / DCC requested peers
+    messages: list[int]            # per robot: peer messages it used
+
+
+class FleetTicker:
+    """The current tick, the moves received for it and the robots' readiness.
+
+    The executor's callbacks call `on_move` / `on_status`; the node's tick thread calls
+    `wait_ready`, `collect` and `advance`. `cond` guards all of it and is notified on every
+    change, so a node may guard (and wait on) its own feeds with it too (the aggregator's poses).
+    """
+
+    def __init__(self, num_robots: int, episode: int, tick: int = 0):
+        self.num_robots = int(num_robots)
+        self.episode = int(episode)
+        self.tick = int(tick)
+        self.cond = threading.Condition()
+        self._moves: dict[int, int] = {}
+        self._comm: dict[int, tuple[list[int], int]] = {}  # robot -> (requested, received)
+        self._ready_peers: dict[int, int] = {}
+
+    def on_move(self, msg) -> str | None:
+        """Store a RobotMove of the current tick; a text to log as a warning, or None."""
+        with self.cond:
+            if msg.episode != self.episode or msg.tick != self.tick:
+                return None  # stale tick or another run
+            if msg.robot_id >= self.num_robots or msg.action > 4:
+                return f"ignored bad move {msg.robot_id}/{msg.action}"
+            robot = int(msg.robot_id)
+            self._moves[robot] = int(msg.action)
+            self._comm[robot] = ([int(j) for j in msg.requested], int(msg.messages_received))
+            self.cond.notify_all()
+        if msg.missing_peers:
+            return (f"tick {msg.tick}: robot {msg.robot_id} decided without peers "
+                    f"{list(msg.missing_peers)} (timed out)")
+        return None
+
+    def on_status(self, msg) -> None:
+        with self.cond:
+            if msg.robot_id < self.num_robots and msg.ready:
+                self._ready_peers[int(msg.robot_id)] = int(msg.peers)
+                self.cond.notify_all()
+
+    def unready(self) -> list[int]:
+        """Robots not (yet) reporting that they hear every robot (call with or without cond)."""
+        with self.cond:
+            ready = {r for r, peers in self._ready_peers.items() if peers >= self.num_robots}
+        return sorted(set(range(self.num_robots)) - ready)
+
+    def wait_ready(self, timeout: float, also=lambda: True) -> list[int]:
+        """Wait until every robot is ready and `also()` (called under `cond`) holds, or
+        `timeout` seconds; return the robots still not ready."""
+        deadline = time.monotonic() + timeout
+        with self.cond:
+            while time.monotonic() < deadline:
+                if not self.unready() and also():
+                    break
+                self.cond.wait(0.1)
+        return self.unready()
+
+    def collect(self, timeout: float) -> Decisions:
+        """The moves of the current tick, waiting up to `timeout` seconds for all of them."""
+        deadline = time.monotonic() + timeout
+        with self.cond:
+            while len(self._moves) < self.num_robots:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    break
+                self.cond.wait(remaining)
+            moves, comm = dict(self._moves), dict(self._comm)
+            self._moves, self._comm = {}, {}
+            tick = self.tick
+        n = self.num_robots
+        return Decisions(tick=tick,
+                         actions=np.array([moves.get(i, 0) for i in range(n)], dtype=np.int64),
+                         missing=sorted(set(range(n)) - set(moves)),
+                         requested=[comm.get(i, ([], 0))[0] for i in range(n)],
+                         messages=[comm.get(i, ([], 0))[1] for i in range(n)])
+
+    def advance(self) -> int:
+        """Go on to the next tick; moves that came late for the old one are dropped."""
+        with self.cond:
+            self.tick += 1
+            self._moves, self._comm = {}, {}
+            return self.tick
+
+
+class RunRecorder:
+    """Counts, per-tick record and texts of one run. `series` names the node's own per-tick
+    record entries (e.g. "collided", "rejected"), given to `add_tick` as keyword arguments."""
+
+    def __init__(self, episode: int, num_robots: int, goals, max_steps: int,
+                 series=("requested", "messages")):
+        self.episode = int(episode)
+        self.num_robots = int(num_robots)
+        self.goals = np.asarray(goals, dtype=np.int64)
+        self.max_steps = int(max_steps)
+        self.series = tuple(series)
+        self.steps = self.collisions = self.missed = 0
+        self.missed_robots: set[int] = set()
+        self.record: dict = {"episode": self.episode, "positions": [], "actions": [],
+                             "missed": [], **{name: [] for name in self.series}}
+        self.started = time.monotonic()
+
+    def on_goal(self, positions) -> int:
+        return int((np.asarray(positions) == self.goals).all(1).sum())
+
+    def all_on_goal(self, positions) -> bool:
+        return self.on_goal(positions) == self.num_robots
+
+    def start(self, positions) -> None:
+        self.record["positions"].append(np.asarray(positions).tolist())
+        self.started = time.monotonic()
+
+    def missing_text(self, decisions: Decisions, timeout: float) -> str:
+        return (f"tick {decisions.tick}: no decision from robots {decisions.missing} within "
+                f"{timeout} s: they stay")
+
+    def add_tick(self, decisions: Decisions, positions, collisions: int, **series) -> dict:
+        """Count and record one tick; the FleetProgress fields of the new tick."""
+        if set(series) != set(self.series):
+            raise ValueError(f"add_tick: expected series {sorted(self.series)}, "
+                             f"got {sorted(series)}")
+        self.steps += 1
+        self.collisions += int(collisions)
+        self.missed += len(decisions.missing)
+        self.missed_robots.update(decisions.missing)
+        self.record["actions"].append(decisions.actions.tolist())
+        self.record["missed"].append(list(decisions.missing))
+        for name, value in series.items():
+            self.record[name].append(value)
+        self.record["positions"].append(np.asarray(positions).tolist())
+        return dict(episode=self.episode, tick=decisions.tick + 1, max_steps=self.max_steps,
+                    num_robots=self.num_robots, on_goal=self.on_goal(positions),
+                    collisions=self.collisions, missed_decisions=self.missed,
+                    missed_robots=list(decisions.missing))
+
+    def progress_text(self, tick: int, positions) -> str:
+        return (f"tick {tick}: {self.on_goal(positions)}/{self.num_robots} on goal, "
+                f"{self.collisions} collisions, {self.missed} missed decisions")
+
+    def finish(self, positions, extra: str = "") -> dict:
+        """The FleetOutcome fields (with its summary); `extra` is appended to the summary."""
+        success = self.all_on_goal(positions)
+        summary = (f"{'success' if success else 'failure'}: {self.on_goal(positions)}/"
+                   f"{self.num_robots} robots on goal after {self.steps} steps, "
+                   f"{self.collisions} collisions, {self.missed} missed decisions"
+                   + (f" (robots {sorted(self.missed_robots)})" if self.missed_robots else "")
+                   + extra)
+        self.record.update(run_seconds=time.monotonic() - self.started, success=success,
+                           steps=self.steps, collisions=self.collisions,
+                           missed_decisions=self.missed, summary=summary)
+        return dict(episode=self.episode, success=success, steps=self.steps,
+                    num_robots=self.num_robots, collisions=self.collisions,
+                    missed_decisions=self.missed, missed_robots=sorted(self.missed_robots),
+                    summary=summary)
+
+    def write(self, path) -> None:
+        with open(path, "w") as handle:
+            json.dump(self.record, handle)
