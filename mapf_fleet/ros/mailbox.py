@@ -24,11 +24,11 @@ class Mailbox:
     def set_tick(self, episode: int, tick: int) -> None:
         """Enter `tick` of `episode`: older ticks' messages are discarded."""
         with self._cond:
-            if episode != self._episode:
-                self._boxes.clear()
-                self._episode = episode
+            # Messages that arrived before the node's first state (a faster peer's round 0) are
+            # kept when they belong to the episode entered; everything else older goes.
+            self._episode = episode
             self._current_tick = tick
-            for key in [k for k in self._boxes if k[1] < tick]:
+            for key in [k for k in self._boxes if k[0] != episode or k[2] < tick]:
                 del self._boxes[key]
             self._cond.notify_all()
 
@@ -47,7 +47,7 @@ class Mailbox:
             if tick < self._current_tick:
                 self.stale_dropped += 1
                 return False
-            self._boxes[(kind, tick)][int(sender)] = payload
+            self._boxes[(episode, kind, tick)][int(sender)] = payload
             self._cond.notify_all()
             return True
 
@@ -59,7 +59,7 @@ class Mailbox:
         wanted = None if senders is None else {int(s) for s in senders}
         with self._cond:
             while True:
-                box = self._boxes.get((kind, tick), {})
+                box = self._boxes.get((self._episode, kind, tick), {})
                 if wanted is not None and wanted.issubset(box.keys()):
                     break
                 if wanted is None and count is not None and len(box) >= count:
@@ -70,7 +70,7 @@ class Mailbox:
                 if remaining <= 0:
                     break
                 self._cond.wait(remaining)
-            box = dict(self._boxes.get((kind, tick), {}))
+            box = dict(self._boxes.get((self._episode, kind, tick), {}))
         if wanted is not None:
             box = {s: m for s, m in box.items() if s in wanted}
         return box

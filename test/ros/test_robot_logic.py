@@ -86,3 +86,13 @@ def test_mailbox_ignores_stale_ticks_and_times_out():
     assert time.monotonic() - start >= 0.19
     box.set_tick(1, 6)
     assert box.wait_for("dhc0", 6, [3], deadline=time.monotonic()) == {3: "early"}
+
+
+def test_mailbox_keeps_messages_that_arrive_before_the_first_state():
+    """A faster peer's round-0 vector can arrive before this node has seen tick 0: entering the
+    episode must not discard it (a lost message here made the fleet leave a partner out)."""
+    box = Mailbox()
+    assert box.put(7, "dhc0", 0, sender=4, payload="early")
+    assert box.put(6, "dhc0", 0, sender=5, payload="other run")
+    box.set_tick(episode=7, tick=0)
+    assert box.wait_for("dhc0", 0, [4, 5], deadline=time.monotonic()) == {4: "early"}
