@@ -13,6 +13,7 @@ import torch
 from mapf_fleet.grid.env import MAPFEnv
 from mapf_fleet.grid.instance import generate_instance
 from mapf_fleet.models.checkpoint import load_checkpoint
+from mapf_fleet.models.policy import LearnedPolicy
 
 
 def batched_rollout(checkpoint: str, instance, max_steps: int, comm=None):
@@ -21,20 +22,15 @@ def batched_rollout(checkpoint: str, instance, max_steps: int, comm=None):
     peers) is appended to it."""
     torch.set_num_threads(1)
     model, _ = load_checkpoint(checkpoint)
+    policy = LearnedPolicy(model.eval(), device="cpu")  # the evaluator's batched policy
     env = MAPFEnv(instance)
     obs = env.reset()
-    hidden = None
+    policy.reset(1, env.num_agents)
     actions, positions = [], [env.positions.tolist()]
     for _ in range(max_steps):
-        with torch.no_grad():
-            if model.config.algo == "dhc":
-                out = model.step(obs[None], env.positions[None], hidden)
-            else:
-                out = model.step(obs[None], env.positions[None], hidden, env.last_actions[None])
-        hidden = out.hidden
-        act = out.actions[0].numpy()
+        act = np.asarray(policy.act(obs[None], env.positions[None]))[0]
         if comm is not None:
-            comm.append([np.flatnonzero(row).tolist() for row in out.comm_mask[0].numpy()])
+            comm.append([np.flatnonzero(row).tolist() for row in policy.comm_mask[0]])
         obs, _, done, _ = env.step(act)
         actions.append(act.tolist())
         positions.append(env.positions.tolist())
