@@ -94,3 +94,42 @@ def test_short_pretrain_agrees_with_the_demonstrator_on_held_out_episodes():
     # "most states": the heuristic breaks ties between two closer cells by action order, which
     # no observation-based policy can always guess, so agreement stays below 1 (0.75 measured)
     assert after > 0.65 and after > before + 0.3, (before, after, summary)
+
+
+def test_demo_settings_override_the_stage1_ladder_and_are_validated():
+    cfg = _cfg(final_agents=4, final_map_size=40, demo_settings=[[4, 40], [2, 15]])
+    assert stage1_settings(cfg) == [(4, 40), (2, 15)]
+    with pytest.raises(TrainConfigError, match=r"demo_settings.*\[5, 40\].*final_agents"):
+        _cfg(final_agents=4, demo_settings=[[5, 40]])
+    with pytest.raises(TrainConfigError, match=r"demo_settings.*\[4\]"):
+        _cfg(final_agents=4, demo_settings=[[4]])
+    with pytest.raises(TrainConfigError, match="demo_settings.*map size"):
+        _cfg(final_agents=4, demo_settings=[[2, 3]])
+    with pytest.raises(TrainConfigError, match="demo_interleave.*demo_source"):
+        _cfg(demo_source="none", demo_interleave=4)
+
+
+def test_trainer_keeps_demonstrations_and_interleaves_demo_updates(tmp_path, monkeypatch):
+    """demo_interleave=2: after the warm start every 2nd learner update of the curricula is a
+    demonstration update; the warm-started weights are saved as demo_warm_start.pt."""
+    from mapf_fleet.training import demos
+    from mapf_fleet.training.trainer import Trainer
+
+    calls = []
+    real = demos.demo_update
+
+    def counting(learner, replay, cfg, writer=None):
+        calls.append(learner.updates)
+        return real(learner, replay, cfg, writer)
+
+    monkeypatch.setattr(demos, "demo_update", counting)
+    cfg = _cfg(use_ray=False, num_actors=1, envs_per_actor=4, actor_steps_per_call=8,
+               batch_size=4, learning_starts=20, demo_episodes=6, demo_pretrain_updates=3,
+               demo_interleave=2, max_updates=13, progress_bar=False, alpha_mode="fixed",
+               fixed_alpha=0.0)
+    result = Trainer(cfg, tmp_path / "run").run()
+    assert result["learner_updates"] == 13
+    # 3 warm-start updates (learner.updates 0, 1, 2), then the interleaved ones: the update
+    # that will become number 4, 6, ... (learner.updates 3, 5, 7, 9, 11 before it)
+    assert calls == [0, 1, 2, 3, 5, 7, 9, 11]
+    assert (tmp_path / "run" / "checkpoints" / "demo_warm_start.pt").exists()

@@ -18,7 +18,8 @@ REPO = Path(__file__).resolve().parent.parent
 CONFIGS = REPO / "config" / "training"
 
 
-@pytest.mark.parametrize("name", ["dhc_paper", "dcc_paper", "dhc_cpu", "dcc_cpu", "dhc_cpu_demo", "dcc_cpu_demo", "tiny"])
+@pytest.mark.parametrize("name", ["dhc_paper", "dcc_paper", "dhc_cpu", "dcc_cpu", "dhc_cpu_demo", "dcc_cpu_demo",
+                                  "dhc_cpu_lacam", "dcc_cpu_lacam", "tiny"])
 def test_shipped_configs_load(name):
     cfg = load_config(CONFIGS / f"{name}.yaml")
     assert cfg.algo in ("dhc", "dcc")

@@ -84,6 +84,13 @@ class TrainConfig:
     demo_pretrain_updates: int = 1000  # learner updates on demonstrations before stage 1
     demo_margin: float = 0.8  # large margin of J_E (DQfD)
     demo_weight: float = 1.0  # lambda: loss = n-step TD + demo_weight * J_E
+    # Explicit [agents, map size] pairs to draw demonstrations from (cycled), e.g. the
+    # evaluation's 40x40 maps; empty = the stage-1 ladder up to demo_max_agents. Agents must be
+    # <= final_agents (the replay's width).
+    demo_settings: list = field(default_factory=list)
+    # > 0: keep the demonstrations after the warm start and make every n-th learner update of
+    # the curricula a demonstration update (TD + margin loss), as DQfD keeps its demo data.
+    demo_interleave: int = 0
 
     # --- stage 1: scale expansion -----------------------------------------------------------
     start_agents: int = 1
@@ -148,6 +155,7 @@ class TrainConfig:
                 raise bad(name, "must be an integer >= 1")
         non_negative = ["num_actors", "burn_in", "learning_starts", "map_size_step",
                         "demo_episodes", "demo_max_agents", "demo_pretrain_updates",
+                        "demo_interleave",
                         "alpha_max_updates", "plateau_windows", "seed"]
         for name in non_negative:
             if not isinstance(getattr(self, name), int) or getattr(self, name) < 0:
@@ -170,6 +178,19 @@ class TrainConfig:
         if self.demo_source != "none" and (self.demo_episodes < 1
                                             or self.demo_pretrain_updates < 1):
             raise bad("demo_source", "needs demo_episodes >= 1 and demo_pretrain_updates >= 1")
+        if not isinstance(self.demo_settings, list):
+            raise bad("demo_settings", "must be a list of [agents, map size] pairs")
+        for pair in self.demo_settings:
+            if (not isinstance(pair, (list, tuple)) or len(pair) != 2
+                    or not all(isinstance(v, int) and not isinstance(v, bool) for v in pair)):
+                raise bad("demo_settings", f"entry {pair!r} is not an [agents, map size] pair")
+            if not 1 <= pair[0] <= self.final_agents:
+                raise bad("demo_settings", f"entry {pair!r}: agents must be in 1..final_agents "
+                          f"({self.final_agents})")
+            if pair[1] < 5:
+                raise bad("demo_settings", f"entry {pair!r}: map size must be >= 5")
+        if self.demo_interleave and self.demo_source == "none":
+            raise bad("demo_interleave", "needs a demo_source")
         if self.max_steps_per_map_side < 0:
             raise bad("max_steps_per_map_side", "must be >= 0 (0 = max_episode_steps always)")
         if self.epsilon_exponent < 0:

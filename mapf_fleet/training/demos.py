@@ -42,7 +42,10 @@ def margin_loss(q: torch.Tensor, demo_actions: torch.Tensor, mask: torch.Tensor,
 
 
 def stage1_settings(cfg: TrainConfig) -> list[tuple[int, int]]:
-    """(agents, map size) of stage 1 up to `demo_max_agents` (0 = all of stage 1)."""
+    """(agents, map size) of the demonstrations: `demo_settings` when given, else those of
+    stage 1 up to `demo_max_agents` (0 = all of stage 1)."""
+    if cfg.demo_settings:
+        return [(int(a), int(s)) for a, s in cfg.demo_settings]
     settings, agents, size = [], cfg.start_agents, cfg.start_map_size
     cap = cfg.demo_max_agents or cfg.final_agents
     while agents <= min(cfg.final_agents, cap):
@@ -128,24 +131,39 @@ def demo_replay(cfg: TrainConfig, model, num_episodes: int, seed: int):
                     "steps": steps, "sequences": len(sequences), "settings": settings}
 
 
-def pretrain(learner, cfg: TrainConfig, writer=None, log=None) -> dict:
-    """Run the DQfD pretraining on fresh demonstrations; returns a summary (also logged)."""
+def demo_update(learner, replay, cfg: TrainConfig, writer=None) -> dict:
+    """One learner update on a batch of demonstrations (TD + margin loss); logs under demo/."""
+    batch = replay.sample(cfg.batch_size, cfg.priority_beta)
+    priorities, stats = learner.update(batch, demo_weight=cfg.demo_weight,
+                                       demo_margin=cfg.demo_margin)
+    replay.update_priorities(batch.indices, priorities)
+    if writer is not None and learner.updates % 10 == 0:
+        for key in ("loss", "td_loss", "margin_loss", "demo_agreement", "mean_q"):
+            writer.add_scalar(f"demo/{key}", stats[key], learner.updates)
+    return stats
+
+
+def make_demo_replay(learner, cfg: TrainConfig, log=None):
+    """Fresh demonstrations (deterministic in cfg.seed) in their own replay."""
     replay, info = demo_replay(cfg, learner.model, cfg.demo_episodes, cfg.seed + 7919)
     if log:
         log(f"demo warm start: {info['episodes']} {cfg.demo_source} episodes "
             f"(success {info['success_rate']:.2f}), {info['sequences']} sequences")
+    return replay, info
+
+
+def pretrain(learner, cfg: TrainConfig, writer=None, log=None, replay=None) -> dict:
+    """Run the DQfD pretraining on demonstrations (fresh ones unless `replay` is given);
+    returns a summary (also logged). The replay stays usable for `demo_interleave`."""
+    info: dict = {}
+    if replay is None:
+        replay, info = make_demo_replay(learner, cfg, log)
     stats: dict = {}
     for _ in range(cfg.demo_pretrain_updates):
-        batch = replay.sample(cfg.batch_size, cfg.priority_beta)
-        priorities, stats = learner.update(batch, demo_weight=cfg.demo_weight,
-                                           demo_margin=cfg.demo_margin)
-        replay.update_priorities(batch.indices, priorities)
-        if writer is not None and learner.updates % 10 == 0:
-            for key in ("loss", "td_loss", "margin_loss", "demo_agreement", "mean_q"):
-                writer.add_scalar(f"demo/{key}", stats[key], learner.updates)
+        stats = demo_update(learner, replay, cfg, writer)
     learner.sync_target()
     summary = {**info, "updates": cfg.demo_pretrain_updates,
                "final_agreement": stats.get("demo_agreement"),
                "final_margin_loss": stats.get("margin_loss")}
-    summary.pop("settings")
+    summary.pop("settings", None)
     return summary

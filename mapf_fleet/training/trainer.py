@@ -254,14 +254,26 @@ class Trainer:
 
             self.bar = tqdm(total=cfg.max_updates, initial=self.learner.updates, unit="upd",
                             dynamic_ncols=True)
-        if cfg.demo_source != "none" and not self.counters.get("demo_pretrained"):
-            # before any actor plays: the first broadcast then carries the warm-started weights
-            from .demos import pretrain
+        self.demo_replay = None
+        pretrained = bool(self.counters.get("demo_pretrained"))
+        if cfg.demo_source != "none" and (not pretrained or cfg.demo_interleave):
+            # before any actor plays: the first broadcast then carries the warm-started weights.
+            # No actor runs yet, so the learner may use every local CPU meanwhile.
+            from .demos import make_demo_replay, pretrain
 
-            summary = pretrain(self.learner, cfg, writer, log=self._log_event)
-            self.counters["demo_pretrained"] = 1
-            self._log_event(f"demo warm start done: {summary}")
-            self.save_state()
+            if not cfg.ray_address:
+                torch.set_num_threads(max(cfg.learner_threads, cfg.num_cpus))
+            self.demo_replay, info = make_demo_replay(self.learner, cfg, log=self._log_event)
+            if not pretrained:
+                summary = pretrain(self.learner, cfg, writer, replay=self.demo_replay)
+                summary.update({k: v for k, v in info.items() if k != "settings"})
+                self.counters["demo_pretrained"] = 1
+                self._log_event(f"demo warm start done: {summary}")
+                self.save_checkpoint("demo_warm_start.pt", alpha=0.0)
+                self.save_state()
+            torch.set_num_threads(cfg.learner_threads)
+            if not cfg.demo_interleave:
+                self.demo_replay = None
         actors = _RayActors(cfg) if cfg.use_ray else _LocalActors(cfg)
         start = time.monotonic()
         elapsed0 = self.counters["elapsed_seconds"]
@@ -297,9 +309,15 @@ class Trainer:
                     break
                 if self.replay.added_steps >= cfg.learning_starts and len(self.replay) > 0:
                     for _ in range(cfg.updates_per_poll):
-                        batch = self.replay.sample(cfg.batch_size, cfg.priority_beta)
-                        priorities, last_stats = self.learner.update(batch)
-                        self.replay.update_priorities(batch.indices, priorities)
+                        if (self.demo_replay is not None
+                                and (self.learner.updates + 1) % cfg.demo_interleave == 0):
+                            from .demos import demo_update
+
+                            demo_update(self.learner, self.demo_replay, cfg, writer)
+                        else:
+                            batch = self.replay.sample(cfg.batch_size, cfg.priority_beta)
+                            priorities, last_stats = self.learner.update(batch)
+                            self.replay.update_priorities(batch.indices, priorities)
                         rate_updates += 1
                         if self.bar is not None:
                             self.bar.update(1)
