@@ -1,5 +1,6 @@
 """Run directory, config loading and resume after kill -9."""
 
+import json
 import os
 import signal
 import subprocess
@@ -46,6 +47,12 @@ def test_bad_config_names_file_field_and_value(tmp_path):
         load_config(path)
     with pytest.raises(TrainConfigError, match="plateau_windows"):
         TrainConfig(alpha_max_updates=0, plateau_windows=0)
+    # replace() checks like a file does: a string learning rate is read as a number or refused
+    assert TrainConfig().replace(lr="2e-3").lr == 2e-3
+    with pytest.raises(TrainConfigError, match=r"replace.*'lr'.*fast"):
+        TrainConfig().replace(lr="fast")
+    with pytest.raises(TrainConfigError, match=r"'batch_size'.*2.5.*integer"):
+        TrainConfig().replace(batch_size=2.5)
 
 
 def _tiny_overrides():
@@ -105,3 +112,35 @@ def test_resume_after_kill_9(tmp_path):
         assert torch.equal(trainer.learner.model.state_dict()[name], value)
     with pytest.raises(FileNotFoundError, match="not_a_run.*a run directory"):
         export_checkpoint(tmp_path / "not_a_run", tmp_path / "x.pt")
+
+
+def test_ctrl_c_stops_a_ray_run_and_saves_its_state(tmp_path):
+    """SIGINT to `mapf-fleet train` (Ray actors running) ends the run cleanly: exit code 0, the
+    state and final checkpoint saved at the update where it stopped, the reason in result.json."""
+    run = tmp_path / "run"
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    cmd = [sys.executable, "-m", "mapf_fleet.cli", "train", "--config",
+           str(CONFIGS / "tiny.yaml"), "--run-dir", str(run), *_tiny_overrides(),
+           "--set", "use_ray=true"]
+    proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 240
+        while time.monotonic() < deadline:
+            time.sleep(1.0)
+            if proc.poll() is not None:
+                pytest.fail(f"trainer exited early: {proc.stderr.read().decode()[-2000:]}")
+            if (run / run_state.STATE_FILE).exists() and \
+                    run_state.load_state(run)["learner"]["updates"] >= 5:
+                break
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=90)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode == 0, err.decode()[-2000:]
+    result = json.loads((run / run_state.RESULT_FILE).read_text())
+    assert "SIGINT" in result["stop_reason"] and not result["finished"]
+    assert run_state.load_state(run)["learner"]["updates"] == result["learner_updates"]
+    assert (run / "checkpoints" / "final.pt").exists()

@@ -212,7 +212,8 @@ class TrainConfig:
         return dataclasses.asdict(self)
 
     def replace(self, **changes: Any) -> "TrainConfig":
-        return dataclasses.replace(self, **changes)
+        """A copy with `changes`, checked like a YAML file's fields (types included)."""
+        return config_from_dict({**self.to_dict(), **changes}, source="TrainConfig.replace")
 
     @property
     def window_len(self) -> int:

@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import logging
 import math
+import signal
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -240,6 +242,27 @@ class Trainer:
             self.bar.write(text)
 
     # -- main loop --------------------------------------------------------------------------------
+    stop_signal: str = ""
+
+    def _catch_stop_signals(self):
+        """Ctrl-C / SIGTERM: finish the current update, save state and the final checkpoint, and
+        return (a second Ctrl-C aborts at once). Returns a function restoring the old handlers."""
+        if threading.current_thread() is not threading.main_thread():
+            return lambda: None
+
+        def request_stop(signum, frame):
+            if self.stop_signal:  # second signal: the user really wants out now
+                raise KeyboardInterrupt
+            self.stop_signal = signal.Signals(signum).name
+            self._log_event(f"{self.stop_signal}: stopping after this update, saving state")
+
+        previous = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+
+        def restore():
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+        return restore
+
     def run(self) -> dict:
         cfg = self.cfg
         writer = None
@@ -275,6 +298,7 @@ class Trainer:
             if not cfg.demo_interleave:
                 self.demo_replay = None
         actors = _RayActors(cfg) if cfg.use_ray else _LocalActors(cfg)
+        restore_signals = self._catch_stop_signals()  # after ray.init, which installs its own
         start = time.monotonic()
         elapsed0 = self.counters["elapsed_seconds"]
         last_state, last_log = self.learner.updates, time.monotonic()
@@ -287,6 +311,9 @@ class Trainer:
             while self.stage != STAGE_DONE:
                 if self.learner.updates >= cfg.max_updates:
                     stop_reason = f"max_updates {cfg.max_updates} reached"
+                    break
+                if self.stop_signal:
+                    stop_reason = f"stopped by {self.stop_signal} (resume with --resume)"
                     break
                 if cfg.max_wall_seconds and time.monotonic() - start >= cfg.max_wall_seconds:
                     stop_reason = f"max_wall_seconds {cfg.max_wall_seconds:g} reached"
@@ -339,6 +366,7 @@ class Trainer:
                     self.save_state()
                     last_state, last_state_time = self.learner.updates, now
         finally:
+            restore_signals()
             actors.close()
             self.counters["elapsed_seconds"] = elapsed0 + time.monotonic() - start
             if self.bar is not None:
