@@ -19,24 +19,23 @@ import time
 
 
 def batched_steps_per_second(checkpoint, instance, steps):
+    """Steps/s of the evaluator's own rollout (MAPFEnv + LearnedPolicy, one thread)."""
     import torch
 
     from mapf_fleet.grid.env import MAPFEnv
     from mapf_fleet.models.checkpoint import load_checkpoint
+    from mapf_fleet.models.policy import LearnedPolicy
 
     torch.set_num_threads(1)
     model, _ = load_checkpoint(checkpoint)
+    policy = LearnedPolicy(model, device="cpu")
     env = MAPFEnv(instance)
-    obs, hidden, done, count = env.reset(), None, False, 0
+    obs, done, count = env.reset(), False, 0
+    policy.reset(1, env.num_agents)
     start = time.perf_counter()
     while count < steps and not done:
-        with torch.no_grad():
-            if model.config.algo == "dhc":
-                out = model.step(obs[None], env.positions[None], hidden)
-            else:
-                out = model.step(obs[None], env.positions[None], hidden, env.last_actions[None])
-        hidden = out.hidden
-        obs, _, done, _ = env.step(out.actions[0].numpy())
+        actions = policy.act(obs[None], env.positions[None])
+        obs, _, done, _ = env.step(actions[0])
         count += 1
     return count / (time.perf_counter() - start)
 
