@@ -281,11 +281,10 @@ class Trainer:
         pretrained = bool(self.counters.get("demo_pretrained"))
         if cfg.demo_source != "none" and (not pretrained or cfg.demo_interleave):
             # before any actor plays: the first broadcast then carries the warm-started weights.
-            # No actor runs yet, so the learner may use every local CPU meanwhile.
+            # The learner keeps learner_threads meanwhile: more threads than free cores (another
+            # run on the machine) made oneDNN's thread barrier 10x slower (measured 13 s/update).
             from .demos import make_demo_replay, pretrain
 
-            if not cfg.ray_address:
-                torch.set_num_threads(max(cfg.learner_threads, cfg.num_cpus))
             self.demo_replay, info = make_demo_replay(self.learner, cfg, log=self._log_event)
             if not pretrained:
                 summary = pretrain(self.learner, cfg, writer, replay=self.demo_replay)
@@ -294,7 +293,6 @@ class Trainer:
                 self._log_event(f"demo warm start done: {summary}")
                 self.save_checkpoint("demo_warm_start.pt", alpha=0.0)
                 self.save_state()
-            torch.set_num_threads(cfg.learner_threads)
             if not cfg.demo_interleave:
                 self.demo_replay = None
         actors = _RayActors(cfg) if cfg.use_ray else _LocalActors(cfg)
