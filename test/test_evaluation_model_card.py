@@ -263,3 +263,24 @@ def test_missing_inputs_are_named(evaluated, tmp_path):
         build_card(checkpoint, eval_json, curves=tmp_path / "c.png")
     with pytest.raises(CardError, match="--checkpoint: .*no such checkpoint file"):
         build_card(tmp_path / "missing.pt", eval_json)
+
+
+def test_warm_start_time_not_yet_counted_by_the_trainer_is_read_from_tb(tmp_path):
+    import time
+
+    from torch.utils.tensorboard import SummaryWriter
+
+    from mapf_fleet.evaluation.model_card import RunInfo, uncounted_warm_start_seconds
+
+    writer = SummaryWriter(str(tmp_path / "tb"))
+    start = time.time()
+    for step in (10, 20, 30):
+        writer.add_scalar("demo/loss", 1.0 / step, step, walltime=start + 4 * step)
+    writer.close()
+    run = RunInfo(tmp_path, tb_dir=tmp_path / "tb", state_counters={"demo_pretrained": 1})
+    assert uncounted_warm_start_seconds(run) == pytest.approx(120.0, abs=5.0)
+    # counted by the trainer (demo_seconds), or no warm start: nothing to add
+    run.state_counters["demo_seconds"] = 130.0
+    assert uncounted_warm_start_seconds(run) == 0.0
+    assert uncounted_warm_start_seconds(RunInfo(tmp_path, tb_dir=tmp_path / "tb",
+                                                state_counters={})) == 0.0

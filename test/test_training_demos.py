@@ -133,3 +133,5 @@ def test_trainer_keeps_demonstrations_and_interleaves_demo_updates(tmp_path, mon
     # that will become number 4, 6, ... (learner.updates 3, 5, 7, 9, 11 before it)
     assert calls == [0, 1, 2, 3, 5, 7, 9, 11]
     assert (tmp_path / "run" / "checkpoints" / "demo_warm_start.pt").exists()
+    # the warm start's wall time is counted in the run's compute
+    assert 0 < result["counters"]["demo_seconds"] <= result["counters"]["elapsed_seconds"]

@@ -260,6 +260,12 @@ def compute_spent(run: RunInfo | None, metadata: dict) -> Compute | None:
     if not candidates:
         return None
     wall, source = max(candidates, key=lambda c: c[0])
+    uncounted = uncounted_warm_start_seconds(run)
+    if uncounted:
+        wall += uncounted
+        source += (f" + {uncounted:.0f} s of demonstration warm start that the trainer did not yet "
+                   "count (runs started before it did: from the tb event file's creation to the "
+                   "last demo/loss scalar)")
     config = (run.config if run and run.config else None) or metadata.get("training_config") or {}
     if config.get("ray_address"):
         return Compute(wall, None, source, "an external Ray cluster (ray_address): CPUs unknown")
@@ -269,6 +275,26 @@ def compute_spent(run: RunInfo | None, metadata: dict) -> Compute | None:
         return Compute(wall, config["learner_threads"], source,
                        "in-process actors (use_ray false): the learner's `learner_threads`")
     return Compute(wall, None, source, "the training config names no CPU count")
+
+
+def uncounted_warm_start_seconds(run: RunInfo | None) -> float:
+    """Runs begun before the trainer counted its demonstration warm start in elapsed_seconds
+    (no `demo_seconds` counter) but which logged demo/ scalars: the warm start's wall time, from
+    the first event of the event file holding demo/loss to its last demo/loss scalar."""
+    if run is None or run.tb_dir is None:
+        return 0.0
+    counters = run.state_counters or (run.result or {}).get("counters") or {}
+    if not counters.get("demo_pretrained") or "demo_seconds" in counters:
+        return 0.0
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    for path in sorted(run.tb_dir.glob("events.out.tfevents.*")):
+        accumulator = EventAccumulator(str(path), size_guidance={"scalars": 0})
+        accumulator.Reload()
+        if "demo/loss" in accumulator.Tags().get("scalars", []):
+            return float(accumulator.Scalars("demo/loss")[-1].wall_time
+                         - accumulator.FirstEventTimestamp())
+    return 0.0
 
 
 # ---- curves -------------------------------------------------------------------------------------

@@ -285,12 +285,19 @@ class Trainer:
             # run on the machine) made oneDNN's thread barrier 10x slower (measured 13 s/update).
             from .demos import make_demo_replay, pretrain
 
+            demo_start = time.monotonic()
             self.demo_replay, info = make_demo_replay(self.learner, cfg, log=self._log_event)
+            summary = None
             if not pretrained:
                 summary = pretrain(self.learner, cfg, writer, replay=self.demo_replay)
                 summary.update({k: v for k, v in info.items() if k != "settings"})
                 self.counters["demo_pretrained"] = 1
-                self._log_event(f"demo warm start done: {summary}")
+            # demonstrations (and the warm start) are part of the run's compute (cards' CPU-hours)
+            spent = time.monotonic() - demo_start
+            self.counters["demo_seconds"] = self.counters.get("demo_seconds", 0.0) + spent
+            self.counters["elapsed_seconds"] += spent
+            if summary is not None:
+                self._log_event(f"demo warm start done in {spent:.0f} s: {summary}")
                 self.save_checkpoint("demo_warm_start.pt", alpha=0.0)
                 self.save_state()
             if not cfg.demo_interleave:
