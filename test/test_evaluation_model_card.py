@@ -274,10 +274,11 @@ def test_warm_start_time_not_yet_counted_by_the_trainer_is_read_from_tb(tmp_path
 
     writer = SummaryWriter(str(tmp_path / "tb"))
     start = time.time()
-    for step in (10, 20, 30):
+    for step in (10, 20, 30, 40, 50):  # 40 and 50: interleaved demo updates after the warm start
         writer.add_scalar("demo/loss", 1.0 / step, step, walltime=start + 4 * step)
     writer.close()
-    run = RunInfo(tmp_path, tb_dir=tmp_path / "tb", state_counters={"demo_pretrained": 1})
+    run = RunInfo(tmp_path, tb_dir=tmp_path / "tb", state_counters={"demo_pretrained": 1},
+                  config={"demo_pretrain_updates": 30})
     assert uncounted_warm_start_seconds(run) == pytest.approx(120.0, abs=5.0)
     # counted by the trainer (demo_seconds), or no warm start: nothing to add
     run.state_counters["demo_seconds"] = 130.0

@@ -280,7 +280,8 @@ def compute_spent(run: RunInfo | None, metadata: dict) -> Compute | None:
 def uncounted_warm_start_seconds(run: RunInfo | None) -> float:
     """Runs begun before the trainer counted its demonstration warm start in elapsed_seconds
     (no `demo_seconds` counter) but which logged demo/ scalars: the warm start's wall time, from
-    the first event of the event file holding demo/loss to its last demo/loss scalar."""
+    the first event of the event file holding demo/loss to its last demo/loss scalar of the warm
+    start (step <= demo_pretrain_updates; later ones are interleaved demo updates)."""
     if run is None or run.tb_dir is None:
         return 0.0
     counters = run.state_counters or (run.result or {}).get("counters") or {}
@@ -292,8 +293,10 @@ def uncounted_warm_start_seconds(run: RunInfo | None) -> float:
         accumulator = EventAccumulator(str(path), size_guidance={"scalars": 0})
         accumulator.Reload()
         if "demo/loss" in accumulator.Tags().get("scalars", []):
-            return float(accumulator.Scalars("demo/loss")[-1].wall_time
-                         - accumulator.FirstEventTimestamp())
+            limit = int((run.config or {}).get("demo_pretrain_updates") or 0)
+            warm = [e for e in accumulator.Scalars("demo/loss") if not limit or e.step <= limit]
+            if warm:
+                return float(warm[-1].wall_time - accumulator.FirstEventTimestamp())
     return 0.0
 
 
