@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from . import run_state
+from . import demos, run_state
 from .actor import EpisodeWorker, Task
 from .config import TrainConfig, config_from_dict, load_config, save_config
 from .curriculum import AlphaCurriculum, ScaleCurriculum, SuccessWindow
@@ -283,13 +283,11 @@ class Trainer:
             # before any actor plays: the first broadcast then carries the warm-started weights.
             # The learner keeps learner_threads meanwhile: more threads than free cores (another
             # run on the machine) made oneDNN's thread barrier 10x slower (measured 13 s/update).
-            from .demos import make_demo_replay, pretrain
-
             demo_start = time.monotonic()
-            self.demo_replay, info = make_demo_replay(self.learner, cfg, log=self._log_event)
+            self.demo_replay, info = demos.make_demo_replay(self.learner, cfg, log=self._log_event)
             summary = None
             if not pretrained:
-                summary = pretrain(self.learner, cfg, writer, replay=self.demo_replay)
+                summary = demos.pretrain(self.learner, cfg, writer, replay=self.demo_replay)
                 summary.update({k: v for k, v in info.items() if k != "settings"})
                 self.counters["demo_pretrained"] = 1
             # demonstrations (and the warm start) are part of the run's compute (cards' CPU-hours)
@@ -343,9 +341,7 @@ class Trainer:
                     for _ in range(cfg.updates_per_poll):
                         if (self.demo_replay is not None
                                 and (self.learner.updates + 1) % cfg.demo_interleave == 0):
-                            from .demos import demo_update
-
-                            demo_update(self.learner, self.demo_replay, cfg, writer)
+                            demos.demo_update(self.learner, self.demo_replay, cfg, writer)
                         else:
                             batch = self.replay.sample(cfg.batch_size, cfg.priority_beta)
                             priorities, last_stats = self.learner.update(batch)
