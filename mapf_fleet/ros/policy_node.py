@@ -87,8 +87,10 @@ class PolicyNode(Node):
         quiet = common.quiet_publisher_events()
         self.move_pub = self.create_publisher(RobotMove, common.MOVES_TOPIC, common.reliable_qos(100),
                                               event_callbacks=quiet)
+        # latched: a robot whose waypoint subscription matches late (discovery still running at
+        # tick 0, a restarted driver) still gets its current waypoint instead of losing it
         self.waypoint_pub = self.create_publisher(PoseStamped, common.waypoint_topic(self.robot_id),
-                                                  common.reliable_qos(10), event_callbacks=quiet)
+                                                  common.latched_qos(1), event_callbacks=quiet)
         self.status_pub = self.create_publisher(RobotStatus, common.STATUS_TOPIC,
                                                 common.reliable_qos(100), event_callbacks=quiet)
         if self.algo == "dhc":

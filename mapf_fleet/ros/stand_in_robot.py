@@ -72,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
 
     for i in poses:
         node.create_subscription(PoseStamped, common.waypoint_topic(i),
-                                 lambda msg, i=i: on_waypoint(i, msg), common.reliable_qos(10))
+                                 lambda msg, i=i: on_waypoint(i, msg), common.latched_qos(1))
     # a pose feed publishes continuously, like a localisation stack
     node.create_timer(0.2, lambda: [publish(i) for i in poses])
     executor = SingleThreadedExecutor()

@@ -39,7 +39,7 @@ def test_aggregator_follows_stand_in_robots_and_rejects_off_grid(tmp_path, ros_e
     try:
         aggregator = subprocess.run(
             RUN + ["aggregator", "--ros-args", "-p", f"instance_file:={INSTANCE}",
-                   "-p", f"max_steps:={steps}", "-p", "arrival_timeout:=1.5",
+                   "-p", f"max_steps:={steps}", "-p", "arrival_timeout:=5.0",
                    "-p", "startup_timeout:=60.0", "-p", f"record_file:={record}"],
             env=ros_env, capture_output=True, text=True, timeout=180)
     finally:
