@@ -130,7 +130,8 @@ def _run_dir(root: Path, checkpoint: Path, config: dict) -> Path:
     (run / "config.yaml").write_text(yaml.safe_dump(config))
     (run / "result.json").write_text(json.dumps({
         "stage": "done", "alpha_star": 0.2, "stop_reason": "alpha 0.3 did not pass",
-        "counters": {"episodes": 900, "env_steps": 55000, "agent_steps": 400000, "elapsed_seconds": 5400.0},
+        "counters": {"episodes": 900, "env_steps": 55000, "agent_steps": 400000, "elapsed_seconds": 5400.0,
+                     "cpu_seconds": 9000.0, "cpu_measured_from_elapsed_seconds": 0.0},
     }))
     writer = SummaryWriter(str(run / "tb"))
     for step in range(0, 500, 100):
@@ -200,6 +201,7 @@ def test_card_holds_the_measured_and_the_paper_values(evaluated, tmp_path):
     assert "| learner steps | 4,321 |" in card and "preset `small`" in card
     # Compute: 5400 s x num_cpus 2 = 3.00 CPU-hours, from result.json.
     assert "**3.00 CPU-hours**" in card and "result.json counters.elapsed_seconds" in card
+    assert "Measured: **2.50 CPU-hours** of process CPU time" in card and "over the last" not in card
     # Training config: closest file and the fields that differ from the paper's recipe.
     assert "`config/training/dhc_cpu.yaml` (differs in `max_wall_seconds`)" in card
     from mapf_fleet.training.config import config_from_dict
@@ -285,3 +287,18 @@ def test_warm_start_time_not_yet_counted_by_the_trainer_is_read_from_tb(tmp_path
     assert uncounted_warm_start_seconds(run) == 0.0
     assert uncounted_warm_start_seconds(RunInfo(tmp_path, tb_dir=tmp_path / "tb",
                                                 state_counters={})) == 0.0
+
+
+def test_compute_reports_measured_cpu_time_and_what_it_covers(tmp_path):
+    from mapf_fleet.evaluation.model_card import RunInfo, compute_spent
+
+    config = {"use_ray": True, "num_cpus": 2}
+    counters = {"elapsed_seconds": 7200.0, "cpu_seconds": 5400.0,
+                "cpu_measured_from_elapsed_seconds": 3600.0}
+    run = RunInfo(tmp_path, config=config, state_counters=counters)
+    compute = compute_spent(run, {})
+    assert compute.cpu_hours == pytest.approx(4.0)  # reserved: 2 h x 2 CPUs
+    assert compute.measured_cpu_seconds == 5400.0 and compute.measured_from_elapsed == 3600.0
+    # runs from before the measurement: nothing measured, nothing claimed
+    old = compute_spent(RunInfo(tmp_path, config=config, state_counters={"elapsed_seconds": 60.0}), {})
+    assert old.measured_cpu_seconds is None

@@ -39,6 +39,9 @@ def test_tiny_config_runs_both_stages_on_ray(tmp_path, ray_shutdown, capsys):
     if result["alpha_passed"]:
         assert result["alpha_star"] == result["alpha_passed"][-1]
     assert (run / "config.yaml").exists() and any((run / "tb").iterdir())
+    # CPU time measured from the start (driver + Ray actor processes)
+    counters = result["counters"]
+    assert counters["cpu_seconds"] > 0 and counters["cpu_measured_from_elapsed_seconds"] == 0
     from mapf_fleet.models.checkpoint import load_checkpoint
 
     model, meta = load_checkpoint(run / "checkpoints" / "final.pt")
@@ -61,3 +64,18 @@ def test_one_agent_on_10x10_learns_past_0_9(tmp_path):
         demo_source="none")  # from scratch: tiny.yaml's warm start is off here
     result = Trainer(cfg, tmp_path / "learn").run()
     assert result["alpha_passed"] == [0.0], result
+
+
+def test_cpu_meter_adds_each_actor_process_once_and_not_the_driver_twice():
+    import os
+
+    from mapf_fleet.training.trainer import CpuMeter
+
+    meter = CpuMeter()
+    meter.actor_report({"pid": 101, "process_cpu_seconds": 5.0})
+    meter.actor_report({"pid": 102, "process_cpu_seconds": 2.0})
+    meter.actor_report({"pid": 101, "process_cpu_seconds": 7.5})  # cumulative: +2.5
+    meter.actor_report({"pid": os.getpid(), "process_cpu_seconds": 100.0})  # in-process actor
+    meter.actor_report({"sequences": []})  # a result without CPU time (older actor)
+    assert meter.actor_seconds == pytest.approx(9.5)
+    assert 9.5 <= meter.seconds() < 9.5 + 60.0

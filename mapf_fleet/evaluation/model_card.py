@@ -238,6 +238,8 @@ class Compute:
     cpus: int | None
     source: str  # which file the wall time came from
     how: str  # the CPU count's origin
+    measured_cpu_seconds: float | None = None  # counters.cpu_seconds: process CPU time measured
+    measured_from_elapsed: float = 0.0  # the run's wall time before the trainer measured it
 
     @property
     def cpu_hours(self) -> float | None:
@@ -251,30 +253,40 @@ def compute_spent(run: RunInfo | None, metadata: dict) -> Compute | None:
     candidates = []
     if run is not None:
         if run.result and isinstance(run.result.get("counters"), dict):
-            candidates.append((run.result["counters"].get("elapsed_seconds"), "result.json counters.elapsed_seconds"))
+            candidates.append((run.result["counters"], "result.json counters.elapsed_seconds"))
         if run.state_counters:
-            candidates.append((run.state_counters.get("elapsed_seconds"), "train_state.pt counters.elapsed_seconds"))
+            candidates.append((run.state_counters, "train_state.pt counters.elapsed_seconds"))
     extra = metadata.get("extra") or {}
-    candidates.append((extra.get("elapsed_seconds"), "checkpoint metadata extra.elapsed_seconds"))
-    candidates = [(float(v), s) for v, s in candidates if isinstance(v, (int, float)) and not isinstance(v, bool)]
+    candidates.append((extra, "checkpoint metadata extra.elapsed_seconds"))
+    candidates = [(c, s) for c, s in candidates if _is_number(c.get("elapsed_seconds"))]
     if not candidates:
         return None
-    wall, source = max(candidates, key=lambda c: c[0])
+    counters, source = max(candidates, key=lambda c: float(c[0]["elapsed_seconds"]))
+    wall = float(counters["elapsed_seconds"])
+    measured = (float(counters["cpu_seconds"]) if _is_number(counters.get("cpu_seconds")) else None,
+                float(counters.get("cpu_measured_from_elapsed_seconds") or 0.0))
     uncounted = uncounted_warm_start_seconds(run)
     if uncounted:
         wall += uncounted
+        if measured[0] is not None:  # that warm start came before the CPU measurement began
+            measured = (measured[0], measured[1] + uncounted)
         source += (f" + {uncounted:.0f} s of demonstration warm start that the trainer did not yet "
                    "count (runs started before it did: from the tb event file's creation to the "
                    "last demo/loss scalar)")
     config = (run.config if run and run.config else None) or metadata.get("training_config") or {}
     if config.get("ray_address"):
-        return Compute(wall, None, source, "an external Ray cluster (ray_address): CPUs unknown")
+        return Compute(wall, None, source, "an external Ray cluster (ray_address): CPUs unknown", *measured)
     if config.get("use_ray", True) and isinstance(config.get("num_cpus"), int):
-        return Compute(wall, config["num_cpus"], source, "`num_cpus` of the local Ray (training config)")
+        return Compute(wall, config["num_cpus"], source, "`num_cpus` of the local Ray (training config)",
+                       *measured)
     if config.get("use_ray") is False and isinstance(config.get("learner_threads"), int):
         return Compute(wall, config["learner_threads"], source,
-                       "in-process actors (use_ray false): the learner's `learner_threads`")
-    return Compute(wall, None, source, "the training config names no CPU count")
+                       "in-process actors (use_ray false): the learner's `learner_threads`", *measured)
+    return Compute(wall, None, source, "the training config names no CPU count", *measured)
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 def uncounted_warm_start_seconds(run: RunInfo | None) -> float:
@@ -543,6 +555,15 @@ def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | 
                      f"({compute.source}, summed over resumed sessions) x {compute.cpus} CPU(s) "
                      f"({compute.how}). CPUs reserved, not measured utilisation; the whole run, "
                      "of which this checkpoint may be an intermediate point.")
+    if compute is not None and compute.measured_cpu_seconds is not None:
+        measured = (f"Measured: **{compute.measured_cpu_seconds / 3600:.2f} CPU-hours** of process CPU "
+                    "time (the trainer's process and its actor processes, `counters.cpu_seconds`; "
+                    "Ray's daemons not included)")
+        if compute.measured_from_elapsed > 0:
+            measured += (f", over the last {(compute.wall_seconds - compute.measured_from_elapsed) / 3600:.2f} h "
+                         f"of the run's wall time only: the first {compute.measured_from_elapsed / 3600:.2f} h "
+                         "ran before the trainer measured CPU time")
+        lines.append(measured + ".")
     counters = (run.result or {}).get("counters") if run else None
     if isinstance(counters, dict):
         parts = [f"{counters[k]:,} {k.replace('_', ' ')}" for k in ("episodes", "env_steps", "agent_steps")

@@ -9,6 +9,8 @@ the positions after the step) with the alpha of the current task.
 
 from __future__ import annotations
 
+import os
+
 import time
 from dataclasses import dataclass
 
@@ -161,4 +163,6 @@ class EpisodeWorker:
                     self._new_episode(slot)
         return {"sequences": sequences, "episodes": stats, "agent_steps": agent_steps,
                 "seconds": time.perf_counter() - t0, "actor": self.index,
-                "weights_version": self.weights_version, "task_version": task.version}
+                "weights_version": self.weights_version, "task_version": task.version,
+                # this process's CPU time so far (every thread): the trainer sums actor processes
+                "pid": os.getpid(), "process_cpu_seconds": time.process_time()}

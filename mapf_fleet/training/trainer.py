@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import signal
 import threading
 import time
@@ -33,6 +34,28 @@ from .modelio import hidden_dim
 from .replay import PrioritizedSequenceReplay
 
 STAGE_SCALE, STAGE_ALPHA, STAGE_DONE = "scale", "alpha", "done"
+
+
+class CpuMeter:
+    """CPU time the run really used (for the cards' compute): the driver process (learner,
+    replay, warm start; every thread) plus every actor process, which reports its own cumulative
+    process time with each result. Wall time x reserved CPUs overstates it when runs share a
+    machine. Not counted: Ray's own daemons (raylet, GCS)."""
+
+    def __init__(self):
+        self.driver_start = time.process_time()
+        self.actor_seconds = 0.0
+        self._last: dict[int, float] = {}  # actor pid -> cumulative seconds already counted
+
+    def actor_report(self, result: dict) -> None:
+        pid, cumulative = result.get("pid"), result.get("process_cpu_seconds")
+        if pid is None or cumulative is None or pid == os.getpid():
+            return  # in-process actors are in the driver's own time
+        self.actor_seconds += max(0.0, float(cumulative) - self._last.get(pid, 0.0))
+        self._last[pid] = float(cumulative)
+
+    def seconds(self) -> float:
+        return time.process_time() - self.driver_start + self.actor_seconds
 
 
 class _LocalActors:
@@ -278,6 +301,11 @@ class Trainer:
             self.bar = tqdm(total=cfg.max_updates, initial=self.learner.updates, unit="upd",
                             dynamic_ncols=True)
         self.demo_replay = None
+        cpu = CpuMeter()
+        if "cpu_seconds" not in self.counters:  # runs begun before CPU time was measured
+            self.counters["cpu_seconds"] = 0.0
+            self.counters["cpu_measured_from_elapsed_seconds"] = self.counters["elapsed_seconds"]
+        cpu0 = self.counters["cpu_seconds"]
         pretrained = bool(self.counters.get("demo_pretrained"))
         if cfg.demo_source != "none" and (not pretrained or cfg.demo_interleave):
             # before any actor plays: the first broadcast then carries the warm-started weights.
@@ -294,6 +322,7 @@ class Trainer:
             spent = time.monotonic() - demo_start
             self.counters["demo_seconds"] = self.counters.get("demo_seconds", 0.0) + spent
             self.counters["elapsed_seconds"] += spent
+            self.counters["cpu_seconds"] = cpu0 + cpu.seconds()
             if summary is not None:
                 self._log_event(f"demo warm start done in {spent:.0f} s: {summary}")
                 self.save_checkpoint("demo_warm_start.pt", alpha=0.0)
@@ -324,6 +353,7 @@ class Trainer:
                 can_learn = (self.replay.added_steps >= cfg.learning_starts
                              and len(self.replay) > 0)
                 for result in actors.poll(self.task, block=not can_learn):
+                    cpu.actor_report(result)
                     for seq in result["sequences"]:
                         self.replay.add(seq)
                     self.counters["agent_steps"] += result["agent_steps"]
@@ -356,6 +386,7 @@ class Trainer:
                         self._log_event(f"stage 2 done: {self.alpha.stop_reason}")
                 now = time.monotonic()
                 self.counters["elapsed_seconds"] = elapsed0 + now - start
+                self.counters["cpu_seconds"] = cpu0 + cpu.seconds()
                 if now - last_log >= cfg.log_interval_seconds:
                     span = max(now - rate_t, 1e-9)
                     rates = {"actor_agent_steps_per_s": rate_steps / span,
@@ -370,6 +401,7 @@ class Trainer:
             restore_signals()
             actors.close()
             self.counters["elapsed_seconds"] = elapsed0 + time.monotonic() - start
+            self.counters["cpu_seconds"] = cpu0 + cpu.seconds()
             if self.bar is not None:
                 self.bar.close()
         if self.stage == STAGE_DONE and not stop_reason:
