@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import os
 import subprocess
 from pathlib import Path
@@ -11,7 +12,15 @@ import mapf_fleet
 
 
 def code_version() -> dict[str, Any]:
-    """Package version and the git commit of the source tree when it is a git checkout."""
+    """Package version and the git commit of the source tree when it is a git checkout.
+
+    Read once per process: a long run (training for hours) records the commit it started from,
+    not one checked out while it ran (the loaded code is the one of its start)."""
+    return dict(_code_version())
+
+
+@functools.cache
+def _code_version() -> dict[str, Any]:
     commit = None
     try:
         # GIT_OPTIONAL_LOCKS=0: read only, never touch the index. (git is no ROS process;

@@ -46,6 +46,9 @@ def test_tiny_config_runs_both_stages_on_ray(tmp_path, ray_shutdown, capsys):
 
     model, meta = load_checkpoint(run / "checkpoints" / "final.pt")
     assert meta["learner_steps"] == result["learner_updates"]
+    # the code that trained it: one session, from update 0
+    (session,) = meta["extra"]["trained_with_code"]
+    assert session["from_update"] == 0 and "git_commit" in session
 
 
 @pytest.mark.slow

@@ -108,6 +108,9 @@ def test_resume_after_kill_9(tmp_path):
     path, _ = export_checkpoint(run, tmp_path / "exported.pt")
     model, meta = load_checkpoint(path)
     assert meta["learner_steps"] == result["learner_updates"]
+    # two training sessions (killed, resumed), each with the code it ran
+    sessions = meta["extra"]["trained_with_code"]
+    assert [s["from_update"] for s in sessions] == [0, saved["learner"]["updates"]]
     for name, value in model.state_dict().items():
         assert torch.equal(trainer.learner.model.state_dict()[name], value)
     with pytest.raises(FileNotFoundError, match="not_a_run.*a run directory"):

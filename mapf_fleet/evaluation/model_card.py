@@ -516,6 +516,7 @@ def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | 
         ("observation padding / action order", f"{metadata['obs_padding']} / {', '.join(metadata['action_order'])}"),
         ("checkpoint written", str(metadata.get("created", "not recorded"))),
         ("code version of the checkpoint", _version_text(metadata.get("code_version"))),
+        ("code that trained it (per training session)", _trained_with_text(metadata)),
         ("checkpoint SHA-256", f"`{_sha256(checkpoint)}`"),
     ]
     if curriculum.get("note"):
@@ -614,6 +615,14 @@ def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | 
               f"- checkpoint written {metadata.get('created', '?')} with code {_version_text(metadata.get('code_version'))}",
               ""]
     return "\n".join(lines)
+
+
+def _trained_with_text(metadata: dict) -> str:
+    sessions = (metadata.get("extra") or {}).get("trained_with_code")
+    if not isinstance(sessions, list) or not sessions:
+        return "not recorded (runs begun before the trainer recorded it)"
+    return "; ".join(f"{_version_text(v)} from update {v.get('from_update', '?')}"
+                     for v in sessions if isinstance(v, dict))
 
 
 def _version_text(version: Any) -> str:

@@ -170,6 +170,8 @@ class Trainer:
         # success of every setting / alpha seen, for the logs (not used for gating)
         self.setting_windows: dict[str, SuccessWindow] = {}
         self.events: list[str] = []
+        # the code of every session that trained this run (a resume may run newer code)
+        self.code_versions: list[dict] = []
         self.bar = None
         if resume:
             self._load_state()
@@ -183,7 +185,8 @@ class Trainer:
         return {"learner": self.learner.state_dict(), "scale": self.scale.state_dict(),
                 "alpha": self.alpha.state_dict(), "stage": self.stage,
                 "task_version": self.task_version, "counters": dict(self.counters),
-                "checkpoints": list(self.checkpoints), "config": self.cfg.to_dict()}
+                "checkpoints": list(self.checkpoints), "config": self.cfg.to_dict(),
+                "code_versions": list(self.code_versions)}
 
     def _load_state(self) -> None:
         state = run_state.load_state(self.run_dir)
@@ -194,6 +197,7 @@ class Trainer:
         self.task_version = int(state["task_version"]) + 1  # episodes in flight are gone
         self.counters.update(state["counters"])
         self.checkpoints = list(state["checkpoints"])
+        self.code_versions = list(state.get("code_versions", []))
 
     def save_state(self) -> None:
         run_state.save_state(self.run_dir, self.state_dict())
@@ -212,7 +216,8 @@ class Trainer:
                                "alpha_passed": list(self.alpha.passed),
                                "alpha_star": self.alpha.alpha_star},
                 "learner_steps": int(self.learner.updates),
-                "training_config": self.cfg.to_dict()}
+                "training_config": self.cfg.to_dict(),
+                "extra": {"trained_with_code": list(self.code_versions)}}
 
     def save_checkpoint(self, name: str, alpha: float | None = None) -> Path:
         from mapf_fleet.models.checkpoint import save_checkpoint
@@ -301,6 +306,9 @@ class Trainer:
             self.bar = tqdm(total=cfg.max_updates, initial=self.learner.updates, unit="upd",
                             dynamic_ncols=True)
         self.demo_replay = None
+        from mapf_fleet.version import code_version
+
+        self.code_versions.append({**code_version(), "from_update": int(self.learner.updates)})
         cpu = CpuMeter()
         if "cpu_seconds" not in self.counters:  # runs begun before CPU time was measured
             self.counters["cpu_seconds"] = 0.0
