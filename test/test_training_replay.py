@@ -128,3 +128,43 @@ def test_episode_to_sequences_windows_and_bootstrap_indices():
     np.testing.assert_allclose(second["returns"][:2, 0], [1.9, 1.0])
     assert second["last_actions"][:5, 0].tolist() == [0, 1, 2, 3, 4]
     assert first["last_actions"][:4, 0].tolist() == [-1, -1, -1, 0]  # padding, none, a_0
+
+
+def test_replay_survives_a_save_and_reload(tmp_path):
+    """RUN/replay.npz round trip: the same sequences, priorities and counters, so a resumed run
+    samples what the stopped one would have (partly filled and wrapped-around buffers)."""
+    from mapf_fleet.training import run_state
+
+    for count in (3, 7):  # capacity 5: partly filled, then wrapped (next_slot 2)
+        replay = _replay(capacity=5)
+        for k in range(count):
+            replay.add(_sequence(num_agents=1 + k % 3, reward=float(k)))
+        replay.update_priorities(np.arange(len(replay)), np.arange(len(replay)) + 1.0)
+        run_state.save_replay(tmp_path, replay.state_dict())
+        restored = _replay(capacity=5)
+        restored.load_state_dict(run_state.load_replay(tmp_path))
+        assert (len(restored), restored.next_slot, restored.added_steps) == \
+            (len(replay), replay.next_slot, replay.added_steps)
+        assert restored.max_priority == replay.max_priority
+        np.testing.assert_allclose(restored.probabilities(np.arange(len(replay))),
+                                   replay.probabilities(np.arange(len(replay))))
+        a, b = replay.sample(6, beta=0.4), restored.sample(6, beta=0.4)  # same rng seed
+        for name in ("indices", "returns", "agent_mask", "actions", "weights"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+        assert replay.returns[:len(replay), 0, 0].tolist() == restored.returns[:len(replay), 0, 0].tolist()
+
+
+def test_replay_of_another_shape_is_refused_by_name(tmp_path):
+    from mapf_fleet.training import run_state
+
+    replay = _replay(capacity=5)
+    replay.add(_sequence())
+    state = replay.state_dict()
+    other = PrioritizedSequenceReplay(5, window_len=5, seq_len=3, max_agents=3, hidden_dim=8)
+    with pytest.raises(ValueError, match="replay hidden_dim: saved 4, this run uses 8"):
+        other.load_state_dict(state)
+    assert len(other) == 0
+    (tmp_path / run_state.REPLAY_FILE).write_bytes(b"not a zip")
+    with pytest.raises(ValueError, match="replay.npz: not a readable replay file"):
+        run_state.load_replay(tmp_path)
+    assert run_state.load_replay(tmp_path / "empty") is None

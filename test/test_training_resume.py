@@ -147,3 +147,13 @@ def test_ctrl_c_stops_a_ray_run_and_saves_its_state(tmp_path):
     assert "SIGINT" in result["stop_reason"] and not result["finished"]
     assert run_state.load_state(run)["learner"]["updates"] == result["learner_updates"]
     assert (run / "checkpoints" / "final.pt").exists()
+    # the replay was saved too: a resume learns on it instead of a near-empty replay
+    assert (run / run_state.REPLAY_FILE).is_file()
+    resumed = Trainer(load_config(run / run_state.CONFIG_FILE), run, resume=True)
+    assert len(resumed.replay) > 0 and any("replay restored" in e for e in resumed.events)
+    # a damaged replay file: the run resumes with an empty replay, says why, keeps the file
+    (run / run_state.REPLAY_FILE).write_bytes(b"damaged")
+    damaged = Trainer(load_config(run / run_state.CONFIG_FILE), run, resume=True)
+    assert len(damaged.replay) == 0
+    assert any("replay not restored" in e and "replay.npz" in e for e in damaged.events)
+    assert (run / run_state.REPLAY_FILE).read_bytes() == b"damaged"

@@ -115,6 +115,9 @@ class TrainConfig:
     # --- run directory --------------------------------------------------------------------------
     state_interval_updates: int = 500  # training state saved at least every N updates ...
     state_interval_seconds: float = 300.0  # ... and every this many seconds
+    # the replay (RUN/replay.npz, ~170 MB at 8192 x 24 steps x 12 agents) is saved when the run
+    # stops and every this many seconds (0: only when it stops); a resume reloads it
+    replay_interval_seconds: float = 1800.0
     log_interval_seconds: float = 10.0
     max_wall_seconds: float = 0.0  # stop (saving state) after this long; 0 = no limit
     seed: int = 0
@@ -175,6 +178,8 @@ class TrainConfig:
                 raise bad(name, "must be > 0")
         if self.max_wall_seconds < 0:
             raise bad("max_wall_seconds", "must be >= 0 (0 = no limit)")
+        if self.replay_interval_seconds < 0:
+            raise bad("replay_interval_seconds", "must be >= 0 (0 = only when the run stops)")
         if self.demo_source != "none" and (self.demo_episodes < 1
                                             or self.demo_pretrain_updates < 1):
             raise bad("demo_source", "needs demo_episodes >= 1 and demo_pretrain_updates >= 1")

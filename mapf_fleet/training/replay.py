@@ -160,6 +160,44 @@ class PrioritizedSequenceReplay:
         self.added_steps += int(seq["step_mask"].sum())
         return slot
 
+    # -- persistence (resume) -------------------------------------------------------------------
+    _ARRAYS = ("obs_bits", "positions", "last_actions", "actions", "returns", "boot_discount",
+               "boot_index", "step_mask", "agent_mask", "start_index", "hidden")
+    _SHAPE = ("capacity", "window_len", "seq_len", "max_agents", "hidden_dim")
+
+    def state_dict(self) -> dict[str, np.ndarray]:
+        """The stored sequences (filled slots only), their priorities and the counters; the
+        sampling rng is not kept. Plain numpy arrays, for `np.savez`."""
+        filled = self.size
+        state = {name: getattr(self, name)[:filled] for name in self._ARRAYS}
+        state["priorities"] = self.tree.get(np.arange(filled))
+        for name in self._SHAPE + ("next_slot", "size", "added_steps"):
+            state[name] = np.asarray(getattr(self, name), dtype=np.int64)
+        state["max_priority"] = np.asarray(self.max_priority, dtype=np.float64)
+        return state
+
+    def load_state_dict(self, state) -> None:
+        """Restore `state_dict()` output into this (empty, same-shaped) replay; a ValueError
+        names the field that does not match, and the replay is left unchanged."""
+        for name in self._SHAPE:
+            saved = int(state[name])
+            if saved != getattr(self, name):
+                raise ValueError(f"replay {name}: saved {saved}, this run uses {getattr(self, name)}")
+        filled = int(state["size"])
+        for name in self._ARRAYS:
+            array = state[name]
+            expected = (filled,) + getattr(self, name).shape[1:]
+            if array.shape != expected:
+                raise ValueError(f"replay {name}: saved shape {array.shape}, expected {expected}")
+        for name in self._ARRAYS:
+            getattr(self, name)[:filled] = state[name]
+        self.tree = SumTree(self.capacity)
+        if filled:
+            self.tree.update(np.arange(filled), np.asarray(state["priorities"], np.float64))
+        self.size, self.next_slot = filled, int(state["next_slot"])
+        self.added_steps = int(state["added_steps"])
+        self.max_priority = float(state["max_priority"])
+
     def probabilities(self, indices: np.ndarray) -> np.ndarray:
         return self.tree.get(indices) / self.tree.total
 

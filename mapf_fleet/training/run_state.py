@@ -8,14 +8,19 @@
                              alpha that passed the gate), final.pt (last weights)
     RUN/tb/                  TensorBoard scalars
     RUN/result.json          outcome: alpha*, passed alphas, stop reason, counters
+    RUN/replay.npz           the replay's sequences and priorities, written atomically when the
+                             run stops and every `replay_interval_seconds`: a resumed run
+                             learns on the experience it had instead of a near-empty replay
 """
 
 from __future__ import annotations
 
 import json
+import zipfile
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from mapf_fleet.files import atomic_write
@@ -25,6 +30,7 @@ STATE_FILE = "train_state.pt"
 RESULT_FILE = "result.json"
 CHECKPOINT_DIR = "checkpoints"
 TB_DIR = "tb"
+REPLAY_FILE = "replay.npz"
 
 
 def save_state(run_dir: Path, state: dict[str, Any]) -> None:
@@ -46,3 +52,20 @@ def write_result(run_dir: Path, result: dict[str, Any]) -> None:
 def alpha_checkpoint_name(alpha: float) -> str:
     return f"alpha_{alpha:.1f}.pt" if abs(alpha * 10 - round(alpha * 10)) < 1e-9 \
         else f"alpha_{alpha:g}.pt"
+
+
+def save_replay(run_dir: Path, state: dict[str, np.ndarray]) -> None:
+    atomic_write(Path(run_dir) / REPLAY_FILE, lambda f: np.savez(f, **state))
+
+
+def load_replay(run_dir: Path) -> dict[str, np.ndarray] | None:
+    """The saved replay arrays, or None when the run has none; a damaged file raises a
+    ValueError naming it."""
+    path = Path(run_dir) / REPLAY_FILE
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {name: data[name] for name in data.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as err:
+        raise ValueError(f"{path}: not a readable replay file ({err})") from err

@@ -7,8 +7,11 @@ The driver process holds the replay and the learner; actors are Ray actors that 
 the lowest-epsilon explorers (environment slots, see `TrainConfig.epsilon_per_env`) played
 under the current task drive the curricula.
 
-Not saved across a resume: the replay content (refilled to `learning_starts`) and episodes in
-flight. Saved: weights, target, optimizer, curricula, counters, elapsed time.
+Saved for a resume: weights, target, optimizer, curricula, counters, elapsed time
+(train_state.pt, every few minutes) and the replay's sequences and priorities (replay.npz, when
+the run stops and every `replay_interval_seconds`: a run resumed on a near-empty replay overfits
+its first few hundred sequences). Lost: episodes in flight, and after kill -9 the experience
+gathered since the last replay save.
 """
 
 from __future__ import annotations
@@ -145,7 +148,8 @@ class _RayActors:
 
 
 class Trainer:
-    def __init__(self, cfg: TrainConfig, run_dir: str | Path, resume: bool = False):
+    def __init__(self, cfg: TrainConfig, run_dir: str | Path, resume: bool = False,
+                 restore_replay: bool = True):
         self.cfg, self.run_dir = cfg, Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
         torch.manual_seed(cfg.seed)
@@ -175,6 +179,8 @@ class Trainer:
         self.bar = None
         if resume:
             self._load_state()
+            if restore_replay:
+                self._restore_replay()
         else:
             save_config(cfg, self.run_dir / run_state.CONFIG_FILE)
         if self.stage == STAGE_SCALE and self.scale.done:
@@ -201,6 +207,21 @@ class Trainer:
 
     def save_state(self) -> None:
         run_state.save_state(self.run_dir, self.state_dict())
+
+    def save_replay(self) -> None:
+        run_state.save_replay(self.run_dir, self.replay.state_dict())
+
+    def _restore_replay(self) -> None:
+        """Reload RUN/replay.npz when it fits this run's replay; otherwise say why and start
+        with an empty replay (the file is left in place)."""
+        try:
+            state = run_state.load_replay(self.run_dir)
+            if state is not None:
+                self.replay.load_state_dict(state)
+                self._log_event(f"replay restored: {len(self.replay)} sequences")
+        except (ValueError, KeyError) as err:
+            self._log_event(f"replay not restored, starting empty: {err}")
+            logging.getLogger(__name__).warning("replay not restored, starting empty: %s", err)
 
     # -- curriculum -------------------------------------------------------------------------------
     @property
@@ -342,7 +363,7 @@ class Trainer:
         start = time.monotonic()
         elapsed0 = self.counters["elapsed_seconds"]
         last_state, last_log = self.learner.updates, time.monotonic()
-        last_state_time = time.monotonic()
+        last_state_time = last_replay_time = time.monotonic()
         rate_steps, rate_updates, rate_t = 0, 0, time.monotonic()
         last_stats: dict = {}
         actors.broadcast(self.learner.cpu_weights(), self.learner.updates)
@@ -405,6 +426,9 @@ class Trainer:
                         or now - last_state_time >= cfg.state_interval_seconds):
                     self.save_state()
                     last_state, last_state_time = self.learner.updates, now
+                if cfg.replay_interval_seconds and now - last_replay_time >= cfg.replay_interval_seconds:
+                    self.save_replay()
+                    last_replay_time = now
         finally:
             restore_signals()
             actors.close()
@@ -416,6 +440,8 @@ class Trainer:
             stop_reason = self.alpha.stop_reason or "stage 2 done"
         self.save_checkpoint("final.pt")
         self.save_state()
+        if self.stage != STAGE_DONE:  # a finished run is not resumed
+            self.save_replay()
         result = self.result(stop_reason)
         run_state.write_result(self.run_dir, result)
         if writer is not None:
@@ -484,6 +510,7 @@ def export_checkpoint(run_dir: str | Path, out: str | Path) -> tuple[Path, dict]
         if not (run_dir / name).is_file():
             raise FileNotFoundError(f"{run_dir / name}: no such file (is {run_dir} a run directory?)")
     # constructing with resume=True only reads the run directory; training starts in run()
-    trainer = Trainer(load_config(run_dir / run_state.CONFIG_FILE), run_dir, resume=True)
+    trainer = Trainer(load_config(run_dir / run_state.CONFIG_FILE), run_dir, resume=True,
+                      restore_replay=False)
     meta = trainer._metadata()
     return save_checkpoint(out, trainer.learner.model, meta), meta
