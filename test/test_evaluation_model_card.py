@@ -119,7 +119,8 @@ def _trainer_like_checkpoint(path: Path, algo: str = "dhc") -> Path:
         "training_config": config.to_dict(),
         "extra": {"trained_with_code": [
             {"package": "0.1.0", "git_commit": "a" * 40, "from_update": 0},
-            {"package": "0.1.0", "git_commit": "b" * 40, "from_update": 2000}]},
+            {"package": "0.1.0", "git_commit": "b" * 40, "from_update": 2000,
+             "overrides": {"explore_all_agents": False}}]},
     }
     return save_checkpoint(path, build_model(ModelConfig.preset(algo, "small")), metadata)
 
@@ -206,7 +207,8 @@ def test_card_holds_the_measured_and_the_paper_values(evaluated, tmp_path):
     assert "**3.00 CPU-hours**" in card and "result.json counters.elapsed_seconds" in card
     assert "Measured: **2.50 CPU-hours** of process CPU time" in card and "over the last" not in card
     assert ("| code that trained it (per training session) | mapf_fleet 0.1.0, git aaaaaaaaaaaa from "
-            "update 0; mapf_fleet 0.1.0, git bbbbbbbbbbbb from update 2000 |") in card
+            "update 0; mapf_fleet 0.1.0, git bbbbbbbbbbbb from update 2000 (resumed with "
+            "`explore_all_agents=False`) |") in card
     # Training config: closest file and the fields that differ from the paper's recipe.
     assert "`config/training/dhc_cpu.yaml` (differs in `max_wall_seconds`)" in card
     from mapf_fleet.training.config import config_from_dict

@@ -115,6 +115,14 @@ def test_resume_after_kill_9(tmp_path):
         assert torch.equal(trainer.learner.model.state_dict()[name], value)
     with pytest.raises(FileNotFoundError, match="not_a_run.*a run directory"):
         export_checkpoint(tmp_path / "not_a_run", tmp_path / "x.pt")
+    # `--resume RUN --set F=V`: config.yaml keeps the starting config, the session records it
+    from mapf_fleet.training.trainer import train
+
+    before = (run / run_state.CONFIG_FILE).read_text()
+    train(resume=run, overrides={"max_updates": result["learner_updates"]})
+    last = run_state.load_state(run)["code_versions"][-1]
+    assert last["overrides"] == {"max_updates": result["learner_updates"]}
+    assert (run / run_state.CONFIG_FILE).read_text() == before
 
 
 def test_ctrl_c_stops_a_ray_run_and_saves_its_state(tmp_path):

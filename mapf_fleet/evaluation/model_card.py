@@ -621,8 +621,14 @@ def _trained_with_text(metadata: dict) -> str:
     sessions = (metadata.get("extra") or {}).get("trained_with_code")
     if not isinstance(sessions, list) or not sessions:
         return "not recorded (runs begun before the trainer recorded it)"
-    return "; ".join(f"{_version_text(v)} from update {v.get('from_update', '?')}"
-                     for v in sessions if isinstance(v, dict))
+    def one(v: dict) -> str:
+        text = f"{_version_text(v)} from update {v.get('from_update', '?')}"
+        if v.get("overrides"):
+            changed = ", ".join(f"`{k}={value!r}`" for k, value in v["overrides"].items())
+            text += f" (resumed with {changed})"
+        return text
+
+    return "; ".join(one(v) for v in sessions if isinstance(v, dict))
 
 
 def _version_text(version: Any) -> str:

@@ -292,6 +292,7 @@ class Trainer:
 
     # -- main loop --------------------------------------------------------------------------------
     stop_signal: str = ""
+    session_overrides: dict | None = None  # `--resume RUN --set F=V`: fields changed from now on
 
     def _catch_stop_signals(self):
         """Ctrl-C / SIGTERM: finish the current update, save state and the final checkpoint, and
@@ -329,7 +330,11 @@ class Trainer:
         self.demo_replay = None
         from mapf_fleet.version import code_version
 
-        self.code_versions.append({**code_version(), "from_update": int(self.learner.updates)})
+        session = {**code_version(), "from_update": int(self.learner.updates)}
+        if self.session_overrides:
+            session["overrides"] = dict(self.session_overrides)
+            self._log_event(f"resumed with overrides {self.session_overrides}")
+        self.code_versions.append(session)
         cpu = CpuMeter()
         if "cpu_seconds" not in self.counters:  # runs begun before CPU time was measured
             self.counters["cpu_seconds"] = 0.0
@@ -496,7 +501,11 @@ def train(config_path: str | Path | None = None, run_dir: str | Path | None = No
         cfg = load_config(config_path)
     if overrides:
         cfg = config_from_dict({**cfg.to_dict(), **overrides}, source="overrides")
-    return Trainer(cfg, run_dir, resume=resume is not None).run()
+    trainer = Trainer(cfg, run_dir, resume=resume is not None)
+    if resume is not None and overrides:
+        # config.yaml keeps the run's starting config; the change is on this session's record
+        trainer.session_overrides = dict(overrides)
+    return trainer.run()
 
 
 def export_checkpoint(run_dir: str | Path, out: str | Path) -> tuple[Path, dict]:
