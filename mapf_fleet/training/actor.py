@@ -10,7 +10,6 @@ the positions after the step) with the alpha of the current task.
 from __future__ import annotations
 
 import os
-
 import time
 from dataclasses import dataclass
 
