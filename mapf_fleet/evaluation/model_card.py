@@ -275,14 +275,14 @@ def compute_spent(run: RunInfo | None, metadata: dict) -> Compute | None:
                    "last demo/loss scalar)")
     config = (run.config if run and run.config else None) or metadata.get("training_config") or {}
     if config.get("ray_address"):
-        return Compute(wall, None, source, "an external Ray cluster (ray_address): CPUs unknown", *measured)
-    if config.get("use_ray", True) and isinstance(config.get("num_cpus"), int):
-        return Compute(wall, config["num_cpus"], source, "`num_cpus` of the local Ray (training config)",
-                       *measured)
-    if config.get("use_ray") is False and isinstance(config.get("learner_threads"), int):
-        return Compute(wall, config["learner_threads"], source,
-                       "in-process actors (use_ray false): the learner's `learner_threads`", *measured)
-    return Compute(wall, None, source, "the training config names no CPU count", *measured)
+        cpus, how = None, "an external Ray cluster (ray_address): CPUs unknown"
+    elif config.get("use_ray", True) and isinstance(config.get("num_cpus"), int):
+        cpus, how = config["num_cpus"], "`num_cpus` of the local Ray (training config)"
+    elif config.get("use_ray") is False and isinstance(config.get("learner_threads"), int):
+        cpus, how = config["learner_threads"], "in-process actors (use_ray false): the learner's `learner_threads`"
+    else:
+        cpus, how = None, "the training config names no CPU count"
+    return Compute(wall, cpus, source, how, *measured)
 
 
 def _is_number(value) -> bool:
@@ -621,6 +621,7 @@ def _trained_with_text(metadata: dict) -> str:
     sessions = (metadata.get("extra") or {}).get("trained_with_code")
     if not isinstance(sessions, list) or not sessions:
         return "not recorded (runs begun before the trainer recorded it)"
+
     def one(v: dict) -> str:
         text = f"{_version_text(v)} from update {v.get('from_update', '?')}"
         if v.get("overrides"):

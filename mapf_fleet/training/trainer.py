@@ -28,6 +28,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from mapf_fleet.version import code_version
+
 from . import demos, run_state
 from .actor import EpisodeWorker, Task
 from .config import TrainConfig, config_from_dict, load_config, save_config
@@ -149,8 +151,11 @@ class _RayActors:
 
 class Trainer:
     def __init__(self, cfg: TrainConfig, run_dir: str | Path, resume: bool = False,
-                 restore_replay: bool = True):
+                 restore_replay: bool = True, session_overrides: dict | None = None):
         self.cfg, self.run_dir = cfg, Path(run_dir)
+        # `--resume RUN --set F=V`: fields changed from this session on; config.yaml keeps the
+        # run's starting config, the change goes on this session's record
+        self.session_overrides = dict(session_overrides) if session_overrides else None
         self.run_dir.mkdir(parents=True, exist_ok=True)
         torch.manual_seed(cfg.seed)
         torch.set_num_threads(cfg.learner_threads)
@@ -292,7 +297,6 @@ class Trainer:
 
     # -- main loop --------------------------------------------------------------------------------
     stop_signal: str = ""
-    session_overrides: dict | None = None  # `--resume RUN --set F=V`: fields changed from now on
 
     def _catch_stop_signals(self):
         """Ctrl-C / SIGTERM: finish the current update, save state and the final checkpoint, and
@@ -328,8 +332,6 @@ class Trainer:
             self.bar = tqdm(total=cfg.max_updates, initial=self.learner.updates, unit="upd",
                             dynamic_ncols=True)
         self.demo_replay = None
-        from mapf_fleet.version import code_version
-
         session = {**code_version(), "from_update": int(self.learner.updates)}
         if self.session_overrides:
             session["overrides"] = dict(self.session_overrides)
@@ -501,11 +503,8 @@ def train(config_path: str | Path | None = None, run_dir: str | Path | None = No
         cfg = load_config(config_path)
     if overrides:
         cfg = config_from_dict({**cfg.to_dict(), **overrides}, source="overrides")
-    trainer = Trainer(cfg, run_dir, resume=resume is not None)
-    if resume is not None and overrides:
-        # config.yaml keeps the run's starting config; the change is on this session's record
-        trainer.session_overrides = dict(overrides)
-    return trainer.run()
+    return Trainer(cfg, run_dir, resume=resume is not None,
+                   session_overrides=overrides if resume is not None else None).run()
 
 
 def export_checkpoint(run_dir: str | Path, out: str | Path) -> tuple[Path, dict]:
