@@ -309,3 +309,54 @@ def test_compute_reports_measured_cpu_time_and_what_it_covers(tmp_path):
     # runs from before the measurement: nothing measured, nothing claimed
     old = compute_spent(RunInfo(tmp_path, config=config, state_counters={"elapsed_seconds": 60.0}), {})
     assert old.measured_cpu_seconds is None
+
+
+def test_checkpoint_counters_give_the_compute_up_to_that_checkpoint(tmp_path):
+    """A checkpoint that carries the run's counters of its moment is measured up to itself, not
+    with the totals of a run that went on training after it."""
+    from mapf_fleet.evaluation.model_card import CHECKPOINT_POINT, RunInfo, compute_spent
+
+    config = {"use_ray": True, "num_cpus": 2}
+    later = RunInfo(tmp_path, config=config, state_counters={"elapsed_seconds": 9000.0, "cpu_seconds": 15000.0})
+    meta = {"extra": {"counters": {"elapsed_seconds": 1800.0, "cpu_seconds": 3000.0}}}
+    compute = compute_spent(later, meta)
+    assert compute.source.startswith(CHECKPOINT_POINT)
+    assert compute.cpu_hours == pytest.approx(1.0) and compute.measured_cpu_seconds == 3000.0
+    # without them: the whole run, as before
+    assert compute_spent(later, {}).cpu_hours == pytest.approx(5.0)
+
+
+def test_compare_puts_other_checkpoints_of_the_same_evaluation_side_by_side(tmp_path):
+    import torch
+
+    from mapf_fleet.evaluation.cli import main as evaluate_main
+    from mapf_fleet.models.checkpoint import load_checkpoint, save_checkpoint
+
+    torch.set_num_threads(1)
+    warm = _trainer_like_checkpoint(tmp_path / "warm.pt")
+    model, loaded = load_checkpoint(warm)
+    meta = {k: loaded[k] for k in ("alpha", "curriculum", "learner_steps", "training_config", "extra")}
+    meta["training_config"]["demo_source"] = "planner"
+    meta["extra"]["counters"] = {"elapsed_seconds": 3600.0, "cpu_seconds": 5400.0}
+    save_checkpoint(warm, model, meta)
+    meta = dict(meta, learner_steps=777, curriculum={"stage": "scale", "setting": [3, 20]})
+    meta["training_config"] = dict(meta["training_config"], demo_source="none")
+    meta["extra"] = {"counters": {"elapsed_seconds": 7200.0, "cpu_seconds": 1800.0,
+                                  "cpu_measured_from_elapsed_seconds": 5400.0}}
+    scratch = save_checkpoint(tmp_path / "scratch.pt", model, meta)
+    unrelated = _trainer_like_checkpoint(tmp_path / "unrelated.pt")
+    eval_json = tmp_path / "both.json"
+    assert evaluate_main(["--checkpoint", str(warm), str(scratch), "--sizes", "40", "--agents", "4",
+                          "--instances", "2", "--no-references", "--json", str(eval_json), "--quiet"]) == 0
+    card = build_card(warm, eval_json, compare=[scratch])
+    rows = {r["policy"]: r["success_rate"] for r in json.loads(eval_json.read_text())["results"]}
+    assert "## Side by side" in card
+    assert ("| **warm** (this checkpoint) | DHC | DQfD warm start on LaCAM plans | 12 agents on 40x40 "
+            "| 0.2 | 4,321 | 1.50 | 2.00 |") in card
+    assert ("| scratch | DHC | paper recipe (no demonstrations) | 3 agents on 20x20 | 0.2 | 777 "
+            "| 0.50 (last 0.50 h of wall time) | 4.00 |") in card
+    assert f"| scratch | {rows['scratch']:.3f} |" in card and f"| warm | {rows['warm']:.3f} |" in card
+    with pytest.raises(CardError, match="unrelated.pt"):  # not in that evaluation
+        build_card(warm, eval_json, compare=[unrelated])
+    with pytest.raises(CardError, match="--compare .*missing.pt"):
+        build_card(warm, eval_json, compare=[tmp_path / "missing.pt"])

@@ -49,6 +49,11 @@ def test_tiny_config_runs_both_stages_on_ray(tmp_path, ray_shutdown, capsys):
     # the code that trained it: one session, from update 0
     (session,) = meta["extra"]["trained_with_code"]
     assert session["from_update"] == 0 and "git_commit" in session
+    # the compute up to the checkpoint (cards): the run's counters when final.pt was written
+    at_checkpoint = meta["extra"]["counters"]
+    assert 0 < at_checkpoint["cpu_seconds"] <= counters["cpu_seconds"]
+    assert 0 < at_checkpoint["elapsed_seconds"] <= counters["elapsed_seconds"]
+    assert at_checkpoint["episodes"] == counters["episodes"]
 
 
 @pytest.mark.slow

@@ -247,21 +247,34 @@ class Compute:
 
 
 def compute_spent(run: RunInfo | None, metadata: dict) -> Compute | None:
-    """Wall time of the whole run (summed over resumed sessions by the trainer's
-    counters.elapsed_seconds) x the CPUs the run reserved. The latest of result.json and
-    train_state.pt wins; a checkpoint's `extra.elapsed_seconds` is used without a run dir."""
+    """Wall time (summed over resumed sessions by the trainer's counters.elapsed_seconds) x the
+    CPUs the run reserved, and the measured CPU time. A checkpoint holding the run's counters of
+    its own moment (`extra.counters`, written by the trainer since they were added) is measured
+    up to itself; otherwise the whole run: the latest of result.json and train_state.pt wins, and
+    a checkpoint's `extra.elapsed_seconds` is used without a run dir."""
+    extra = metadata.get("extra") or {}
+    own = extra.get("counters")
+    if isinstance(own, dict) and _is_number(own.get("elapsed_seconds")):
+        # checkpoints the trainer writes now carry the run's counters of that moment
+        return _compute_from(own, CHECKPOINT_POINT, run, metadata)
     candidates = []
     if run is not None:
         if run.result and isinstance(run.result.get("counters"), dict):
             candidates.append((run.result["counters"], "result.json counters.elapsed_seconds"))
         if run.state_counters:
             candidates.append((run.state_counters, "train_state.pt counters.elapsed_seconds"))
-    extra = metadata.get("extra") or {}
     candidates.append((extra, "checkpoint metadata extra.elapsed_seconds"))
     candidates = [(c, s) for c, s in candidates if _is_number(c.get("elapsed_seconds"))]
     if not candidates:
         return None
     counters, source = max(candidates, key=lambda c: float(c[0]["elapsed_seconds"]))
+    return _compute_from(counters, source, run, metadata)
+
+
+CHECKPOINT_POINT = "checkpoint metadata extra.counters, i.e. the run when this checkpoint was written"
+
+
+def _compute_from(counters: dict, source: str, run: RunInfo | None, metadata: dict) -> Compute:
     wall = float(counters["elapsed_seconds"])
     measured = (float(counters["cpu_seconds"]) if _is_number(counters.get("cpu_seconds")) else None,
                 float(counters.get("cpu_measured_from_elapsed_seconds") or 0.0))
@@ -443,6 +456,61 @@ def evaluation_section(evaluation: dict, policy: str, metadata: dict, eval_path:
     return lines
 
 
+RECIPES = {"none": "paper recipe (no demonstrations)",
+           "planner": "DQfD warm start on LaCAM plans",
+           "heuristic": "DQfD warm start on the heuristic policy"}
+
+
+def _hours(value: float | None) -> str:
+    return "not recorded" if value is None else f"{value / 3600:.2f}"
+
+
+def comparison_section(evaluation: dict, policy: str, metadata: dict, eval_path: Path,
+                       others: list[tuple[Path, dict]], run: RunInfo | None) -> list[str]:
+    """This checkpoint beside other checkpoints measured in the same evaluation JSON (issue 8
+    item 4: the warm start beside the paper's recipe): how each was trained, the compute spent up
+    to it and its success rates."""
+    entries = [(policy, metadata, compute_spent(run, metadata))]
+    for path, meta in others:
+        name = match_policy(evaluation, path, eval_path)
+        if name == policy:
+            raise CardError(f"--compare {path}: is the card's own checkpoint")
+        entries.append((name, meta, compute_spent(None, meta)))
+    lines = ["## Side by side", "",
+             f"Checkpoints measured in the same evaluation (`{eval_path.name}`); compute up to each "
+             "checkpoint, read from its metadata (measured = process CPU time of the trainer and its "
+             "actors; reserved = wall time x CPUs of the run).", "",
+             "| checkpoint | algorithm | training | setting reached | alpha | learner steps "
+             "| CPU-h measured | CPU-h reserved |", "|---|---|---|---|---:|---:|---:|---:|"]
+    for name, meta, compute in entries:
+        config = meta.get("training_config") or {}
+        setting = (meta.get("curriculum") or {}).get("setting") or ["?", "?"]
+        measured = None if compute is None else compute.measured_cpu_seconds
+        if compute is not None and compute.measured_from_elapsed > 0 and measured is not None:
+            measured_text = f"{measured / 3600:.2f} (last {(compute.wall_seconds - compute.measured_from_elapsed) / 3600:.2f} h of wall time)"
+        else:
+            measured_text = _hours(measured)
+        reserved = None if compute is None or compute.cpu_hours is None else compute.cpu_hours * 3600
+        label = f"**{name}** (this checkpoint)" if name == policy else name
+        lines.append(f"| {label} | {meta.get('algorithm', '?').upper()} "
+                     f"| {RECIPES.get(config.get('demo_source', 'none'), config.get('demo_source'))} "
+                     f"| {setting[0]} agents on {setting[1]}x{setting[1]} | {float(meta.get('alpha', 0)):g} "
+                     f"| {int(meta.get('learner_steps', 0)):,} | {measured_text} | {_hours(reserved)} |")
+    lines.append("")
+    names = [e[0] for e in entries]
+    rows = [r for r in evaluation["results"] if r["policy"] in names]
+    for map_name in dict.fromkeys(r["map"] for r in rows):
+        mine = [r for r in rows if r["map"] == map_name]
+        agents = sorted({int(r["agents"]) for r in mine})
+        cell = {(r["policy"], int(r["agents"])): r["success_rate"] for r in mine}
+        lines.append(f"| Success rate ↑, {map_name} | " + " | ".join(str(n) for n in agents) + " |")
+        lines.append("|---|" + "---:|" * len(agents))
+        for name in names:
+            lines.append(f"| {name} | " + " | ".join(_fmt(cell.get((name, n)), "{:.3f}") for n in agents) + " |")
+        lines.append("")
+    return lines
+
+
 def _against_heuristic(rows: list[dict], policy: str, agents: list[int]) -> list[str]:
     """Where this checkpoint's success rate is above the non-learned decentralized policy's
     (issue 8's first target), from the measured rows only."""
@@ -470,8 +538,9 @@ def _relative(target: Path, start: Path) -> str:
 
 def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | Path | None = None,
                out: str | Path | None = None, curves: str | Path | None = None,
-               command: str | None = None) -> str:
-    """The card's Markdown (and the curves PNG when `curves` is given)."""
+               command: str | None = None, compare: list[str | Path] | None = None) -> str:
+    """The card's Markdown (and the curves PNG when `curves` is given); `compare`: other
+    checkpoints of the same evaluation JSON to show side by side."""
     from mapf_fleet.models.checkpoint import CheckpointError, code_version, load_checkpoint
 
     checkpoint, eval_path = Path(checkpoint), Path(eval_path)
@@ -554,8 +623,9 @@ def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | 
     else:
         lines.append(f"**{compute.cpu_hours:.2f} CPU-hours** = wall time {compute.wall_seconds / 3600:.2f} h "
                      f"({compute.source}, summed over resumed sessions) x {compute.cpus} CPU(s) "
-                     f"({compute.how}). CPUs reserved, not measured utilisation; the whole run, "
-                     "of which this checkpoint may be an intermediate point.")
+                     f"({compute.how}). CPUs reserved, not measured utilisation; "
+                     + ("up to this checkpoint." if compute.source.startswith(CHECKPOINT_POINT)
+                        else "the whole run, of which this checkpoint may be an intermediate point."))
     if compute is not None and compute.measured_cpu_seconds is not None:
         measured = (f"Measured: **{compute.measured_cpu_seconds / 3600:.2f} CPU-hours** of process CPU "
                     "time (the trainer's process and its actor processes, `counters.cpu_seconds`; "
@@ -610,6 +680,14 @@ def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | 
     if info:
         lines += ["Evaluation: " + "; ".join(info) + ".", ""]
     lines += evaluation_section(evaluation, policy, metadata, eval_path)
+    if compare:
+        others = []
+        for path in map(Path, compare):
+            try:
+                others.append((path, load_checkpoint(path)[1]))
+            except (CheckpointError, FileNotFoundError) as exc:
+                raise CardError(f"--compare {path}: {exc}") from exc
+        lines += comparison_section(evaluation, policy, metadata, eval_path, others, run)
     lines += ["## Versions", "",
               f"- card written {now} with code {_version_text(code_version())}",
               f"- checkpoint written {metadata.get('created', '?')} with code {_version_text(metadata.get('code_version'))}",
@@ -656,6 +734,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--run-dir", help="the trainer's run directory (config, counters, tb/ scalars)")
     p.add_argument("--out", required=True, help="Markdown file to write (models/X.md)")
     p.add_argument("--curves", metavar="PNG", help="write the training curves here (needs --run-dir)")
+    p.add_argument("--compare", nargs="+", metavar="CHECKPOINT", default=[],
+                   help="other checkpoints evaluated in the same --eval JSON: a side-by-side table "
+                        "of how each was trained, the compute up to it and its success rates")
     return p
 
 
@@ -666,7 +747,8 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         text = build_card(args.checkpoint, args.eval, run_dir=args.run_dir, out=args.out,
-                          curves=args.curves, command="mapf-fleet card " + shlex.join(argv))
+                          curves=args.curves, command="mapf-fleet card " + shlex.join(argv),
+                          compare=args.compare)
     except (CardError, FileNotFoundError) as exc:
         print(f"mapf-fleet card: {exc}", file=sys.stderr)
         return 2

@@ -39,6 +39,9 @@ from .modelio import hidden_dim
 from .replay import PrioritizedSequenceReplay
 
 STAGE_SCALE, STAGE_ALPHA, STAGE_DONE = "scale", "alpha", "done"
+# counters copied into every checkpoint's metadata (extra.counters)
+CHECKPOINT_COUNTERS = ("elapsed_seconds", "cpu_seconds", "cpu_measured_from_elapsed_seconds",
+                       "demo_seconds", "episodes", "env_steps", "agent_steps")
 
 
 class CpuMeter:
@@ -243,7 +246,10 @@ class Trainer:
                                "alpha_star": self.alpha.alpha_star},
                 "learner_steps": int(self.learner.updates),
                 "training_config": self.cfg.to_dict(),
-                "extra": {"trained_with_code": list(self.code_versions)}}
+                "extra": {"trained_with_code": list(self.code_versions),
+                          # the compute spent up to this checkpoint (cards, side-by-side tables)
+                          "counters": {k: self.counters[k] for k in CHECKPOINT_COUNTERS
+                                       if k in self.counters}}}
 
     def save_checkpoint(self, name: str, alpha: float | None = None) -> Path:
         from mapf_fleet.models.checkpoint import save_checkpoint
