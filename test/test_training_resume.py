@@ -165,3 +165,22 @@ def test_ctrl_c_stops_a_ray_run_and_saves_its_state(tmp_path):
     assert len(damaged.replay) == 0
     assert any("replay not restored" in e and "replay.npz" in e for e in damaged.events)
     assert (run / run_state.REPLAY_FILE).read_bytes() == b"damaged"
+
+
+def test_resume_in_stage_1_takes_stage_2_settings_from_the_config(tmp_path):
+    """Stage 2 holds no progress before it begins, so a resume that changes its settings (here
+    the final task and `alpha_mode=fixed`, the paper's "w/o CL") trains with them; once stage 2
+    has begun its progress is restored instead."""
+    cfg = load_config(CONFIGS / "tiny.yaml").replace(use_ray=False, progress_bar=False)
+    run = tmp_path / "run"
+    trainer = Trainer(cfg, run)
+    trainer.scale.num_agents, trainer.scale.map_size = 2, 15
+    trainer.save_state()
+    fixed = cfg.replace(final_agents=2, final_map_size=15, alpha_mode="fixed", fixed_alpha=0.3)
+    resumed = Trainer(fixed, run, resume=True)
+    assert resumed.stage == "alpha" and resumed.task.alpha == pytest.approx(0.3)
+    assert (resumed.task.num_agents, resumed.task.map_size) == (2, 15)
+    resumed.alpha.passed.append(0.3)
+    resumed.save_state()
+    again = Trainer(cfg.replace(final_agents=2, final_map_size=15), run, resume=True)
+    assert again.alpha.passed == [0.3] and again.alpha.alpha == pytest.approx(0.3)

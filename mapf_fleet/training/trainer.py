@@ -206,7 +206,10 @@ class Trainer:
         state = run_state.load_state(self.run_dir)
         self.learner.load_state_dict(state["learner"])
         self.scale.load_state_dict(state["scale"])
-        self.alpha.load_state_dict(state["alpha"])
+        if state["stage"] != STAGE_SCALE:
+            # stage 2 has begun: its progress is restored. Before that it holds nothing yet and
+            # is built from the config, so a resume with --set alpha_mode=... takes effect.
+            self.alpha.load_state_dict(state["alpha"])
         self.stage = str(state["stage"])
         self.task_version = int(state["task_version"]) + 1  # episodes in flight are gone
         self.counters.update(state["counters"])
