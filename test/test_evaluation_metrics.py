@@ -91,3 +91,27 @@ def test_summary_is_the_paper_average():
     assert only_failed.to_dict()["lower_bound_ratio_solved"] is None
     with pytest.raises(ValueError):
         summarize([])
+
+
+def test_stalled_agents_and_deadlocks_at_the_end():
+    """Agents 0 and 1 face each other in a corridor and wait from step 1 to the limit (a
+    deadlock: stalled beside another agent); agent 2 waits alone; agent 3 moves until the end
+    (not stalled); agent 4 waits on its goal (not counted)."""
+    from mapf_fleet.evaluation.metrics import STALL_STEPS
+
+    limit = STALL_STEPS + 5
+    goals = np.array([[0, 9], [0, 0], [5, 5], [9, 9], [7, 0]])
+    start = np.array([[0, 3], [0, 4], [5, 0], [9, 0], [7, 0]])
+    positions = [start]
+    for t in range(1, limit + 1):
+        now = start.copy()
+        now[2] = [5, 1] if t >= 4 else [5, 0]  # moves once at step 4, then waits alone
+        now[3] = [9, t % 2]  # oscillates to the end
+        positions.append(now)
+    rec = episode_from_trajectory(np.stack(positions), goals, np.zeros((limit, 5), bool), limit, 9)
+    assert not rec.success
+    assert rec.stalled_agents == 3 and rec.stalled_beside_agent == 2
+    # an agent that moved within the last STALL_STEPS steps is not stalled
+    short = episode_from_trajectory(np.stack(positions[:STALL_STEPS]), goals,
+                                    np.zeros((STALL_STEPS - 1, 5), bool), STALL_STEPS - 1, 9)
+    assert short.stalled_agents == 0

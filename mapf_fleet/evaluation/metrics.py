@@ -17,6 +17,11 @@ agents, the conflict rules of `mapf_fleet.grid.env` applied):
 - **lower-bound ratio**: steps / lower bound (failures at L, as the paper's average steps).
   The summary also gives the ratio over solved episodes only, which measures path quality
   without mixing in the time-outs.
+- **stalled agents**: agents off their goal at the episode's end that have not changed cell in
+  its last `STALL_STEPS` steps; **stalled beside an agent**: those of them with another agent in
+  one of their four neighbouring cells at the end. They measure the failure mode the paper names
+  (deadlocks: agents waiting on each other, or on an agent parked on its goal, until the limit)
+  apart from agents that wander or lose their way.
 """
 
 from __future__ import annotations
@@ -25,6 +30,8 @@ import math
 from dataclasses import asdict, dataclass
 
 import numpy as np
+
+STALL_STEPS = 32  # an agent that has not moved for this long at the end is stalled
 
 
 @dataclass(frozen=True)
@@ -40,6 +47,8 @@ class EpisodeRecord:
     makespan: int
     collisions: int
     lower_bound: int
+    stalled_agents: int = 0
+    stalled_beside_agent: int = 0
 
     @property
     def agent_success(self) -> float:
@@ -80,6 +89,8 @@ class EpisodeTracker:
         # Step at which each agent last stepped onto its goal (valid where on_goal).
         self.arrival = np.zeros(len(starts), dtype=np.int64)
         self.success = bool(self.on_goal.all())
+        self.positions = starts.copy()
+        self.last_moved = np.zeros(len(starts), dtype=np.int64)  # step of each agent's last move
 
     @property
     def done(self) -> bool:
@@ -90,13 +101,20 @@ class EpisodeTracker:
             raise RuntimeError("update() after the episode ended")
         self.steps += 1
         self.collisions += int(np.count_nonzero(collided))
-        now_on_goal = np.all(np.asarray(positions) == self.goals, axis=1)
+        positions = np.asarray(positions)
+        self.last_moved[np.any(positions != self.positions, axis=1)] = self.steps
+        self.positions = positions.copy()
+        now_on_goal = np.all(positions == self.goals, axis=1)
         self.arrival[now_on_goal & ~self.on_goal] = self.steps
         self.on_goal = now_on_goal
         self.success = bool(now_on_goal.all())
 
     def record(self) -> EpisodeRecord:
         costs = np.where(self.on_goal, self.arrival, self.max_steps)
+        stalled = ~self.on_goal & (self.steps - self.last_moved >= STALL_STEPS)
+        # another agent in a 4-neighbouring cell (Manhattan distance 1) at the end
+        distance = np.abs(self.positions[:, None, :] - self.positions[None, :, :]).sum(-1)
+        beside = stalled & np.any(distance == 1, axis=1)
         return EpisodeRecord(
             success=self.success,
             steps=self.steps if self.success else self.max_steps,
@@ -107,6 +125,8 @@ class EpisodeTracker:
             makespan=int(costs.max()),
             collisions=self.collisions,
             lower_bound=self.lower_bound,
+            stalled_agents=int(stalled.sum()),
+            stalled_beside_agent=int(beside.sum()),
         )
 
 
@@ -139,6 +159,8 @@ class ScenarioSummary:
     lower_bound: float
     lower_bound_ratio: float
     lower_bound_ratio_solved: float  # NaN when no episode succeeded
+    stalled_agents: float = float("nan")  # per episode (NaN: records from before it was measured)
+    stalled_beside_agent: float = float("nan")
 
     def to_dict(self) -> dict:
         return {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in asdict(self).items()}
@@ -165,4 +187,6 @@ def summarize(records: list[EpisodeRecord]) -> ScenarioSummary:
         lower_bound=mean(r.lower_bound for r in records),
         lower_bound_ratio=mean(r.lower_bound_ratio for r in records),
         lower_bound_ratio_solved=mean(r.lower_bound_ratio for r in records if r.success),
+        stalled_agents=mean(r.stalled_agents for r in records),
+        stalled_beside_agent=mean(r.stalled_beside_agent for r in records),
     )

@@ -9,6 +9,7 @@ import json
 import math
 from pathlib import Path
 
+from .metrics import STALL_STEPS
 from .runner import ScenarioResult
 
 # (summary field, table title, number format); the first two are the paper's tables.
@@ -23,6 +24,9 @@ EXTRA_METRICS = (
     ("collisions", "Collisions (reverted moves) per Episode ↓", "{:.2f}"),
     ("lower_bound_ratio", "Steps / Lower Bound ↓", "{:.3f}"),
     ("lower_bound_ratio_solved", "Steps / Lower Bound, solved episodes ↓", "{:.3f}"),
+    ("stalled_agents", f"Stalled Agents per Episode (off goal, still for the last {STALL_STEPS} steps) ↓",
+     "{:.2f}"),
+    ("stalled_beside_agent", "Stalled Beside Another Agent per Episode (deadlocks) ↓", "{:.2f}"),
 )
 
 
@@ -78,7 +82,8 @@ def markdown_report(results: list[ScenarioResult], *, extra: bool | tuple[str, .
 CSV_FIELDS = (
     "policy", "map", "agents", "max_steps", "episodes", "success_rate", "average_steps",
     "agent_success_rate", "sum_of_costs", "makespan", "collisions", "lower_bound",
-    "lower_bound_ratio", "lower_bound_ratio_solved", "compute_time_s", "plan_time_s", "plan_failures", "source",
+    "lower_bound_ratio", "lower_bound_ratio_solved", "stalled_agents", "stalled_beside_agent",
+    "compute_time_s", "plan_time_s", "plan_failures", "source",
 )
 
 
