@@ -123,6 +123,13 @@ def test_resume_after_kill_9(tmp_path):
     last = run_state.load_state(run)["code_versions"][-1]
     assert last["overrides"] == {"max_updates": result["learner_updates"]}
     assert (run / run_state.CONFIG_FILE).read_text() == before
+    # ... and a later resume without --set goes on with it (and so does an export)
+    from mapf_fleet.training.trainer import resumed_config
+
+    assert load_config(run / run_state.CONFIG_FILE).max_updates != result["learner_updates"]
+    assert resumed_config(run).max_updates == result["learner_updates"]
+    _, exported = export_checkpoint(run, tmp_path / "exported2.pt")
+    assert exported["training_config"]["max_updates"] == result["learner_updates"]
 
 
 def test_ctrl_c_stops_a_ray_run_and_saves_its_state(tmp_path):

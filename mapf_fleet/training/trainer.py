@@ -500,12 +500,34 @@ class Trainer:
         writer.flush()
 
 
+def earlier_overrides(run_dir: str | Path) -> dict:
+    """The `--set` overrides of the run's earlier resumed sessions, merged in order (a later
+    session's value wins)."""
+    merged: dict = {}
+    for session in run_state.load_state(Path(run_dir)).get("code_versions", []):
+        merged.update(session.get("overrides") or {})
+    return merged
+
+
+def resumed_config(run_dir: str | Path) -> TrainConfig:
+    """The config a resume continues with: config.yaml (the starting config) with the overrides
+    of earlier resumed sessions applied, so a run goes on as it was left; a resume without --set
+    does not silently return to the starting config."""
+    run_dir = Path(run_dir)
+    cfg = load_config(run_dir / run_state.CONFIG_FILE)
+    earlier = earlier_overrides(run_dir)
+    if earlier:
+        cfg = config_from_dict({**cfg.to_dict(), **earlier},
+                               source=f"{run_dir / run_state.STATE_FILE} (overrides of earlier sessions)")
+    return cfg
+
+
 def train(config_path: str | Path | None = None, run_dir: str | Path | None = None,
           resume: str | Path | None = None, overrides: dict | None = None) -> dict:
     """Start (config + run_dir) or resume (run dir) a training run; returns the result."""
     if resume is not None:
         run_dir = Path(resume)
-        cfg = load_config(run_dir / run_state.CONFIG_FILE)
+        cfg = resumed_config(run_dir)
     else:
         if config_path is None or run_dir is None:
             raise ValueError("train: give config_path and run_dir, or resume")
@@ -527,7 +549,6 @@ def export_checkpoint(run_dir: str | Path, out: str | Path) -> tuple[Path, dict]
         if not (run_dir / name).is_file():
             raise FileNotFoundError(f"{run_dir / name}: no such file (is {run_dir} a run directory?)")
     # constructing with resume=True only reads the run directory; training starts in run()
-    trainer = Trainer(load_config(run_dir / run_state.CONFIG_FILE), run_dir, resume=True,
-                      restore_replay=False)
+    trainer = Trainer(resumed_config(run_dir), run_dir, resume=True, restore_replay=False)
     meta = trainer._metadata()
     return save_checkpoint(out, trainer.learner.model, meta), meta
