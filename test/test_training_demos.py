@@ -135,3 +135,30 @@ def test_trainer_keeps_demonstrations_and_interleaves_demo_updates(tmp_path, mon
     assert (tmp_path / "run" / "checkpoints" / "demo_warm_start.pt").exists()
     # the warm start's wall time is counted in the run's compute
     assert 0 < result["counters"]["demo_seconds"] <= result["counters"]["elapsed_seconds"]
+
+
+def test_a_stop_asked_during_the_warm_start_is_honoured(tmp_path, monkeypatch):
+    """SIGINT while the demonstrations are generated (before the training loop): the run stops
+    when the loop starts, with its state and the warm start saved, instead of training on."""
+    import os
+    import signal
+
+    from mapf_fleet.training import demos
+    from mapf_fleet.training.trainer import Trainer
+
+    real = demos.make_demo_replay
+
+    def interrupted(learner, cfg, log=None):
+        os.kill(os.getpid(), signal.SIGINT)
+        return real(learner, cfg, log)
+
+    monkeypatch.setattr(demos, "make_demo_replay", interrupted)
+    cfg = _cfg(use_ray=False, num_actors=1, envs_per_actor=4, actor_steps_per_call=8,
+               batch_size=4, learning_starts=20, demo_episodes=4, demo_pretrain_updates=2,
+               max_updates=1000, progress_bar=False)
+    previous = signal.getsignal(signal.SIGINT)
+    result = Trainer(cfg, tmp_path / "run").run()
+    assert result["stop_reason"].startswith("stopped by SIGINT")
+    assert result["learner_updates"] == 2  # the warm start's updates only
+    assert (tmp_path / "run" / "checkpoints" / "demo_warm_start.pt").exists()
+    assert signal.getsignal(signal.SIGINT) == previous

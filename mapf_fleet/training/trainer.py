@@ -346,6 +346,9 @@ class Trainer:
             session["overrides"] = dict(self.session_overrides)
             self._log_event(f"resumed with overrides {self.session_overrides}")
         self.code_versions.append(session)
+        # caught from here on, so a stop asked during the warm start is not lost (a background
+        # job of a non-interactive shell starts with SIGINT ignored); honoured when the loop starts
+        restore_early = self._catch_stop_signals()
         cpu = CpuMeter()
         if "cpu_seconds" not in self.counters:  # runs begun before CPU time was measured
             self.counters["cpu_seconds"] = 0.0
@@ -447,6 +450,7 @@ class Trainer:
                     last_replay_time = now
         finally:
             restore_signals()
+            restore_early()
             actors.close()
             self.counters["elapsed_seconds"] = elapsed0 + time.monotonic() - start
             self.counters["cpu_seconds"] = cpu0 + cpu.seconds()
