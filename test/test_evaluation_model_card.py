@@ -360,3 +360,40 @@ def test_compare_puts_other_checkpoints_of_the_same_evaluation_side_by_side(tmp_
         build_card(warm, eval_json, compare=[unrelated])
     with pytest.raises(CardError, match="--compare .*missing.pt"):
         build_card(warm, eval_json, compare=[tmp_path / "missing.pt"])
+
+
+def test_several_evaluation_files_are_read_as_one(tmp_path):
+    """`--eval A.json B.json`: rows of both (a row in both taken from the first), both re-run
+    commands printed; one name for two different checkpoint files is refused."""
+    import torch
+
+    from mapf_fleet.evaluation.cli import main as evaluate_main
+    from mapf_fleet.evaluation.random_checkpoint import save_random_checkpoint
+
+    torch.set_num_threads(1)
+    mine = save_random_checkpoint(tmp_path / "mine.pt", "dhc", "small", seed=1)
+    other = save_random_checkpoint(tmp_path / "other.pt", "dhc", "small", seed=2)
+    first, second = tmp_path / "first.json", tmp_path / "second.json"
+    common = ["--sizes", "40", "--agents", "4", "--instances", "2", "--quiet"]
+    assert evaluate_main(["--checkpoint", str(mine), "heuristic", "--no-references", *common,
+                          "--json", str(first)]) == 0
+    assert evaluate_main(["--checkpoint", str(other), "heuristic", "--no-references", *common,
+                          "--json", str(second)]) == 0
+    card = build_card(mine, [first, second], compare=[other])
+    rows = {(r["policy"], json_name): r["success_rate"]
+            for json_name in ("first", "second")
+            for r in json.loads((tmp_path / f"{json_name}.json").read_text())["results"]}
+    assert f"| other | {rows[('other', 'second')]:.3f} |" in card
+    assert f"| heuristic (reference) | {rows[('heuristic', 'first')]:.3f} |" in card
+    for path in (first, second):
+        assert json.loads(path.read_text())["metadata"]["command"] in card
+    assert "`first.json, second.json`" in card
+    # the same policy name for another file
+    clash = tmp_path / "clash"
+    clash.mkdir()
+    save_random_checkpoint(clash / "other.pt", "dhc", "small", seed=3)
+    third = tmp_path / "third.json"
+    assert evaluate_main(["--checkpoint", str(clash / "other.pt"), "--no-references", *common,
+                          "--json", str(third)]) == 0
+    with pytest.raises(CardError, match="policy 'other' is .*other.pt in .*second.json but .*clash"):
+        build_card(mine, [first, second, third])

@@ -75,6 +75,48 @@ def load_evaluation(path: str | Path) -> dict:
     return data
 
 
+class EvalFiles(tuple):
+    """Several evaluation JSONs read as one (their paths print as a comma-separated list)."""
+
+    def __str__(self) -> str:
+        return ", ".join(str(p) for p in self)
+
+    @property
+    def name(self) -> str:
+        return ", ".join(Path(p).name for p in self)
+
+
+def load_evaluations(paths) -> tuple[dict, EvalFiles]:
+    """One or more `mapf-fleet evaluate --json` files as one evaluation: the policies and rows
+    of all (a row measured in several files, e.g. a reference, is taken from the first), each
+    file's metadata kept under "runs" for the re-run commands. A policy name that stands for
+    different checkpoint files in two of them is refused."""
+    paths = EvalFiles(Path(p) for p in ([paths] if isinstance(paths, (str, Path)) else paths))
+    if not paths:
+        raise CardError("--eval: give at least one evaluation JSON")
+    loaded = [(path, load_evaluation(path)) for path in paths]
+    policies: dict[str, tuple[dict, Path]] = {}
+    results, seen = [], set()
+    for path, data in loaded:
+        for entry in data["metadata"]["policies"]:
+            name = entry.get("name")
+            if name in policies:
+                first, where = policies[name]
+                if first.get("kind") == "checkpoint" and first.get("path") != entry.get("path"):
+                    raise CardError(f"--eval: policy {name!r} is {first.get('path')} in {where} but "
+                                    f"{entry.get('path')} in {path}; rename one checkpoint file")
+            else:
+                policies[name] = (entry, path)
+        for row in data["results"]:
+            key = (row["policy"], row["map"], int(row["agents"]))
+            if key not in seen:
+                seen.add(key)
+                results.append(row)
+    metadata = dict(loaded[0][1]["metadata"], policies=[e for e, _ in policies.values()])
+    return {"metadata": metadata, "results": results,
+            "runs": [(path, data["metadata"]) for path, data in loaded]}, paths
+
+
 def match_policy(evaluation: dict, checkpoint: Path, eval_path: Path) -> str:
     """The row label under which `evaluation` holds `checkpoint`.
 
@@ -477,7 +519,7 @@ def comparison_section(evaluation: dict, policy: str, metadata: dict, eval_path:
             raise CardError(f"--compare {path}: is the card's own checkpoint")
         entries.append((name, meta, compute_spent(None, meta)))
     lines = ["## Side by side", "",
-             f"Checkpoints measured in the same evaluation (`{eval_path.name}`); compute up to each "
+             f"Checkpoints measured with the same protocol (`{eval_path.name}`); compute up to each "
              "checkpoint, read from its metadata (measured = process CPU time of the trainer and its "
              "actors; reserved = wall time x CPUs of the run).", "",
              "| checkpoint | algorithm | training | setting reached | alpha | learner steps "
@@ -543,12 +585,12 @@ def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | 
     checkpoints of the same evaluation JSON to show side by side."""
     from mapf_fleet.models.checkpoint import CheckpointError, code_version, load_checkpoint
 
-    checkpoint, eval_path = Path(checkpoint), Path(eval_path)
+    checkpoint = Path(checkpoint)
     try:
         model, metadata = load_checkpoint(checkpoint)
     except CheckpointError as exc:
         raise CardError(f"--checkpoint: {exc}") from exc
-    evaluation = load_evaluation(eval_path)
+    evaluation, eval_path = load_evaluations(eval_path)
     policy = match_policy(evaluation, checkpoint, eval_path)
     run = read_run_dir(run_dir, checkpoint, metadata) if run_dir is not None else None
     if curves is not None and (run is None or run.tb_dir is None):
@@ -561,7 +603,7 @@ def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | 
 
     lines = [f"# Model card: {checkpoint.stem}", ""]
     lines.append(f"Generated {now} by `{command or 'mapf-fleet card'}`. Every figure below is read from "
-                 f"`{checkpoint.name}`'s metadata, the evaluation JSON `{eval_path.name}`"
+                 f"`{checkpoint.name}`'s metadata, the evaluation JSON(s) `{eval_path.name}`"
                  + (", the training run directory" if run else "") + " or the paper's tables.")
     lines += ["", "## What it is", "", "| | |", "|---|---|"]
     setting = curriculum.get("setting")
@@ -662,23 +704,28 @@ def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | 
     else:
         lines.append("No curves: the card was written without `--run-dir` and `--curves`.")
 
-    meta = evaluation["metadata"]
+    runs = evaluation["runs"]
     lines += ["", "## Evaluation (the paper's protocol)", "",
-              "Re-run the numbers below with (from the directory it was run in):", "",
-              f"```\n{meta.get('command', '(the evaluation JSON does not record its command)')}\n```", ""]
-    info = []
-    if meta.get("protocol_file"):
-        info.append(f"protocol `{_repo_relative(meta['protocol_file'])}`")
-    if meta.get("density") is not None:
-        info.append(f"obstacle density {meta['density']}")
-    if meta.get("seed") is not None:
-        info.append(f"generator seed {meta['seed']}")
-    if meta.get("wall_time_s") is not None:
-        info.append(f"wall time {meta['wall_time_s']:.0f} s with {meta.get('workers', '?')} worker(s)")
-    if meta.get("versions"):
-        info.append("versions " + ", ".join(f"{k} {v}" for k, v in meta["versions"].items()))
-    if info:
-        lines += ["Evaluation: " + "; ".join(info) + ".", ""]
+              "Re-run the numbers below with (from the directory it was run in):", ""]
+    for path, meta in runs:
+        if len(runs) > 1:
+            lines += [f"`{path.name}`:", ""]
+        lines += [f"```\n{meta.get('command', '(the evaluation JSON does not record its command)')}\n```", ""]
+        info = []
+        if meta.get("protocol_file"):
+            info.append(f"protocol `{_repo_relative(meta['protocol_file'])}`")
+        if meta.get("density") is not None:
+            info.append(f"obstacle density {meta['density']}")
+        if meta.get("seed") is not None:
+            info.append(f"generator seed {meta['seed']}")
+        if meta.get("wall_time_s") is not None:
+            info.append(f"wall time {meta['wall_time_s']:.0f} s with {meta.get('workers', '?')} worker(s)")
+        if meta.get("versions"):
+            info.append("versions " + ", ".join(f"{k} {v}" for k, v in meta["versions"].items()))
+        if info:
+            lines += ["Evaluation: " + "; ".join(info) + ".", ""]
+    if len(runs) > 1:
+        lines += ["A row measured in several of these files is taken from the first one listed.", ""]
     lines += evaluation_section(evaluation, policy, metadata, eval_path)
     if compare:
         others = []
@@ -730,7 +777,8 @@ def _repo_relative(path: str) -> str:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="mapf-fleet card", description=__doc__.split("\n")[0])
     p.add_argument("--checkpoint", required=True, help="the checkpoint file (models/X.pt)")
-    p.add_argument("--eval", required=True, metavar="JSON", help="JSON of `mapf-fleet evaluate --json` on it")
+    p.add_argument("--eval", required=True, nargs="+", metavar="JSON",
+                   help="JSON(s) of `mapf-fleet evaluate --json` on it (several are read as one)")
     p.add_argument("--run-dir", help="the trainer's run directory (config, counters, tb/ scalars)")
     p.add_argument("--out", required=True, help="Markdown file to write (models/X.md)")
     p.add_argument("--curves", metavar="PNG", help="write the training curves here (needs --run-dir)")
