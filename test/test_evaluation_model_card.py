@@ -292,6 +292,10 @@ def test_warm_start_time_not_yet_counted_by_the_trainer_is_read_from_tb(tmp_path
     # counted by the trainer (demo_seconds), or no warm start: nothing to add
     run.state_counters["demo_seconds"] = 130.0
     assert uncounted_warm_start_seconds(run) == 0.0
+    # demo_seconds began in a later session: only demonstration refreshes in it, the first warm
+    # start still uncounted
+    run.state_counters["demo_seconds"] = 40.0
+    assert uncounted_warm_start_seconds(run) == pytest.approx(120.0, abs=5.0)
     assert uncounted_warm_start_seconds(RunInfo(tmp_path, tb_dir=tmp_path / "tb",
                                                 state_counters={})) == 0.0
 

@@ -346,14 +346,18 @@ def _is_number(value) -> bool:
 
 def uncounted_warm_start_seconds(run: RunInfo | None) -> float:
     """Runs begun before the trainer counted its demonstration warm start in elapsed_seconds
-    (no `demo_seconds` counter) but which logged demo/ scalars: the warm start's wall time, from
-    the first event of the event file holding demo/loss to its last demo/loss scalar of the warm
-    start (step <= demo_pretrain_updates; later ones are interleaved demo updates)."""
+    but which logged demo/ scalars: the warm start's wall time, from the first event of the event
+    file holding demo/loss to its last demo/loss scalar of the warm start (step <=
+    demo_pretrain_updates; later ones are interleaved demo updates). Counted already when the
+    run's `demo_seconds` (all warm starts and demonstration refreshes the trainer timed) holds at
+    least 90 % of it; a run that began uncounted and got `demo_seconds` in a later session only
+    holds its refreshes there."""
     if run is None or run.tb_dir is None:
         return 0.0
     counters = run.state_counters or (run.result or {}).get("counters") or {}
-    if not counters.get("demo_pretrained") or "demo_seconds" in counters:
+    if not counters.get("demo_pretrained"):
         return 0.0
+    counted = float(counters.get("demo_seconds") or 0.0)
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     for path in sorted(run.tb_dir.glob("events.out.tfevents.*")):
@@ -363,7 +367,8 @@ def uncounted_warm_start_seconds(run: RunInfo | None) -> float:
             limit = int((run.config or {}).get("demo_pretrain_updates") or 0)
             warm = [e for e in accumulator.Scalars("demo/loss") if not limit or e.step <= limit]
             if warm:
-                return float(warm[-1].wall_time - accumulator.FirstEventTimestamp())
+                seconds = float(warm[-1].wall_time - accumulator.FirstEventTimestamp())
+                return 0.0 if counted >= 0.9 * seconds else seconds
     return 0.0
 
 
