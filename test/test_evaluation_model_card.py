@@ -360,6 +360,11 @@ def test_compare_puts_other_checkpoints_of_the_same_evaluation_side_by_side(tmp_
     assert ("| scratch | DHC | paper recipe (no demonstrations) | 3 agents on 20x20 | 0.2 | 777 "
             "| 0.50 (last 0.50 h of wall time) | 4.00 |") in card
     assert f"| scratch | {rows['scratch']:.3f} |" in card and f"| warm | {rows['warm']:.3f} |" in card
+    # CHECKPOINT=RUN_DIR: the run directory is read (and must exist)
+    (tmp_path / "scratch_run").mkdir()
+    assert build_card(warm, eval_json, compare=[f"{scratch}={tmp_path / 'scratch_run'}"]).count("| scratch |") == 2
+    with pytest.raises(CardError, match="no_run.*no such directory"):
+        build_card(warm, eval_json, compare=[f"{scratch}={tmp_path / 'no_run'}"])
     with pytest.raises(CardError, match="unrelated.pt"):  # not in that evaluation
         build_card(warm, eval_json, compare=[unrelated])
     with pytest.raises(CardError, match="--compare .*missing.pt"):

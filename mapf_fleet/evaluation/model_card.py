@@ -514,15 +514,15 @@ def _hours(value: float | None) -> str:
 
 def comparison_section(evaluation: dict, policy: str, metadata: dict, eval_path: Path,
                        others: list[tuple[Path, dict]], run: RunInfo | None) -> list[str]:
-    """This checkpoint beside other checkpoints measured in the same evaluation JSON (issue 8
+    """This checkpoint beside other checkpoints measured in the same evaluation JSON(s) (issue 8
     item 4: the warm start beside the paper's recipe): how each was trained, the compute spent up
-    to it and its success rates."""
+    to it and its success rates. `others`: (checkpoint, its metadata, its RunInfo or None)."""
     entries = [(policy, metadata, compute_spent(run, metadata))]
-    for path, meta in others:
+    for path, meta, other_run in others:
         name = match_policy(evaluation, path, eval_path)
         if name == policy:
             raise CardError(f"--compare {path}: is the card's own checkpoint")
-        entries.append((name, meta, compute_spent(None, meta)))
+        entries.append((name, meta, compute_spent(other_run, meta)))
     lines = ["## Side by side", "",
              f"Checkpoints measured with the same protocol (`{eval_path.name}`); compute up to each "
              "checkpoint, read from its metadata (measured = process CPU time of the trainer and its "
@@ -734,11 +734,14 @@ def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | 
     lines += evaluation_section(evaluation, policy, metadata, eval_path)
     if compare:
         others = []
-        for path in map(Path, compare):
+        for item in map(str, compare):
+            path, _, other_run_dir = (Path(part) if part else None for part in item.partition("="))
             try:
-                others.append((path, load_checkpoint(path)[1]))
+                meta = load_checkpoint(path)[1]
             except (CheckpointError, FileNotFoundError) as exc:
                 raise CardError(f"--compare {path}: {exc}") from exc
+            other_run = read_run_dir(other_run_dir, path, meta) if other_run_dir else None
+            others.append((path, meta, other_run))
         lines += comparison_section(evaluation, policy, metadata, eval_path, others, run)
     lines += ["## Versions", "",
               f"- card written {now} with code {_version_text(code_version())}",
@@ -788,8 +791,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="Markdown file to write (models/X.md)")
     p.add_argument("--curves", metavar="PNG", help="write the training curves here (needs --run-dir)")
     p.add_argument("--compare", nargs="+", metavar="CHECKPOINT", default=[],
-                   help="other checkpoints evaluated in the same --eval JSON: a side-by-side table "
-                        "of how each was trained, the compute up to it and its success rates")
+                   help="other checkpoints evaluated in the --eval JSON(s), as CHECKPOINT or "
+                        "CHECKPOINT=RUN_DIR (its run directory, for what the checkpoint does not "
+                        "record): a side-by-side table of how each was trained, the compute up to it "
+                        "and its success rates")
     return p
 
 
