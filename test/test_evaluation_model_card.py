@@ -362,6 +362,7 @@ def test_compare_puts_other_checkpoints_of_the_same_evaluation_side_by_side(tmp_
     assert f"| scratch | {rows['scratch']:.3f} |" in card and f"| warm | {rows['warm']:.3f} |" in card
     # CHECKPOINT=RUN_DIR: the run directory is read (and must exist)
     (tmp_path / "scratch_run").mkdir()
+    (tmp_path / "scratch_run" / "result.json").write_text(json.dumps({"counters": {"episodes": 5}}))
     assert build_card(warm, eval_json, compare=[f"{scratch}={tmp_path / 'scratch_run'}"]).count("| scratch |") == 2
     with pytest.raises(CardError, match="no_run.*no such directory"):
         build_card(warm, eval_json, compare=[f"{scratch}={tmp_path / 'no_run'}"])
