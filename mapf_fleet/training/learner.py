@@ -11,7 +11,8 @@ but it trains seq_len x N agent-transitions instead of 1. Approximations, both s
     slightly older, weights); `burn_in` steps without a loss let it adapt (R2D2);
   - one priority per sequence, eta * max|td| + (1 - eta) * mean|td| over its agents and steps,
     and one importance weight per sequence (R2D2).
-Every agent is trained, so actors explore with epsilon on every agent (`explore_all_agents`).
+Every agent is trained; actors explore with epsilon on agent 0 only, as the reference does
+(`explore_all_agents`, see TrainConfig: with every agent exploring the policy learns to wait).
 
 DCC decision-causal masks: the learner *recomputes* them with the network being unrolled (the
 online net for Q(s, a), the target net for the bootstrap) instead of replaying the masks the actor
