@@ -735,7 +735,8 @@ def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | 
     if compare:
         others = []
         for item in map(str, compare):
-            path, _, other_run_dir = (Path(part) if part else None for part in item.partition("="))
+            path_text, _, run_text = item.partition("=")
+            path, other_run_dir = Path(path_text), (Path(run_text) if run_text else None)
             try:
                 meta = load_checkpoint(path)[1]
             except (CheckpointError, FileNotFoundError) as exc:
