@@ -407,3 +407,17 @@ def test_several_evaluation_files_are_read_as_one(tmp_path):
                           "--json", str(third)]) == 0
     with pytest.raises(CardError, match="policy 'other' is .*other.pt in .*second.json but .*clash"):
         build_card(mine, [first, second, third])
+
+
+def test_alpha_star_of_a_fixed_budget_run_says_the_gate_was_off():
+    from mapf_fleet.evaluation.model_card import _alpha_star_text
+
+    assert _alpha_star_text(0.2, {"alpha_mode": "curriculum"}) == "0.2"
+    # Stage 2 still running (or stopped) with the paper's gate: alpha* is unknown.
+    assert _alpha_star_text(None, {"alpha_mode": "fixed", "fixed_alpha": 0.3,
+                                   "success_threshold": 0.9}) == "stage 2 did not finish"
+    # An A/B arm at matched compute: the gate cannot pass, so there is no alpha* by design.
+    text = _alpha_star_text(None, {"alpha_mode": "fixed", "fixed_alpha": 0.3, "success_threshold": 1.0})
+    assert text.startswith("none by design: fixed alpha 0.3 with the gate off")
+    assert _alpha_star_text(None, {"alpha_mode": "curriculum", "success_threshold": 1.0}) == \
+        "stage 2 did not finish"

@@ -627,7 +627,7 @@ def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | 
         ("curriculum stage", str(curriculum.get("stage", "not recorded"))),
         ("curriculum setting reached (stage 1)", setting_text),
         ("alphas that passed the gate (stage 2)", "none" if not passed else ", ".join(f"{a:g}" for a in passed)),
-        ("alpha* (stage 2)", "stage 2 did not finish" if alpha_star is None else f"{float(alpha_star):g}"),
+        ("alpha* (stage 2)", _alpha_star_text(alpha_star, metadata.get("training_config") or {})),
         ("learner steps", f"{metadata['learner_steps']:,}"),
         ("observation padding / action order", f"{metadata['obs_padding']} / {', '.join(metadata['action_order'])}"),
         ("checkpoint written", str(metadata.get("created", "not recorded"))),
@@ -764,6 +764,23 @@ def _trained_with_text(metadata: dict) -> str:
         return text
 
     return "; ".join(one(v) for v in sessions if isinstance(v, dict))
+
+
+def _alpha_star_text(alpha_star, training_config: dict) -> str:
+    """alpha* as the card states it. A fixed-alpha run with the gate off (success_threshold >= 1:
+    no window can exceed it) has no alpha* by design: it trained one alpha for a budget of
+    learner updates, which is how an A/B at matched compute is run."""
+    if alpha_star is not None:
+        return f"{float(alpha_star):g}"
+    try:
+        gate_off = (training_config.get("alpha_mode") == "fixed"
+                    and float(training_config.get("success_threshold", 0.9)) >= 1.0)
+    except (TypeError, ValueError):
+        gate_off = False
+    if gate_off:
+        return (f"none by design: fixed alpha {float(training_config.get('fixed_alpha', 0)):g} with the "
+                "gate off (`success_threshold: 1.0`), trained for a budget of learner updates")
+    return "stage 2 did not finish"
 
 
 def _version_text(version: Any) -> str:
