@@ -46,7 +46,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="mapf-fleet up", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--checkpoint", default=None,
-                        help="policy checkpoint (default: the first DHC checkpoint in models/)")
+                        help="policy checkpoint (default: models/default.pt, else the first DHC "
+                             "checkpoint in models/)")
     parser.add_argument("--num-robots", type=int, default=8)
     parser.add_argument("--size", type=int, default=16, help="side of a generated map")
     parser.add_argument("--density", type=float, default=0.3)
