@@ -772,12 +772,8 @@ def _alpha_star_text(alpha_star, training_config: dict) -> str:
     learner updates, which is how an A/B at matched compute is run."""
     if alpha_star is not None:
         return f"{float(alpha_star):g}"
-    try:
-        gate_off = (training_config.get("alpha_mode") == "fixed"
-                    and float(training_config.get("success_threshold", 0.9)) >= 1.0)
-    except (TypeError, ValueError):
-        gate_off = False
-    if gate_off:
+    if (training_config.get("alpha_mode") == "fixed"
+            and float(training_config.get("success_threshold", 0.9)) >= 1.0):
         return (f"none by design: fixed alpha {float(training_config.get('fixed_alpha', 0)):g} with the "
                 "gate off (`success_threshold: 1.0`), trained for a budget of learner updates")
     return "stage 2 did not finish"
