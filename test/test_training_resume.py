@@ -189,5 +189,33 @@ def test_resume_in_stage_1_takes_stage_2_settings_from_the_config(tmp_path):
     assert (resumed.task.num_agents, resumed.task.map_size) == (2, 15)
     resumed.alpha.passed.append(0.3)
     resumed.save_state()
-    again = Trainer(cfg.replace(final_agents=2, final_map_size=15), run, resume=True)
+    again = Trainer(fixed, run, resume=True)
     assert again.alpha.passed == [0.3] and again.alpha.alpha == pytest.approx(0.3)
+
+
+def test_resume_with_another_stage_2_scheme_restarts_stage_2(tmp_path):
+    """A fixed-alpha run that is done (its alpha passed the gate, its budget mostly spent)
+    forked with `--set alpha_mode=curriculum`: the curriculum starts at alpha 0 with an empty
+    gate window and a fresh budget, on the fixed run's weights."""
+    cfg = load_config(CONFIGS / "tiny.yaml").replace(
+        use_ray=False, progress_bar=False, start_agents=2, start_map_size=15, final_agents=2,
+        final_map_size=15,
+        alpha_mode="fixed", fixed_alpha=0.0, alpha_max_updates=50)
+    run = tmp_path / "run"
+    fixed = Trainer(cfg, run)
+    assert fixed.stage == "alpha"
+    fixed.learner.updates = 40
+    for _ in range(cfg.success_window):
+        fixed._record_episode({"num_agents": 2, "map_size": 15, "alpha": 0.0, "success": True,
+                               "gate": True, "task_version": fixed.task_version})
+    assert fixed.stage == "done" and fixed.alpha.alpha_star == 0.0
+    fixed.save_state()
+    weights = {k: v.clone() for k, v in fixed.learner.model.state_dict().items()}
+    forked = Trainer(cfg.replace(alpha_mode="curriculum"), run, resume=True)
+    assert forked.stage == "alpha" and forked.alpha.alpha == 0.0
+    assert forked.alpha.passed == [] and forked.alpha.alpha_star is None
+    assert len(forked.alpha.window.flags) == 0 and forked.alpha.start_updates == 40
+    assert any("stage 2 restarted" in e and "fixed alpha 0.0" in e for e in forked.events)
+    assert all(torch.equal(weights[k], v) for k, v in forked.learner.model.state_dict().items())
+    # the budget counts from the fork: 49 more updates are within alpha_max_updates=50
+    assert forked.alpha.check_budget(89) is None

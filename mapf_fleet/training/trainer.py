@@ -152,6 +152,12 @@ class _RayActors:
             self.ray.shutdown()
 
 
+def _stage2_scheme(config: dict) -> str:
+    """What stage 2 trains: the alpha curriculum, one fixed alpha, or nothing."""
+    mode = config.get("alpha_mode", "curriculum")
+    return f"fixed alpha {config.get('fixed_alpha')}" if mode == "fixed" else f"alpha_mode {mode}"
+
+
 class Trainer:
     def __init__(self, cfg: TrainConfig, run_dir: str | Path, resume: bool = False,
                  restore_replay: bool = True, session_overrides: dict | None = None):
@@ -206,11 +212,20 @@ class Trainer:
         state = run_state.load_state(self.run_dir)
         self.learner.load_state_dict(state["learner"])
         self.scale.load_state_dict(state["scale"])
-        if state["stage"] != STAGE_SCALE:
-            # stage 2 has begun: its progress is restored. Before that it holds nothing yet and
-            # is built from the config, so a resume with --set alpha_mode=... takes effect.
-            self.alpha.load_state_dict(state["alpha"])
         self.stage = str(state["stage"])
+        if self.stage != STAGE_SCALE:
+            before, now = _stage2_scheme(state.get("config", {})), _stage2_scheme(self.cfg.to_dict())
+            if before == now:
+                # stage 2 has begun: its progress is restored. Before that it holds nothing yet
+                # and is built from the config, so a resume with --set alpha_mode=... applies.
+                self.alpha.load_state_dict(state["alpha"])
+            else:
+                # a fork that changes the stage-2 scheme (e.g. a fixed-alpha run resumed with
+                # --set alpha_mode=curriculum): the old gate window, budget and alpha* belong to
+                # the other scheme, so stage 2 starts again from the config on these weights
+                self.stage = STAGE_DONE if self.alpha.done else STAGE_ALPHA
+                self.alpha.begin(self.learner.updates)
+                self._log_event(f"stage 2 restarted: {before} -> {now} (learned weights kept)")
         self.task_version = int(state["task_version"]) + 1  # episodes in flight are gone
         self.counters.update(state["counters"])
         self.checkpoints = list(state["checkpoints"])
