@@ -83,6 +83,21 @@ def test_alpha_budget_restarts_per_alpha():
     assert cur.check_budget(190) == "failed" and cur.alpha_star == 0.0
 
 
+def test_alpha_gate_window_opens_after_min_updates_at_each_alpha():
+    """With alpha_min_updates the episodes of the first N updates at an alpha do not count: a
+    policy that has not trained at the new alpha yet cannot pass its gate."""
+    cur = AlphaCurriculum(window=5, max_updates=100, plateau_windows=0, min_updates=30)
+    assert feed(cur, [True] * 50, 0) == [None] * 50  # updates 0..29 only: window still empty
+    assert len(cur.window.flags) == 0
+    assert feed(cur, [True] * 5, 29)[-1] is None
+    assert feed(cur, [True] * 5, 30)[-1] == "passed" and cur.alpha == pytest.approx(0.1)
+    assert feed(cur, [True] * 5, 59)[-1] is None  # 0.1 began at update 30
+    assert feed(cur, [True] * 5, 60)[-1] == "passed" and cur.passed == [0.0, 0.1]
+    # the budget still runs from the start of the alpha
+    assert cur.check_budget(159) is None and cur.check_budget(160) == "failed"
+    assert cur.alpha_star == pytest.approx(0.1)
+
+
 def test_alpha_max_stops_with_last_alpha():
     cur = AlphaCurriculum(alpha_step=0.5, alpha_max=1.0, window=2, max_updates=10)
     for _ in range(3):

@@ -47,6 +47,8 @@ def test_bad_config_names_file_field_and_value(tmp_path):
         load_config(path)
     with pytest.raises(TrainConfigError, match="plateau_windows"):
         TrainConfig(alpha_max_updates=0, plateau_windows=0)
+    with pytest.raises(TrainConfigError, match=r"'alpha_min_updates' = 500.*alpha_max_updates \(400\)"):
+        TrainConfig(alpha_max_updates=400, alpha_min_updates=500)
     # replace() checks like a file does: a string learning rate is read as a number or refused
     assert TrainConfig().replace(lr="2e-3").lr == 2e-3
     with pytest.raises(TrainConfigError, match=r"replace.*'lr'.*fast"):

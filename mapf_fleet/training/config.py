@@ -114,6 +114,11 @@ class TrainConfig:
     # "converged without reaching the threshold" (Algorithm 1, line 19): the alpha fails when
     # either budget below runs out first. 0 disables a rule; at least one must be on.
     alpha_max_updates: int = 100_000  # learner updates allowed per alpha
+    # Learner updates at each alpha before its gate window starts counting (0 = the paper's rule
+    # as written: the window opens at once). Why: where 200 gate episodes take only a few dozen
+    # learner updates (small final tasks on CPU), the window right after a step measures the
+    # previous alpha's policy, so every alpha "passes" before it has changed anything.
+    alpha_min_updates: int = 0
     plateau_windows: int = 10  # K consecutive full 200-episode windows without a new best ...
     plateau_min_delta: float = 0.01  # ... success rate by more than this
 
@@ -164,7 +169,7 @@ class TrainConfig:
         non_negative = ["num_actors", "burn_in", "learning_starts", "map_size_step",
                         "demo_episodes", "demo_max_agents", "demo_pretrain_updates",
                         "demo_interleave",
-                        "alpha_max_updates", "plateau_windows", "seed"]
+                        "alpha_max_updates", "alpha_min_updates", "plateau_windows", "seed"]
         for name in non_negative:
             if not isinstance(getattr(self, name), int) or getattr(self, name) < 0:
                 raise bad(name, "must be an integer >= 0")
@@ -212,6 +217,9 @@ class TrainConfig:
         if self.alpha_max_updates == 0 and self.plateau_windows == 0:
             raise bad("alpha_max_updates", "and plateau_windows are both 0: an alpha that never "
                       "passes the gate would train forever; enable at least one stop rule")
+        if self.alpha_max_updates and self.alpha_min_updates >= self.alpha_max_updates:
+            raise bad("alpha_min_updates", f"must be below alpha_max_updates "
+                      f"({self.alpha_max_updates}): no alpha could pass its gate")
         if self.device not in ("auto", "cpu", "cuda") and not self.device.startswith("cuda:"):
             raise bad("device", "must be 'auto', 'cpu', 'cuda' or 'cuda:N'")
         if not isinstance(self.model_overrides, dict):

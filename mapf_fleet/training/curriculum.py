@@ -96,11 +96,11 @@ class AlphaCurriculum:
     def __init__(self, mode: str = "curriculum", alpha_step: float = 0.1, alpha_max: float = 1.0,
                  fixed_alpha: float = 0.3, window: int = 200, threshold: float = 0.9,
                  max_updates: int = 100_000, plateau_windows: int = 10,
-                 min_delta: float = 0.01):
+                 min_delta: float = 0.01, min_updates: int = 0):
         if mode not in ("curriculum", "fixed", "none"):
             raise ValueError(f"AlphaCurriculum mode must be curriculum|fixed|none, got {mode!r}")
         self.mode, self.alpha_step, self.alpha_max = mode, alpha_step, alpha_max
-        self.threshold, self.max_updates = threshold, max_updates
+        self.threshold, self.max_updates, self.min_updates = threshold, max_updates, min_updates
         self.plateau_windows, self.min_delta = plateau_windows, min_delta
         self.window = SuccessWindow(window)
         self.alpha = fixed_alpha if mode == "fixed" else 0.0
@@ -136,6 +136,8 @@ class AlphaCurriculum:
         if self.done:
             return None
         self.begin(updates)
+        if updates - self.start_updates < self.min_updates:
+            return None  # still training at this alpha: its gate window has not opened yet
         self.window.add(success)
         self.episodes_at_alpha += 1
         if self.window.full and self.window.rate > self.threshold:

@@ -178,7 +178,7 @@ class Trainer:
         self.alpha = AlphaCurriculum(cfg.alpha_mode, cfg.alpha_step, cfg.alpha_max,
                                      cfg.fixed_alpha, cfg.success_window, cfg.success_threshold,
                                      cfg.alpha_max_updates, cfg.plateau_windows,
-                                     cfg.plateau_min_delta)
+                                     cfg.plateau_min_delta, cfg.alpha_min_updates)
         self.stage = STAGE_SCALE
         self.task_version = 0
         self.counters = {"episodes": 0, "gate_episodes": 0, "agent_steps": 0, "env_steps": 0,
