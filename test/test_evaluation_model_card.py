@@ -421,3 +421,43 @@ def test_alpha_star_of_a_fixed_budget_run_says_the_gate_was_off():
     assert text.startswith("none by design: fixed alpha 0.3 with the gate off")
     assert _alpha_star_text(None, {"alpha_mode": "curriculum", "success_threshold": 1.0}) == \
         "stage 2 did not finish"
+
+
+def test_card_of_an_intermediate_checkpoint_stops_its_curves_at_it(evaluated, tmp_path):
+    """A warm-start or stage-2 alpha checkpoint of a run that trained on: the curves and their last
+    values end at the checkpoint's update, and the run's stop reason says it came later."""
+    from torch.utils.tensorboard import SummaryWriter
+
+    from mapf_fleet.training.config import load_config
+
+    root, checkpoint, _, eval_json = evaluated  # learner_steps 4321
+    config = load_config(Path(__file__).resolve().parents[1] / "config" / "training" / "dhc_cpu.yaml").to_dict()
+    run = _run_dir(tmp_path, checkpoint, config)
+    result = json.loads((run / "result.json").read_text())
+    result.update(learner_updates=6000, stop_reason="stopped by SIGINT (resume with --resume)")
+    (run / "result.json").write_text(json.dumps(result))
+    writer = SummaryWriter(str(run / "tb"))
+    for step in (4000, 4321, 5000, 6000):
+        writer.add_scalar("curriculum/gate_success_rate", step / 10000, step)
+        writer.add_scalar("learner/loss", 0.5, step)
+    writer.close()
+    out, curves = tmp_path / "card.md", tmp_path / "curves.png"
+    assert main(["--checkpoint", str(checkpoint), "--eval", str(eval_json), "--run-dir", str(run),
+                 "--out", str(out), "--curves", str(curves)]) == 0
+    card = out.read_text()
+    assert "| `curriculum/gate_success_rate` | 0.4321 | 4,321 |" in card
+    assert "| `curriculum/num_agents` | 5 | 400 |" in card  # only logged before the checkpoint
+    assert "up to this checkpoint's update 4,321, the run logged on to update 6,000" in card
+    assert "| run stop reason | stopped by SIGINT (resume with --resume) (at update 6,000, after this checkpoint) |" in card
+    assert "6,000 |" not in card.split("## Training curves")[1].split("## Evaluation")[0]
+    # Its metadata holds no counters of its own moment: the run's compute is only an upper bound.
+    assert ("This checkpoint is an intermediate point (update 4,321) of a run that went on to update 6,000: "
+            "the figures here are the whole run's") in card
+
+
+def test_scalars_up_to_keeps_the_checkpoints_part():
+    from mapf_fleet.evaluation.model_card import scalars_up_to
+
+    scalars = {"a": [(0, 1.0), (10, 2.0), (20, 3.0)], "b": [(15, 1.0)]}
+    assert scalars_up_to(scalars, 10) == ({"a": [(0, 1.0), (10, 2.0)]}, 20)
+    assert scalars_up_to(scalars, 20) == (scalars, None)

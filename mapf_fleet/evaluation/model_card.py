@@ -385,6 +385,17 @@ def read_scalars(tb_dir: Path) -> dict[str, list[tuple[int, float]]]:
             for tag in accumulator.Tags().get("scalars", [])}
 
 
+def scalars_up_to(scalars: dict[str, list[tuple[int, float]]], learner_steps: int
+                  ) -> tuple[dict[str, list[tuple[int, float]]], int | None]:
+    """The scalars logged up to a checkpoint's learner update, and the last update the run logged
+    beyond it (None if none): the card of an intermediate checkpoint (a warm start, an alpha of
+    stage 2) shows the training that made it, not what the run did afterwards."""
+    later = [step for points in scalars.values() for step, _ in points if step > learner_steps]
+    kept = {tag: [(step, value) for step, value in points if step <= learner_steps]
+            for tag, points in scalars.items()}
+    return {tag: points for tag, points in kept.items() if points}, (max(later) if later else None)
+
+
 def plot_curves(scalars: dict[str, list[tuple[int, float]]], out: Path, title: str) -> list[str]:
     """PNG of the curves (success rate, curriculum setting, alpha, loss) against learner
     updates; returns the tags plotted."""
@@ -641,7 +652,11 @@ def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | 
         if run.checkpoint_in_run:
             facts.append(("in the run directory as", f"`checkpoints/{run.checkpoint_in_run}` (same bytes)"))
         if run.result:
-            facts.append(("run stop reason", str(run.result.get("stop_reason") or "–")))
+            stop = str(run.result.get("stop_reason") or "–")
+            run_updates = run.result.get("learner_updates")
+            if isinstance(run_updates, int) and run_updates > int(metadata["learner_steps"]):
+                stop += f" (at update {run_updates:,}, after this checkpoint)"
+            facts.append(("run stop reason", stop))
     lines += [f"| {k} | {v} |" for k, v in facts]
 
     lines += ["", "## Training configuration", ""]
@@ -673,6 +688,12 @@ def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | 
                      f"({compute.how}). CPUs reserved, not measured utilisation; "
                      + ("up to this checkpoint." if compute.source.startswith(CHECKPOINT_POINT)
                         else "the whole run, of which this checkpoint may be an intermediate point."))
+    run_updates = (run.result or {}).get("learner_updates") if run else None
+    if (compute is not None and not compute.source.startswith(CHECKPOINT_POINT)
+            and isinstance(run_updates, int) and run_updates > int(metadata["learner_steps"])):
+        lines.append(f"This checkpoint is an intermediate point (update {int(metadata['learner_steps']):,}) of a "
+                     f"run that went on to update {run_updates:,}: the figures here are the whole run's, "
+                     "an upper bound of the compute up to this checkpoint, which it does not record.")
     if compute is not None and compute.measured_cpu_seconds is not None:
         measured = (f"Measured: **{compute.measured_cpu_seconds / 3600:.2f} CPU-hours** of process CPU "
                     "time (the trainer's process and its actor processes, `counters.cpu_seconds`; "
@@ -693,11 +714,14 @@ def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | 
 
     lines += ["", "## Training curves", ""]
     if curves is not None:
-        scalars = read_scalars(run.tb_dir)
+        scalars, cut = scalars_up_to(read_scalars(run.tb_dir), int(metadata["learner_steps"]))
         plotted = plot_curves(scalars, Path(curves), f"{checkpoint.stem}: {metadata['algorithm'].upper()}")
         lines.append(f"![training curves]({_relative(Path(curves), card_dir)})")
         lines.append("")
-        lines.append("From the TensorBoard scalars of the run directory (x axis: learner updates). Last values:")
+        upto = (f"; up to this checkpoint's update {int(metadata['learner_steps']):,}, the run logged on to "
+                f"update {cut:,}" if cut is not None else "")
+        lines.append(f"From the TensorBoard scalars of the run directory (x axis: learner updates{upto}). "
+                     "Last values:")
         lines += ["", "| scalar | last value | at update |", "|---|---:|---:|"]
         for tag in CURVE_TAGS:
             if scalars.get(tag):
