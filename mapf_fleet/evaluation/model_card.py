@@ -615,6 +615,10 @@ def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | 
     card_dir = Path(out).parent if out is not None else Path.cwd()
     curriculum = metadata.get("curriculum") or {}
     summary = model_summary(model, metadata)
+    # the update the run reached, when it trained on after this checkpoint (else None)
+    run_updates = (run.result or {}).get("learner_updates") if run else None
+    later_updates = (run_updates if isinstance(run_updates, int) and run_updates > int(metadata["learner_steps"])
+                     else None)
     now = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
 
     lines = [f"# Model card: {checkpoint.stem}", ""]
@@ -653,9 +657,8 @@ def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | 
             facts.append(("in the run directory as", f"`checkpoints/{run.checkpoint_in_run}` (same bytes)"))
         if run.result:
             stop = str(run.result.get("stop_reason") or "–")
-            run_updates = run.result.get("learner_updates")
-            if isinstance(run_updates, int) and run_updates > int(metadata["learner_steps"]):
-                stop += f" (at update {run_updates:,}, after this checkpoint)"
+            if later_updates is not None:
+                stop += f" (at update {later_updates:,}, after this checkpoint)"
             facts.append(("run stop reason", stop))
     lines += [f"| {k} | {v} |" for k, v in facts]
 
@@ -688,11 +691,9 @@ def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | 
                      f"({compute.how}). CPUs reserved, not measured utilisation; "
                      + ("up to this checkpoint." if compute.source.startswith(CHECKPOINT_POINT)
                         else "the whole run, of which this checkpoint may be an intermediate point."))
-    run_updates = (run.result or {}).get("learner_updates") if run else None
-    if (compute is not None and not compute.source.startswith(CHECKPOINT_POINT)
-            and isinstance(run_updates, int) and run_updates > int(metadata["learner_steps"])):
+    if compute is not None and not compute.source.startswith(CHECKPOINT_POINT) and later_updates is not None:
         lines.append(f"This checkpoint is an intermediate point (update {int(metadata['learner_steps']):,}) of a "
-                     f"run that went on to update {run_updates:,}: the figures here are the whole run's, "
+                     f"run that went on to update {later_updates:,}: the figures here are the whole run's, "
                      "an upper bound of the compute up to this checkpoint, which it does not record.")
     if compute is not None and compute.measured_cpu_seconds is not None:
         measured = (f"Measured: **{compute.measured_cpu_seconds / 3600:.2f} CPU-hours** of process CPU "
