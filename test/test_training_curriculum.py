@@ -119,3 +119,45 @@ def test_alpha_state_roundtrip():
     other.load_state_dict(cur.state_dict())
     assert other.state_dict() == cur.state_dict()
     assert other.check_budget(57) == "failed"
+
+
+def test_empty_success_windows_are_not_logged_as_zero():
+    """A gate window cleared at a new alpha (or setting) has no success rate yet: the TensorBoard
+    curve must not drop to 0 there, and the progress bar shows no rate."""
+    from types import SimpleNamespace
+
+    from mapf_fleet.training.curriculum import SuccessWindow
+    from mapf_fleet.training.trainer import STAGE_ALPHA, Trainer
+
+    class Writer:
+        def __init__(self):
+            self.scalars = {}
+
+        def add_scalar(self, tag, value, step):
+            self.scalars[tag] = value
+
+        def flush(self):
+            pass
+
+    class Bar:
+        def set_postfix_str(self, text):
+            self.text = text
+
+    full, empty = SuccessWindow(4), SuccessWindow(4)
+    for flag in (True, True, False, True):
+        full.add(flag)
+    trainer = SimpleNamespace(
+        learner=SimpleNamespace(updates=10), bar=Bar(), stage=STAGE_ALPHA,
+        task=SimpleNamespace(num_agents=4, map_size=25, alpha=0.3),
+        scale=SimpleNamespace(window=full), alpha=SimpleNamespace(window=empty),
+        setting_windows={"4x25": full, "5x30": empty}, replay=[0] * 3)
+    rates = {"actor_agent_steps_per_s": 100.0, "learner_updates_per_s": 1.0}
+    writer = Writer()
+    Trainer._write_scalars(trainer, writer, {"loss": 0.5}, rates)
+    assert "curriculum/gate_success_rate" not in writer.scalars  # the alpha stage's window is empty
+    assert writer.scalars["success_rate/4x25"] == 0.75 and "success_rate/5x30" not in writer.scalars
+    assert "| success – |" in trainer.bar.text
+    empty.add(True)
+    Trainer._write_scalars(trainer, writer, {}, rates)
+    assert writer.scalars["curriculum/gate_success_rate"] == 1.0
+    assert "| success 1.00 |" in trainer.bar.text

@@ -495,9 +495,10 @@ class Trainer:
         if self.bar is not None:
             agents, size = self.task.num_agents, self.task.map_size
             window = self.scale.window if self.stage == STAGE_SCALE else self.alpha.window
+            success = f"{window.rate:.2f}" if window.flags else "–"
             self.bar.set_postfix_str(
                 f"stage {self.stage} | {agents} agents {size}x{size} | alpha {self.task.alpha:.1f}"
-                f" | success {window.rate:.2f} | {rates['actor_agent_steps_per_s']:.0f} agent-steps/s"
+                f" | success {success} | {rates['actor_agent_steps_per_s']:.0f} agent-steps/s"
                 f" | {rates['learner_updates_per_s']:.2f} upd/s")
         if writer is None:
             return
@@ -511,10 +512,14 @@ class Trainer:
         writer.add_scalar("curriculum/num_agents", self.task.num_agents, step)
         writer.add_scalar("curriculum/map_size", self.task.map_size, step)
         writer.add_scalar("curriculum/alpha", self.task.alpha, step)
+        # An empty window (just cleared at a new setting or alpha, or waiting out alpha_min_updates)
+        # has no rate: logging 0 would draw a collapse of success that did not happen.
         gate = self.scale.window if self.stage == STAGE_SCALE else self.alpha.window
-        writer.add_scalar("curriculum/gate_success_rate", gate.rate, step)
+        if gate.flags:
+            writer.add_scalar("curriculum/gate_success_rate", gate.rate, step)
         for key, window in self.setting_windows.items():
-            writer.add_scalar(f"success_rate/{key}", window.rate, step)
+            if window.flags:
+                writer.add_scalar(f"success_rate/{key}", window.rate, step)
         writer.add_scalar("replay/sequences", len(self.replay), step)
         writer.flush()
 
