@@ -615,10 +615,10 @@ def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | 
     card_dir = Path(out).parent if out is not None else Path.cwd()
     curriculum = metadata.get("curriculum") or {}
     summary = model_summary(model, metadata)
+    steps = int(metadata["learner_steps"])
     # the update the run reached, when it trained on after this checkpoint (else None)
     run_updates = (run.result or {}).get("learner_updates") if run else None
-    later_updates = (run_updates if isinstance(run_updates, int) and run_updates > int(metadata["learner_steps"])
-                     else None)
+    later_updates = run_updates if isinstance(run_updates, int) and run_updates > steps else None
     now = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
 
     lines = [f"# Model card: {checkpoint.stem}", ""]
@@ -692,7 +692,7 @@ def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | 
                      + ("up to this checkpoint." if compute.source.startswith(CHECKPOINT_POINT)
                         else "the whole run, of which this checkpoint may be an intermediate point."))
     if compute is not None and not compute.source.startswith(CHECKPOINT_POINT) and later_updates is not None:
-        lines.append(f"This checkpoint is an intermediate point (update {int(metadata['learner_steps']):,}) of a "
+        lines.append(f"This checkpoint is an intermediate point (update {steps:,}) of a "
                      f"run that went on to update {later_updates:,}: the figures here are the whole run's, "
                      "an upper bound of the compute up to this checkpoint, which it does not record.")
     if compute is not None and compute.measured_cpu_seconds is not None:
@@ -715,11 +715,11 @@ def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | 
 
     lines += ["", "## Training curves", ""]
     if curves is not None:
-        scalars, cut = scalars_up_to(read_scalars(run.tb_dir), int(metadata["learner_steps"]))
+        scalars, cut = scalars_up_to(read_scalars(run.tb_dir), steps)
         plotted = plot_curves(scalars, Path(curves), f"{checkpoint.stem}: {metadata['algorithm'].upper()}")
         lines.append(f"![training curves]({_relative(Path(curves), card_dir)})")
         lines.append("")
-        upto = (f"; up to this checkpoint's update {int(metadata['learner_steps']):,}, the run logged on to "
+        upto = (f"; up to this checkpoint's update {steps:,}, the run logged on to "
                 f"update {cut:,}" if cut is not None else "")
         lines.append(f"From the TensorBoard scalars of the run directory (x axis: learner updates{upto}). "
                      "Last values:")

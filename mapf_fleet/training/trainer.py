@@ -492,10 +492,10 @@ class Trainer:
 
     def _write_scalars(self, writer, stats: dict, rates: dict) -> None:
         step = self.learner.updates
+        gate = self.scale.window if self.stage == STAGE_SCALE else self.alpha.window
         if self.bar is not None:
             agents, size = self.task.num_agents, self.task.map_size
-            window = self.scale.window if self.stage == STAGE_SCALE else self.alpha.window
-            success = f"{window.rate:.2f}" if window.flags else "–"
+            success = f"{gate.rate:.2f}" if gate.flags else "–"
             self.bar.set_postfix_str(
                 f"stage {self.stage} | {agents} agents {size}x{size} | alpha {self.task.alpha:.1f}"
                 f" | success {success} | {rates['actor_agent_steps_per_s']:.0f} agent-steps/s"
@@ -514,7 +514,6 @@ class Trainer:
         writer.add_scalar("curriculum/alpha", self.task.alpha, step)
         # An empty window (just cleared at a new setting or alpha, or waiting out alpha_min_updates)
         # has no rate: logging 0 would draw a collapse of success that did not happen.
-        gate = self.scale.window if self.stage == STAGE_SCALE else self.alpha.window
         if gate.flags:
             writer.add_scalar("curriculum/gate_success_rate", gate.rate, step)
         for key, window in self.setting_windows.items():
