@@ -162,7 +162,7 @@ def main(argv: list[str] | None = None) -> int:
     print(markdown_report(results, extra=("agent_success_rate",)))
     planners = [r for r in results if r.plan_time is not None]
     if planners:
-        from .planners import library_version
+        from mapf_fleet.coordination.planners import library_version
 
         print(f"Planner reference: {library_version()}; planning time per instance "
               + ", ".join(f"{r.scenario.key} {r.plan_time / r.summary.episodes:.3f} s" for r in planners if r.summary.episodes))

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .planners import PLANNER_NAMES
+from mapf_fleet.coordination.planners import PLANNER_NAMES
 
 HEURISTIC = "heuristic"
 REFERENCE_NAMES = (HEURISTIC, *PLANNER_NAMES)
@@ -122,7 +122,7 @@ def build_policy(spec: PolicySpec):
     if spec.kind == "heuristic":
         return HeuristicBatchPolicy()
     if spec.kind == "planner":
-        from .planners import ClassicalPlanner
+        from mapf_fleet.coordination.planners import ClassicalPlanner
 
         return ClassicalPlanner(spec.algorithm, spec.planner_time_limit, spec.planner_seed)
     if spec.kind == "checkpoint":

@@ -23,7 +23,7 @@ from .runner import lower_bounds, _make_env
 
 def record_episode(spec, instances: InstanceSet, max_steps: int) -> tuple[np.ndarray, np.ndarray, bool]:
     """Run the first instance of `instances`: positions (T+1, N, 2), collided (T, N), success."""
-    from .planners import positions_to_actions
+    from mapf_fleet.coordination.planners import positions_to_actions
 
     policy = build_policy(spec)
     env = _make_env(instances, 0, max_steps)

@@ -111,7 +111,7 @@ def replay_plan(actions: np.ndarray | None, instances: InstanceSet, k: int, max_
 
 
 def run_planner(planner, instances: InstanceSet, max_steps: int) -> tuple[list[EpisodeRecord], float, int]:
-    from .planners import positions_to_actions
+    from mapf_fleet.coordination.planners import positions_to_actions
 
     bounds = lower_bounds(instances)
     records, plan_time, failures = [], 0.0, 0

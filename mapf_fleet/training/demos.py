@@ -8,7 +8,7 @@ only, with the n-step TD loss of normal training plus `demo_weight` x the large-
 which pushes the demonstrator's action a_E above every other action by the margin m
 (`demo_margin`). Demonstrators (`demo_source`):
   - "heuristic": the non-learned reference `mapf_fleet.grid.policies.heuristic_policy`;
-  - "planner":   LaCAM (`mapf_fleet.evaluation.planners.ClassicalPlanner`, pymapf), whose joint
+  - "planner":   LaCAM (`mapf_fleet.coordination.planners.ClassicalPlanner`, pymapf), whose joint
     plan is replayed through `MAPFEnv` (agents of unsolved regions stay; plans longer than the
     step limit are cut there).
 Episodes are drawn over the stage-1 settings (k agents on 10 + 5 (k - 1) maps, up to
@@ -55,7 +55,7 @@ def stage1_settings(cfg: TrainConfig) -> list[tuple[int, int]]:
 
 
 def _planner_actions(instance, limit: int) -> np.ndarray | None:
-    from mapf_fleet.evaluation.planners import ClassicalPlanner, positions_to_actions
+    from mapf_fleet.coordination.planners import ClassicalPlanner, positions_to_actions
 
     plan = ClassicalPlanner("lacam", time_limit=2.0).plan(instance.grid, instance.starts,
                                                           instance.goals)

@@ -5,7 +5,7 @@ import pytest
 
 pytest.importorskip("pymapf")
 
-from mapf_fleet.evaluation.planners import ClassicalPlanner, positions_to_actions
+from mapf_fleet.coordination.planners import ClassicalPlanner, positions_to_actions
 from mapf_fleet.evaluation.protocol import InstanceSet
 from mapf_fleet.evaluation.runner import lower_bounds, replay_plan
 from mapf_fleet.grid.instance import generate_instance

@@ -11,7 +11,7 @@ way. A plan longer than the step limit, or no plan within the time budget, is a 
 
 Speed: 93 % of pymapf's LaCAM time on 80x80/128 agents goes into one pure-Python Dijkstra per
 goal. We hand it our vectorised BFS distances instead (identical values on a 4-connected unit
-grid, so identical plans; `test_evaluation_planners.py` checks that).
+grid, so identical plans; `test_coordination_planners.py` checks that).
 """
 
 from __future__ import annotations
