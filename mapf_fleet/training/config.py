@@ -97,6 +97,13 @@ class TrainConfig:
     # the curricula a demonstration update (TD + margin loss), as DQfD keeps its demo data.
     demo_interleave: int = 0
 
+    # --- training mix over map kinds (issue 18; mapf_fleet.grid.maps.TaskMix) ----------------
+    # {} = unused (the curriculum's random maps). Otherwise {kinds: {random|maze|rooms|warehouse:
+    # weight}, sizes: [map sides], agents: [agent counts]}, every count fitting every kind and
+    # size; `mapf_fleet.grid.maps.sample_task_instance(mix, rng)` draws tasks from it. Checked
+    # here only: the actors do not read it yet.
+    task_mix: dict = field(default_factory=dict)
+
     # --- stage 1: scale expansion -----------------------------------------------------------
     start_agents: int = 1
     start_map_size: int = 10
@@ -224,6 +231,15 @@ class TrainConfig:
             raise bad("device", "must be 'auto', 'cpu', 'cuda' or 'cuda:N'")
         if not isinstance(self.model_overrides, dict):
             raise bad("model_overrides", "must be a mapping")
+        if not isinstance(self.task_mix, dict):
+            raise bad("task_mix", "must be a mapping (kinds, sizes, agents), or {} for none")
+        if self.task_mix:
+            from mapf_fleet.grid.maps import TaskMix
+
+            try:
+                TaskMix.from_dict(self.task_mix)
+            except ValueError as exc:
+                raise bad("task_mix", str(exc)) from None
 
     # ------------------------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
