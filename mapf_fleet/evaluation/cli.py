@@ -22,7 +22,9 @@ from pathlib import Path
 
 from mapf_fleet.version import code_version
 
-from .policies import REFERENCE_NAMES, parse_policy, unique_names
+from mapf_fleet.coordination.preferences import DEFAULT_Q_MODE, PREFERENCE_MODES
+
+from .policies import REFERENCE_NAMES, SHIELDS, parse_policy, unique_names, with_shield
 from .protocol import (
     DEFAULT_CACHE,
     DEFAULT_CONFIG,
@@ -43,6 +45,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--checkpoint", nargs="*", default=[], metavar="C",
                    help=f"checkpoint files, or the pseudo-checkpoints {', '.join(REFERENCE_NAMES)}")
     p.add_argument("--no-references", action="store_true", help="do not add the protocol's references")
+    p.add_argument("--shield", nargs="+", default=["none"], choices=list(SHIELDS),
+                   help="coordination of decentralized policies: none (the paper's rule: "
+                        "conflicting moves are reverted) and/or pibt (CS-PIBT over each agent's "
+                        "ranked actions); several give one row each (default: none)")
+    p.add_argument("--preferences", nargs="+", choices=list(PREFERENCE_MODES), metavar="MODE",
+                   help=f"how a policy ranks its actions under the shield, one row per mode: "
+                        f"{', '.join(PREFERENCE_MODES)} (default: {DEFAULT_Q_MODE} for checkpoints, "
+                        f"distance for the heuristic)")
     p.add_argument("--config", default=str(DEFAULT_CONFIG), help="protocol YAML (default %(default)s)")
     p.add_argument("--sizes", nargs="+", type=int, help="map sizes to run (default: all of the protocol)")
     p.add_argument("--agents", nargs="+", type=int, help="agent counts to run (with --map: exactly one)")
@@ -115,6 +125,8 @@ def _metadata(args, config: ProtocolConfig, specs, wall_time: float) -> dict:
         "density": config.density,
         "seed": config.seed if args.seed is None else args.seed,
         "policies": [{"name": s.name, "kind": s.kind, "path": s.path, "algorithm": s.algorithm,
+                      "shield": s.shield,
+                      "preferences": s.preference_mode if s.shield != "none" and not s.is_planner else None,
                       "sha256": _sha256(s.path) if s.path else None} for s in specs],
         "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "code_version": code_version(),
@@ -138,10 +150,19 @@ def main(argv: list[str] | None = None) -> int:
             names += [r for r in config.references if r not in names]
         if not names:
             raise ProtocolError("nothing to evaluate: give --checkpoint or drop --no-references")
-        specs = unique_names([
-            parse_policy(n, device=args.device, planner_time_limit=time_limit, planner_seed=config.planner_seed)
-            for n in names
-        ])
+        base = [parse_policy(n, device=args.device, planner_time_limit=time_limit,
+                             planner_seed=config.planner_seed) for n in names]
+        specs = []
+        for spec in base:
+            for shield in dict.fromkeys(args.shield):
+                if spec.is_planner and shield != args.shield[0]:
+                    continue  # a centralized plan is conflict-free: one row
+                modes = [None] if shield == "none" or not args.preferences else args.preferences
+                for mode in modes:
+                    if spec.kind == "heuristic" and mode not in (None, "distance"):
+                        continue  # no Q-values to rank by
+                    specs.append(with_shield(spec, shield, mode))
+        specs = unique_names(specs)
         scenarios = _scenarios(args, config)
     except (ProtocolError, FileNotFoundError, ValueError) as exc:
         print(f"mapf-fleet evaluate: {exc}", file=sys.stderr)
@@ -159,7 +180,8 @@ def main(argv: list[str] | None = None) -> int:
     results = evaluate(specs, scenarios, workers=args.workers, batch_size=args.batch_size, progress=progress)
     wall_time = time.perf_counter() - began
 
-    print(markdown_report(results, extra=("agent_success_rate",)))
+    shielded = any(s.shield != "none" for s in specs)
+    print(markdown_report(results, extra=("agent_success_rate",) + (("collisions", "overrides") if shielded else ())))
     planners = [r for r in results if r.plan_time is not None]
     if planners:
         from mapf_fleet.coordination.planners import library_version

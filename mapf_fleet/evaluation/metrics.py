@@ -22,6 +22,9 @@ agents, the conflict rules of `mapf_fleet.grid.env` applied):
   one of their four neighbouring cells at the end. They measure the failure mode the paper names
   (deadlocks: agents waiting on each other, or on an agent parked on its goal, until the limit)
   apart from agents that wander or lose their way.
+- **overrides** (under a shield, `--shield pibt`): per episode, the agent-steps whose executed
+  action was not the agent's first choice (the coordination layer moved or held it). 0 without a
+  shield, where reverted moves count as collisions instead.
 """
 
 from __future__ import annotations
@@ -49,6 +52,7 @@ class EpisodeRecord:
     lower_bound: int
     stalled_agents: int = 0
     stalled_beside_agent: int = 0
+    overrides: int = 0
 
     @property
     def agent_success(self) -> float:
@@ -85,6 +89,7 @@ class EpisodeTracker:
         self.lower_bound = int(lower_bound)
         self.steps = 0
         self.collisions = 0
+        self.overrides = 0
         self.on_goal = np.all(starts == self.goals, axis=1)
         # Step at which each agent last stepped onto its goal (valid where on_goal).
         self.arrival = np.zeros(len(starts), dtype=np.int64)
@@ -96,11 +101,13 @@ class EpisodeTracker:
     def done(self) -> bool:
         return self.success or self.steps >= self.max_steps
 
-    def update(self, positions: np.ndarray, collided: np.ndarray) -> None:
+    def update(self, positions: np.ndarray, collided: np.ndarray, overridden=None) -> None:
         if self.done:
             raise RuntimeError("update() after the episode ended")
         self.steps += 1
         self.collisions += int(np.count_nonzero(collided))
+        if overridden is not None:
+            self.overrides += int(np.count_nonzero(overridden))
         positions = np.asarray(positions)
         self.last_moved[np.any(positions != self.positions, axis=1)] = self.steps
         self.positions = positions.copy()
@@ -127,6 +134,7 @@ class EpisodeTracker:
             lower_bound=self.lower_bound,
             stalled_agents=int(stalled.sum()),
             stalled_beside_agent=int(beside.sum()),
+            overrides=self.overrides,
         )
 
 
@@ -161,6 +169,7 @@ class ScenarioSummary:
     lower_bound_ratio_solved: float  # NaN when no episode succeeded
     stalled_agents: float = float("nan")  # per episode (NaN: records from before it was measured)
     stalled_beside_agent: float = float("nan")
+    overrides: float = 0.0  # per episode: agent-steps not executed as first chosen (shield)
 
     def to_dict(self) -> dict:
         return {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in asdict(self).items()}
@@ -189,4 +198,5 @@ def summarize(records: list[EpisodeRecord]) -> ScenarioSummary:
         lower_bound_ratio_solved=mean(r.lower_bound_ratio for r in records if r.success),
         stalled_agents=mean(r.stalled_agents for r in records),
         stalled_beside_agent=mean(r.stalled_beside_agent for r in records),
+        overrides=mean(r.overrides for r in records),
     )

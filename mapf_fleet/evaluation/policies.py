@@ -1,7 +1,10 @@
 """What `--checkpoint` names: a checkpoint file, or a reference ("heuristic", "lacam", "pibt").
 
 Decentralized policies (learned, heuristic) implement the batched interface the runner steps:
-`reset(num_envs, num_agents)` then `act(obs (B,N,6,9,9), positions (B,N,2)) -> actions (B,N)`.
+`reset(num_envs, num_agents)` then `act(obs (B,N,6,9,9), positions (B,N,2)) -> actions (B,N)`;
+under a shield (`PolicySpec.shield == "pibt"`) the runner calls `rank(obs, positions, tick) ->
+preferences (B,N,5)` instead, arbitrates them with `coordination.pibt.PIBTShield`, and tells the
+policy what was executed with `executed(actions (B,N))` (DCC's last-action input).
 Centralized planners are `planners.ClassicalPlanner` objects, replayed by the runner.
 """
 
@@ -13,9 +16,11 @@ from pathlib import Path
 import numpy as np
 
 from mapf_fleet.coordination.planners import PLANNER_NAMES
+from mapf_fleet.coordination.preferences import DEFAULT_Q_MODE, PREFERENCE_MODES, Q_MODES
 
 HEURISTIC = "heuristic"
 REFERENCE_NAMES = (HEURISTIC, *PLANNER_NAMES)
+SHIELDS = ("none", "pibt")  # none: the paper's environment (conflicting moves are reverted)
 
 
 @dataclass(frozen=True)
@@ -29,10 +34,37 @@ class PolicySpec:
     planner_time_limit: float = 10.0
     planner_seed: int = 0
     device: str = "cpu"
+    shield: str = "none"  # "none" | "pibt" (decentralized policies only)
+    preferences: str | None = None  # preference mode under the shield (None: the default)
 
     @property
     def is_planner(self) -> bool:
         return self.kind == "planner"
+
+    @property
+    def preference_mode(self) -> str:
+        """The mode the shield ranks actions with: the heuristic ranks by distance (its choice
+        first: it follows a closer move), a checkpoint by its Q-values."""
+        if self.preferences is not None:
+            return self.preferences
+        return "distance" if self.kind == "heuristic" else DEFAULT_Q_MODE
+
+
+def with_shield(spec: PolicySpec, shield: str, preferences: str | None = None) -> PolicySpec:
+    """`spec` under a shield; the row label says which (and the preference mode when given)."""
+    from dataclasses import replace
+
+    if shield not in SHIELDS:
+        raise ValueError(f"--shield must be one of {SHIELDS}, got {shield!r}")
+    if preferences is not None and preferences not in PREFERENCE_MODES:
+        raise ValueError(f"--preferences must be among {PREFERENCE_MODES}, got {preferences!r}")
+    if shield == "none" or spec.is_planner:
+        return spec
+    if spec.kind == "heuristic" and preferences not in (None, "distance"):
+        raise ValueError(f"--preferences {preferences}: the heuristic has no Q-values "
+                         f"(its ranking is 'distance'); the Q modes are {Q_MODES}")
+    label = "+PIBT" if preferences is None else f"+PIBT({preferences})"
+    return replace(spec, name=f"{spec.name} {label}", shield=shield, preferences=preferences)
 
 
 def parse_policy(arg: str, *, device: str = "cpu", planner_time_limit: float = 10.0, planner_seed: int = 0) -> PolicySpec:
@@ -71,10 +103,28 @@ def unique_names(specs: list[PolicySpec]) -> list[PolicySpec]:
     return out
 
 
+def _tie_breakers(tick: int, batch: int, agents: int) -> np.ndarray:
+    from mapf_fleet.coordination.preferences import tie_breakers
+
+    return np.broadcast_to(tie_breakers(np.arange(agents), tick), (batch, agents, 5))
+
+
 class HeuristicBatchPolicy:
-    """The non-learned reference (`mapf_fleet.grid.policies.heuristic_policy`), batched."""
+    """The non-learned reference (`mapf_fleet.grid.policies.heuristic_policy`), batched.
+    Under the shield its ranking is the distance order: plain PIBT."""
+
+    def __init__(self, preference_mode: str = "distance"):
+        self.preference_mode = preference_mode
 
     def reset(self, num_envs: int, num_agents: int) -> None:
+        pass
+
+    def rank(self, obs: np.ndarray, positions: np.ndarray, tick: int) -> np.ndarray:
+        from mapf_fleet.coordination.preferences import rank_actions
+
+        return rank_actions(obs, mode="distance", ties=_tie_breakers(tick, *obs.shape[:2]))
+
+    def executed(self, actions: np.ndarray) -> None:
         pass
 
     def act(self, obs: np.ndarray, positions: np.ndarray) -> np.ndarray:
@@ -87,7 +137,7 @@ class HeuristicBatchPolicy:
 class CheckpointBatchPolicy:
     """A learned checkpoint through `mapf_fleet.models.policy.LearnedPolicy`."""
 
-    def __init__(self, path: str, device: str = "cpu"):
+    def __init__(self, path: str, device: str = "cpu", preference_mode: str = DEFAULT_Q_MODE):
         from mapf_fleet.models.checkpoint import load_checkpoint
         from mapf_fleet.models.policy import LearnedPolicy
 
@@ -99,6 +149,7 @@ class CheckpointBatchPolicy:
             raise ValueError(f"{path}: obs_padding is {padding!r}, the evaluator's environment pads 'obstacle'")
         self.metadata = metadata
         self.policy = LearnedPolicy(model, device)
+        self.preference_mode = preference_mode
 
     def reset(self, num_envs: int, num_agents: int) -> None:
         self.policy.reset(num_envs, num_agents)
@@ -116,15 +167,27 @@ class CheckpointBatchPolicy:
             actions = actions.detach().cpu().numpy()
         return np.asarray(actions, dtype=np.int64)
 
+    def rank(self, obs: np.ndarray, positions: np.ndarray, tick: int) -> np.ndarray:
+        """Preference orders (B, N, 5) from this step's Q-values (the step runs here)."""
+        from mapf_fleet.coordination.preferences import rank_actions
+
+        self.act(obs, positions)
+        return rank_actions(obs, self.policy.q_values, self.preference_mode,
+                            ties=_tie_breakers(tick, *obs.shape[:2]))
+
+    def executed(self, actions: np.ndarray) -> None:
+        """What the shield executed becomes DCC's last action (its recurrent input)."""
+        self.policy.set_last_actions(actions)
+
 
 def build_policy(spec: PolicySpec):
     """The object the runner steps for `spec` (a batch policy or a ClassicalPlanner)."""
     if spec.kind == "heuristic":
-        return HeuristicBatchPolicy()
+        return HeuristicBatchPolicy(spec.preference_mode)
     if spec.kind == "planner":
         from mapf_fleet.coordination.planners import ClassicalPlanner
 
         return ClassicalPlanner(spec.algorithm, spec.planner_time_limit, spec.planner_seed)
     if spec.kind == "checkpoint":
-        return CheckpointBatchPolicy(spec.path, spec.device)
+        return CheckpointBatchPolicy(spec.path, spec.device, spec.preference_mode)
     raise ValueError(f"unknown policy kind {spec.kind!r}")

@@ -27,6 +27,7 @@ EXTRA_METRICS = (
     ("stalled_agents", f"Stalled Agents per Episode (off goal, still for the last {STALL_STEPS} steps) ↓",
      "{:.2f}"),
     ("stalled_beside_agent", "Stalled Beside Another Agent per Episode (deadlocks) ↓", "{:.2f}"),
+    ("overrides", "Shield Overrides per Episode (agent-steps not executed as first chosen)", "{:.1f}"),
 )
 
 
@@ -83,7 +84,7 @@ CSV_FIELDS = (
     "policy", "map", "agents", "max_steps", "episodes", "success_rate", "average_steps",
     "agent_success_rate", "sum_of_costs", "makespan", "collisions", "lower_bound",
     "lower_bound_ratio", "lower_bound_ratio_solved", "stalled_agents", "stalled_beside_agent",
-    "compute_time_s", "plan_time_s", "plan_failures", "source",
+    "overrides", "compute_time_s", "plan_time_s", "plan_failures", "source",
 )
 
 

@@ -63,16 +63,27 @@ def _make_env(instances: InstanceSet, k: int, max_steps: int):
     return MAPFEnv(instances.instance(k), EnvConfig(max_steps=max_steps))
 
 
-def run_decentralized(policy, instances: InstanceSet, max_steps: int) -> list[EpisodeRecord]:
+def run_decentralized(policy, instances: InstanceSet, max_steps: int, shield: str = "none") -> list[EpisodeRecord]:
     """Step all episodes of `instances` together with a batch policy (reset/act[/keep]).
 
     Only live episodes are passed to `act`; when some end, `policy.keep(rows)` (if the policy
-    has it) drops their recurrent state so the batch shrinks with them."""
+    has it) drops their recurrent state so the batch shrinks with them.
+
+    shield "pibt": each step the policy ranks its five actions per agent (`policy.rank`), one
+    `PIBTShield` per episode turns the rankings into conflict-free moves, those are executed
+    (and reported back with `policy.executed`), and the overridden agent-steps are counted."""
     bounds = lower_bounds(instances)
     envs = [_make_env(instances, k, max_steps) for k in range(len(instances))]
     obs = np.stack([env.reset() for env in envs]).astype(np.float32)
     positions = np.stack([np.asarray(env.positions) for env in envs])
     trackers = [EpisodeTracker(positions[k], instances.goals[k], max_steps, bounds[k]) for k in range(len(envs))]
+    shields = None
+    if shield == "pibt":
+        from mapf_fleet.coordination.pibt import PIBTShield
+
+        shields = [PIBTShield(instances.maps[k], instances.goals[k]) for k in range(len(envs))]
+    elif shield != "none":
+        raise ValueError(f"shield must be 'none' or 'pibt', got {shield!r}")
     policy.reset(len(envs), instances.starts.shape[1])
     live = list(range(len(envs)))
     keep = getattr(policy, "keep", None)
@@ -84,14 +95,25 @@ def run_decentralized(policy, instances: InstanceSet, max_steps: int) -> list[Ep
         return [live[j] for j in rows]
 
     live = shrink(live)
+    tick = 0
     while live:
-        actions = np.asarray(policy.act(obs[live], positions[live]))
+        overridden = None
+        if shields is None:
+            actions = np.asarray(policy.act(obs[live], positions[live]))
+        else:
+            preferences = policy.rank(obs[live], positions[live], tick)
+            steps = [shields[k].step(positions[k], preferences[j]) for j, k in enumerate(live)]
+            actions = np.stack([s.actions for s in steps])
+            overridden = [s.overridden for s in steps]
+            policy.executed(actions)
         for j, k in enumerate(live):
             step_obs, _, _, info = envs[k].step(actions[j])
             obs[k] = step_obs
             positions[k] = envs[k].positions
-            trackers[k].update(positions[k], info["collisions"])
+            trackers[k].update(positions[k], info["collisions"],
+                               None if overridden is None else overridden[j])
         live = shrink(live)
+        tick += 1
     return [t.record() for t in trackers]
 
 
@@ -156,7 +178,8 @@ def run_job(job: Job) -> tuple[list[EpisodeRecord], float, float | None, int]:
     if job.spec.is_planner:
         records, plan_time, failures = run_planner(policy, job.instances, job.scenario.max_steps)
     else:
-        records, plan_time, failures = run_decentralized(policy, job.instances, job.scenario.max_steps), None, 0
+        records, plan_time, failures = run_decentralized(policy, job.instances, job.scenario.max_steps,
+                                                         job.spec.shield), None, 0
     return records, time.perf_counter() - began, plan_time, failures
 
 

@@ -93,6 +93,14 @@ class LearnedPolicy:
         result = actions.cpu().numpy()
         return result[0] if single else result
 
+    def set_last_actions(self, actions) -> None:
+        """Replace the last actions (B, N) (or (N,)) with what was really executed, e.g. by the
+        coordination layer: DCC's next step reads them as its last-action input."""
+        if self.last_actions is None:
+            raise RuntimeError("set_last_actions: call reset(num_envs, num_agents) first")
+        actions = torch.as_tensor(np.asarray(actions, dtype=np.int64), device=self.device)
+        self.last_actions = actions.reshape(self.last_actions.shape)
+
     def _explore(self, actions: torch.Tensor, epsilon, rng) -> torch.Tensor:
         rng = rng if rng is not None else np.random.default_rng()
         epsilon = np.broadcast_to(np.asarray(epsilon, dtype=np.float64), tuple(actions.shape))

@@ -1,0 +1,230 @@
+"""PIBT over per-agent preference orders: the collision shield under every decentralized policy.
+
+Priority Inheritance with Backtracking (Okumura et al., AIJ 2022) plans one step at a time. Agents
+are taken in decreasing priority; each takes the first cell of its preference order that is
+free for the next step; when that cell holds an agent that has not decided yet, the occupant
+inherits the priority and must move first (recursively); when it cannot, the whole sub-chain is
+undone and the next candidate is tried (backtracking). With the five actions ranked by a learned
+policy's Q-values this is CS-PIBT (Veerapaneni et al., ICAPS 2024); with actions ranked by the
+distance to the goal it is plain PIBT.
+
+Guarantees of `PIBTShield.step`, for any preference orders (property-tested): no two agents in
+one cell, no two agents trading cells (swap), no agent on an obstacle or off the map, every
+agent moves at most one cell. Agents marked `fixed` stay where they are and are never pushed;
+`reserved` cells are kept free (a real robot still driving into a cell occupies it).
+
+Dynamic priorities (PIBT's, as pymapf 0.9.0 uses them): agent i starts at i / (N + 1), a
+distinct tie-breaker below 1; after each step its priority rises by 1 while it is off its goal
+and falls back to i / (N + 1) on its goal. Everything is deterministic for the same inputs.
+
+numpy only (no torch, no rclpy): the evaluator, the trainer's actors, the simulator and the
+real-robot aggregator all call this one implementation.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+
+import numpy as np
+
+from mapf_fleet.grid.actions import ACTION_DELTAS, NUM_ACTIONS, STAY
+
+# One recursion level per agent of a push chain; a chain can hold every agent.
+_MIN_RECURSION = 10_000
+if sys.getrecursionlimit() < _MIN_RECURSION:
+    sys.setrecursionlimit(_MIN_RECURSION)
+
+
+@dataclass(frozen=True)
+class ShieldStep:
+    """The arbitrated tick: `positions` (N, 2) next cells, `actions` (N,) the executed actions
+    (DHC order), `overridden` (N,) bool: the executed action is not the agent's first choice."""
+
+    positions: np.ndarray
+    actions: np.ndarray
+    overridden: np.ndarray
+
+    @property
+    def num_overridden(self) -> int:
+        return int(self.overridden.sum())
+
+
+def validate_preferences(preferences, num_agents: int) -> np.ndarray:
+    """(N, 5) int64 where each row is a ranking (permutation) of the actions 0..4."""
+    prefs = np.asarray(preferences)
+    if prefs.shape != (num_agents, NUM_ACTIONS):
+        raise ValueError(f"preferences must have shape ({num_agents}, {NUM_ACTIONS}), "
+                         f"got {prefs.shape}")
+    if prefs.size and not np.issubdtype(prefs.dtype, np.integer):
+        raise ValueError(f"preferences must be integer actions, got dtype {prefs.dtype}")
+    prefs = prefs.astype(np.int64, copy=False)
+    bad = (np.sort(prefs, axis=1) != np.arange(NUM_ACTIONS)).any(axis=1)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"agent {i}: preferences {prefs[i].tolist()} are not a ranking of the "
+                         f"actions 0..{NUM_ACTIONS - 1}")
+    return prefs
+
+
+class PIBTShield:
+    """PIBT for one fleet on one map. `step` resolves one tick and advances the priorities.
+
+    grid: (H, W) bool/uint8, nonzero = obstacle. goals: (N, 2) (row, col) cells.
+    """
+
+    def __init__(self, grid, goals):
+        grid = np.asarray(grid)
+        if grid.ndim != 2:
+            raise ValueError(f"grid must be 2-D, got shape {grid.shape}")
+        self.grid = grid != 0
+        self.height, self.width = self.grid.shape
+        goals = np.asarray(goals, dtype=np.int64)
+        if goals.ndim != 2 or goals.shape[1] != 2:
+            raise ValueError(f"goals must have shape (N, 2), got {goals.shape}")
+        self.goals = goals
+        self.num_agents = len(goals)
+        self._goal_flat = goals[:, 0] * self.width + goals[:, 1]
+        self._blocked = self.grid.ravel().tolist()
+        self.base_priority = np.arange(self.num_agents, dtype=np.float64) / (self.num_agents + 1)
+        self.priorities = self.base_priority.copy()
+
+    def reset(self) -> None:
+        """Start a new episode: every priority back to its tie-breaker."""
+        self.priorities = self.base_priority.copy()
+
+    # ------------------------------------------------------------------------------------------
+    def _check_positions(self, positions) -> np.ndarray:
+        positions = np.asarray(positions)
+        if positions.shape != (self.num_agents, 2):
+            raise ValueError(f"positions must have shape ({self.num_agents}, 2), "
+                             f"got {positions.shape}")
+        positions = positions.astype(np.int64, copy=False)
+        r, c = positions[:, 0], positions[:, 1]
+        outside = (r < 0) | (r >= self.height) | (c < 0) | (c >= self.width)
+        if outside.any():
+            i = int(np.flatnonzero(outside)[0])
+            raise ValueError(f"agent {i} at {tuple(positions[i].tolist())} is outside the "
+                             f"{self.height}x{self.width} map")
+        flat = r * self.width + c
+        on_obstacle = self.grid.ravel()[flat]
+        if on_obstacle.any():
+            i = int(np.flatnonzero(on_obstacle)[0])
+            raise ValueError(f"agent {i} at {tuple(positions[i].tolist())} is on an obstacle")
+        if len(np.unique(flat)) != len(flat):
+            cells, counts = np.unique(flat, return_counts=True)
+            cell = int(cells[counts > 1][0])
+            who = np.flatnonzero(flat == cell).tolist()
+            raise ValueError(f"agents {who} share the cell {(cell // self.width, cell % self.width)}")
+        return positions
+
+    def _candidates(self, positions: np.ndarray, prefs: np.ndarray) -> list[list[int]]:
+        """Per agent the flat cells of its ranked actions, moves off the map or onto an
+        obstacle left out (vectorised; the search below is the only Python loop)."""
+        target = positions[:, None, :] + ACTION_DELTAS[prefs]  # (N, 5, 2)
+        inside = ((target[..., 0] >= 0) & (target[..., 0] < self.height)
+                  & (target[..., 1] >= 0) & (target[..., 1] < self.width))
+        flat = np.where(inside, target[..., 0] * self.width + target[..., 1], 0)
+        valid = inside & ~self.grid.ravel()[flat]
+        flat_list, valid_list = flat.tolist(), valid.tolist()
+        return [[cell for cell, ok in zip(cells, oks) if ok]
+                for cells, oks in zip(flat_list, valid_list)]
+
+    def step(self, positions, preferences, fixed=None, reserved=()) -> ShieldStep:
+        """One tick: the next cells of every agent under PIBT with these preference orders.
+
+        positions: (N, 2) current cells (distinct free cells of the map).
+        preferences: (N, 5) each row the actions 0..4 ranked, best first.
+        fixed: optional (N,) bool: these agents stay and cannot be pushed (their preferences are
+            ignored; e.g. a robot whose decision is missing, or one still driving).
+        reserved: cells (row, col) no agent may enter (a moving robot's second cell); an agent
+            standing on a reserved cell is held there like a fixed one.
+        """
+        positions = self._check_positions(positions)
+        n = self.num_agents
+        prefs = validate_preferences(preferences, n)
+        fixed = np.zeros(n, dtype=bool) if fixed is None else np.asarray(fixed, dtype=bool)
+        if fixed.shape != (n,):
+            raise ValueError(f"fixed must have shape ({n},), got {fixed.shape}")
+        w = self.width
+        current = (positions[:, 0] * w + positions[:, 1]).tolist()
+        candidates = self._candidates(positions, prefs)
+        occupied_now = {cell: i for i, cell in enumerate(current)}
+        occupied_next: dict[int, int] = {}
+        decided = [-1] * n  # next flat cell per agent, -1 undecided
+        fixed = fixed.copy()
+        for cell in reserved:
+            r, c = int(cell[0]), int(cell[1])
+            if not (0 <= r < self.height and 0 <= c < w):
+                continue
+            occupant = occupied_now.get(r * w + c, -1)
+            if occupant >= 0:
+                fixed[occupant] = True  # it is there already: it holds, nobody else enters
+            else:
+                occupied_next[r * w + c] = -2  # nobody's: kept free
+        for i in np.flatnonzero(fixed).tolist():
+            occupied_next[current[i]] = i
+            decided[i] = current[i]
+        journal: list[int] = []
+
+        def assign(i: int, cell: int) -> None:
+            occupied_next[cell] = i
+            decided[i] = cell
+            journal.append(i)
+
+        def rollback(mark: int) -> None:
+            while len(journal) > mark:
+                i = journal.pop()
+                cell = decided[i]
+                decided[i] = -1
+                if occupied_next.get(cell) == i:
+                    del occupied_next[cell]
+
+        def funnel(i: int, caller: int) -> bool:
+            here = current[i]
+            for cell in candidates[i]:
+                if cell in occupied_next:
+                    continue
+                if caller >= 0 and cell == current[caller]:
+                    continue  # the caller's cell: that would be a swap with it
+                other = occupied_now.get(cell, -1)
+                if other >= 0 and other != i and decided[other] == here:
+                    continue  # the occupant already moves into our cell: a swap
+                mark = len(journal)
+                assign(i, cell)
+                if other >= 0 and other != i and decided[other] < 0:
+                    if not funnel(other, i):  # the occupant must make room first
+                        rollback(mark)
+                        continue
+                return True
+            if caller < 0 and here not in occupied_next:
+                assign(i, here)  # not pushed: staying is always possible
+                return True
+            return False
+
+        for i in np.argsort(-self.priorities, kind="stable").tolist():
+            if decided[i] < 0:
+                funnel(i, -1)
+
+        nxt = np.asarray(decided, dtype=np.int64)
+        if (nxt < 0).any():  # cannot happen: an unpushed agent can always stay
+            raise RuntimeError(f"PIBT left agents {np.flatnonzero(nxt < 0).tolist()} undecided")
+        new_positions = np.stack([nxt // w, nxt % w], axis=1)
+        delta = new_positions - positions
+        actions = np.full(n, STAY, dtype=np.int64)
+        for a in range(1, NUM_ACTIONS):
+            actions[(delta == ACTION_DELTAS[a]).all(axis=1)] = a
+        overridden = (actions != prefs[:, 0]) & ~fixed
+        on_goal = nxt == self._goal_flat
+        self.priorities = np.where(on_goal, self.base_priority, self.priorities + 1.0)
+        return ShieldStep(new_positions, actions, overridden)
+
+
+def shield_step(grid, positions, goals, preferences, priorities=None, fixed=None, reserved=()):
+    """One stateless PIBT step (priorities given or the tie-breakers); returns
+    (ShieldStep, next priorities). For callers that keep the priorities themselves."""
+    shield = PIBTShield(grid, goals)
+    if priorities is not None:
+        shield.priorities = np.asarray(priorities, dtype=np.float64).copy()
+    result = shield.step(positions, preferences, fixed=fixed, reserved=reserved)
+    return result, shield.priorities
