@@ -12,6 +12,8 @@ import sys
 COMMANDS = {
     "demo": ("mapf_fleet.grid.demo", "main", "grid-world demo with the non-learned policy"),
     "train": ("mapf_fleet.training.cli", "main", "Ape-X training with both curricula"),
+    "demos": ("mapf_fleet.training.demo_dataset", "main",
+              "demonstration dataset from LaCAM/PIBT, in resumable shards"),
     "evaluate": ("mapf_fleet.evaluation.cli", "main", "the paper's evaluation protocol"),
     "render": ("mapf_fleet.evaluation.render", "main", "render one episode as GIF/PNG"),
     "card": ("mapf_fleet.evaluation.model_card", "main", "write a checkpoint's model card"),
