@@ -106,3 +106,37 @@ def test_step_limit_grows_with_the_curriculum_map():
     worker.set_task(Task(2, 10, 0.0))
     result = worker.run(25)
     assert result["episodes"] and all(ep["steps"] <= 10 for ep in result["episodes"])
+
+
+@pytest.mark.parametrize("algo", ["dhc", "dcc"])
+def test_shielded_actor_records_the_executed_actions(algo):
+    """shield: pibt: every recorded step is the action that moved the agent (the learner trains
+    on what was executed), and no move collides; without the shield random weights collide."""
+    from mapf_fleet.grid.actions import ACTION_DELTAS
+
+    def play(shield):
+        torch.manual_seed(0)
+        worker = EpisodeWorker(_cfg(algo=algo, shield=shield, final_agents=10), actor_index=0, seed=5)
+        worker.keep_records = True
+        worker.set_task(Task(num_agents=10, map_size=10, alpha=0.0))
+        worker.run(36)
+        return worker.records
+
+    collisions = 0
+    for rec in play("pibt"):
+        moved = rec.positions[1:].astype(np.int64) - rec.positions[:-1].astype(np.int64)
+        np.testing.assert_array_equal(moved, ACTION_DELTAS[rec.actions.astype(np.int64)])
+        # the collision penalty (-0.5) never appears in the individual rewards
+        collisions += int((rec.individual_rewards <= -0.5).sum())
+    assert collisions == 0
+    unshielded = play("none")
+    assert sum(int((r.individual_rewards <= -0.5).sum()) for r in unshielded) > 0
+
+
+def test_shield_config_is_validated():
+    from mapf_fleet.training.config import TrainConfigError
+
+    with pytest.raises(TrainConfigError, match="shield"):
+        _cfg(shield="cbs")
+    with pytest.raises(TrainConfigError, match="shield_preferences"):
+        _cfg(shield_preferences="distance")

@@ -104,13 +104,36 @@ class EpisodeWorker:
             env = MAPFEnv(instance, env_cfg)
             obs = env.observe()
         hidden = np.zeros((task.num_agents, self.hidden_dim), np.float32)
-        state = {"env": env, "obs": obs, "hidden": hidden,
+        shield = None
+        if self.cfg.shield == "pibt":
+            from mapf_fleet.coordination.pibt import PIBTShield
+
+            shield = PIBTShield(instance.grid, instance.goals)
+        state = {"env": env, "obs": obs, "hidden": hidden, "shield": shield,
                  "rec": _Recorder(pack_obs(obs), env.positions.astype(np.int16),
                                   hidden.astype(np.float16))}
         if slot < len(self.envs):
             self.envs[slot] = state
         else:
             self.envs.append(state)
+
+    def _shield(self, envs, obs: np.ndarray, q: np.ndarray, chosen: np.ndarray) -> np.ndarray:
+        """The executed actions (B, N) under PIBT: each agent's ranking by its Q-values
+        (`shield_preferences`), its chosen action (greedy, or the exploring agent's random one)
+        moved to the front, arbitrated per environment."""
+        from mapf_fleet.coordination.preferences import rank_actions, tie_breakers
+
+        executed = np.empty_like(chosen)
+        for slot, e in enumerate(envs):
+            env = e["env"]
+            ties = tie_breakers(np.arange(env.num_agents), env.steps)
+            ranking = rank_actions(obs[slot], q[slot], self.cfg.shield_preferences, ties=ties)
+            first = ranking == chosen[slot][:, None]
+            # stable: the chosen action first, the others keep their order
+            order = np.argsort(~first, axis=1, kind="stable")
+            ranking = np.take_along_axis(ranking, order, axis=1)
+            executed[slot] = e["shield"].step(env.positions, ranking).actions
+        return executed
 
     def run(self, num_steps: int) -> dict:
         """Step every environment `num_steps` times; return the sequences and statistics of
@@ -140,6 +163,8 @@ class EpisodeWorker:
             if not cfg.explore_all_agents:
                 explore[:, 1:] = False
             actions = np.where(explore, self.rng.integers(0, 5, actions.shape), actions)
+            if cfg.shield == "pibt":
+                actions = self._shield(envs, obs.numpy(), out.q.numpy(), actions)
             for slot, e in enumerate(envs):
                 env = e["env"]
                 obs_next, rewards, done, info = env.step(actions[slot])

@@ -46,6 +46,13 @@ class TrainConfig:
     # greedy policy deadlocks at test time; agent-0 exploration lifted DHC on 40x40 from 0.48 to
     # 0.61 at 8 agents and 0.105 to 0.235 at 16.
     explore_all_agents: bool = False
+    # "pibt": actors act through the coordination layer (mapf_fleet.coordination.pibt): each
+    # agent's ranking (`shield_preferences` over its Q-values; an exploring agent's random action
+    # ranked first) is arbitrated by PIBT, the environment executes the result, and the replay
+    # stores the EXECUTED action, so the learner trains Q on what really happened (and DCC's
+    # last-action input is the executed action, as at test time). "none": the paper's recipe.
+    shield: str = "none"
+    shield_preferences: str = "q"
     actor_update_interval: int = 400  # learner updates between weight broadcasts
     gate_actor_fraction: float = 0.5  # success gate uses the lowest-epsilon fraction of explorers
 
@@ -160,6 +167,12 @@ class TrainConfig:
                 raise bad(name, "must be a number >= 0")
         if self.finish_reward not in ("team", "per_agent"):
             raise bad("finish_reward", "must be 'team' or 'per_agent'")
+        if self.shield not in ("none", "pibt"):
+            raise bad("shield", "must be 'none' or 'pibt'")
+        from mapf_fleet.coordination.preferences import Q_MODES
+
+        if self.shield_preferences not in Q_MODES:
+            raise bad("shield_preferences", f"must be one of {Q_MODES}")
         if isinstance(self.obstacle_density, str):
             if self.obstacle_density != "triangular":
                 raise bad("obstacle_density", "must be 'triangular' or a number in [0, 0.9]")
