@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mapf_fleet.grid.actions import ACTION_DELTAS, NUM_ACTIONS, STAY
+from mapf_fleet.grid.actions import ACTION_DELTAS, NUM_ACTIONS
 
 # One recursion level per agent of a push chain; a chain can hold every agent.
 _MIN_RECURSION = 10_000
@@ -86,6 +86,18 @@ class PIBTShield:
         self.num_agents = len(goals)
         self._goal_flat = goals[:, 0] * self.width + goals[:, 1]
         self._blocked = self.grid.ravel().tolist()
+        # _targets[cell, action]: the flat cell an action leads to, -1 off the map / obstacle
+        h, w = self.height, self.width
+        rows, cols = np.divmod(np.arange(h * w), w)
+        tr = rows[:, None] + ACTION_DELTAS[:, 0]
+        tc = cols[:, None] + ACTION_DELTAS[:, 1]
+        inside = (tr >= 0) & (tr < h) & (tc >= 0) & (tc < w)
+        flat = np.where(inside, tr * w + tc, 0)
+        self._targets = np.where(inside & ~self.grid.ravel()[flat], flat, -1)
+        # executed action from the flat displacement (next - current + w)
+        self._action_of_delta = np.zeros(2 * w + 1, dtype=np.int64)
+        for a in range(1, NUM_ACTIONS):
+            self._action_of_delta[ACTION_DELTAS[a, 0] * w + ACTION_DELTAS[a, 1] + w] = a
         self.base_priority = np.arange(self.num_agents, dtype=np.float64) / (self.num_agents + 1)
         self.priorities = self.base_priority.copy()
 
@@ -111,24 +123,13 @@ class PIBTShield:
         if on_obstacle.any():
             i = int(np.flatnonzero(on_obstacle)[0])
             raise ValueError(f"agent {i} at {tuple(positions[i].tolist())} is on an obstacle")
-        if len(np.unique(flat)) != len(flat):
-            cells, counts = np.unique(flat, return_counts=True)
-            cell = int(cells[counts > 1][0])
-            who = np.flatnonzero(flat == cell).tolist()
-            raise ValueError(f"agents {who} share the cell {(cell // self.width, cell % self.width)}")
         return positions
 
-    def _candidates(self, positions: np.ndarray, prefs: np.ndarray) -> list[list[int]]:
+    def _candidates(self, current: np.ndarray, prefs: np.ndarray) -> list[list[int]]:
         """Per agent the flat cells of its ranked actions, moves off the map or onto an
-        obstacle left out (vectorised; the search below is the only Python loop)."""
-        target = positions[:, None, :] + ACTION_DELTAS[prefs]  # (N, 5, 2)
-        inside = ((target[..., 0] >= 0) & (target[..., 0] < self.height)
-                  & (target[..., 1] >= 0) & (target[..., 1] < self.width))
-        flat = np.where(inside, target[..., 0] * self.width + target[..., 1], 0)
-        valid = inside & ~self.grid.ravel()[flat]
-        flat_list, valid_list = flat.tolist(), valid.tolist()
-        return [[cell for cell, ok in zip(cells, oks) if ok]
-                for cells, oks in zip(flat_list, valid_list)]
+        obstacle left out (one table lookup; the search below is the only Python loop)."""
+        return [[cell for cell in row if cell >= 0]
+                for row in self._targets[current[:, None], prefs].tolist()]
 
     def step(self, positions, preferences, fixed=None, reserved=()) -> ShieldStep:
         """One tick: the next cells of every agent under PIBT with these preference orders.
@@ -147,9 +148,15 @@ class PIBTShield:
         if fixed.shape != (n,):
             raise ValueError(f"fixed must have shape ({n},), got {fixed.shape}")
         w = self.width
-        current = (positions[:, 0] * w + positions[:, 1]).tolist()
-        candidates = self._candidates(positions, prefs)
+        current_flat = positions[:, 0] * w + positions[:, 1]
+        current = current_flat.tolist()
+        candidates = self._candidates(current_flat, prefs)
         occupied_now = {cell: i for i, cell in enumerate(current)}
+        if len(occupied_now) != n:
+            cells, counts = np.unique(current_flat, return_counts=True)
+            cell = int(cells[counts > 1][0])
+            who = np.flatnonzero(current_flat == cell).tolist()
+            raise ValueError(f"agents {who} share the cell {divmod(cell, w)}")
         occupied_next: dict[int, int] = {}
         decided = [-1] * n  # next flat cell per agent, -1 undecided
         fixed = fixed.copy()
@@ -209,11 +216,8 @@ class PIBTShield:
         nxt = np.asarray(decided, dtype=np.int64)
         if (nxt < 0).any():  # cannot happen: an unpushed agent can always stay
             raise RuntimeError(f"PIBT left agents {np.flatnonzero(nxt < 0).tolist()} undecided")
-        new_positions = np.stack([nxt // w, nxt % w], axis=1)
-        delta = new_positions - positions
-        actions = np.full(n, STAY, dtype=np.int64)
-        for a in range(1, NUM_ACTIONS):
-            actions[(delta == ACTION_DELTAS[a]).all(axis=1)] = a
+        new_positions = np.stack(np.divmod(nxt, w), axis=1)
+        actions = self._action_of_delta[nxt - current_flat + w]
         overridden = (actions != prefs[:, 0]) & ~fixed
         on_goal = nxt == self._goal_flat
         self.priorities = np.where(on_goal, self.base_priority, self.priorities + 1.0)
