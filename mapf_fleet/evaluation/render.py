@@ -91,13 +91,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scen", help="MovingAI .scen (with --map)")
     p.add_argument("--max-steps", type=int, help="step limit (default: the protocol's for the size)")
     p.add_argument("--out", required=True, help="output .gif, or a folder for PNG frames")
-    p.add_argument("--fps", type=float, default=8.0)
+    p.add_argument("--fps", type=float, default=8.0, help="frames per second of the GIF (default %(default)s)")
     p.add_argument("--device", default="cpu")
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(sys.argv[1:] if argv is None else argv)
+    parser = build_parser()
+    args = parser.parse_args(sys.argv[1:] if argv is None else argv)
+    if not args.fps > 0:  # also rejects nan
+        parser.error(f"--fps must be > 0, got {args.fps:g}")
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     config = ProtocolConfig.from_yaml()
     try:
@@ -130,7 +133,8 @@ def main(argv: list[str] | None = None) -> int:
         import imageio.v2 as imageio
 
         out.parent.mkdir(parents=True, exist_ok=True)
-        imageio.mimsave(out, list(frames), duration=1.0 / args.fps, loop=0)
+        # the GIF writer (Pillow) takes each frame's duration in milliseconds
+        imageio.mimsave(out, list(frames), duration=1000.0 / args.fps, loop=0)
     else:
         import imageio.v2 as imageio
 
