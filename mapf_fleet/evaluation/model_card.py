@@ -23,6 +23,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from mapf_fleet import paths
+
 from . import paper_results
 from .paper_results import BASELINE, CURRICULUM, FIXED
 
@@ -35,7 +37,7 @@ TAG_LOSS = "learner/loss"
 CURVE_TAGS = (TAG_GATE_SUCCESS, TAG_AGENTS, TAG_MAP_SIZE, TAG_ALPHA, TAG_LOSS)
 # The paper's tables: (summary field, title, format), as mapf_fleet.evaluation.report prints them.
 CARD_METRICS = (("success_rate", "Success rate ↑", "{:.3f}"), ("average_steps", "Average time steps ↓", "{:.2f}"))
-REPO_ROOT = Path(__file__).resolve().parents[2]
+REPO_ROOT = paths.SOURCE_ROOT  # paths given by the user are shown relative to a checkout
 
 
 class CardError(ValueError):
@@ -124,6 +126,9 @@ def match_policy(evaluation: dict, checkpoint: Path, eval_path: Path) -> str:
     same bytes, or (the path being relative to a directory we cannot know) has the same file
     name. Anything else is an evaluation of another checkpoint."""
     entries = [p for p in evaluation["metadata"]["policies"] if p.get("kind") == "checkpoint"]
+    # the checkpoint's own row is its unshielded one; its shielded rows (`--shield pibt`, label
+    # "<name> +PIBT...") are shown beside it by evaluation_section
+    entries.sort(key=lambda p: p.get("shield", "none") not in (None, "none"))
     if not entries:
         raise CardError(f"--eval {eval_path}: evaluates no checkpoint (only references)")
     own_hash = None
@@ -260,7 +265,7 @@ def training_config_diff(training_config: dict) -> tuple[list[tuple[str, Any, An
         return [], None, None
     diff = [(k, v, paper.get(k)) for k, v in config.items() if paper.get(k) != v]
     best, best_diff = None, None
-    for path in sorted((REPO_ROOT / "config" / "training").glob("*.yaml")):
+    for path in sorted(paths.data_path("config", "training").glob("*.yaml")):
         try:
             shipped = load_config(path).to_dict()
         except (TrainConfigError, OSError):
@@ -271,7 +276,7 @@ def training_config_diff(training_config: dict) -> tuple[list[tuple[str, Any, An
     if best is None:
         return diff, None, None
     note = "identical" if not best_diff else "differs in " + ", ".join(f"`{k}`" for k in best_diff)
-    return diff, str(best.relative_to(REPO_ROOT)), note
+    return diff, f"config/training/{best.name}", note
 
 
 @dataclass(frozen=True)
@@ -472,7 +477,10 @@ def evaluation_section(evaluation: dict, policy: str, metadata: dict, eval_path:
     """Per map: the measured rows of this checkpoint and of the references, the paper's rows of
     the same algorithm below them."""
     references = [p["name"] for p in evaluation["metadata"]["policies"] if p.get("kind") != "checkpoint"]
-    rows = [r for r in evaluation["results"] if r["policy"] in (policy, *references)]
+    # the same checkpoint under the coordination layer (rows "<policy> +PIBT", "+PIBT(mode)")
+    shielded = [p["name"] for p in evaluation["metadata"]["policies"] if p.get("kind") == "checkpoint"
+                and p["name"].startswith(f"{policy} +PIBT")]
+    rows = [r for r in evaluation["results"] if r["policy"] in (policy, *shielded, *references)]
     if not any(r["policy"] == policy for r in rows):
         raise CardError(f"--eval {eval_path}: metadata lists {policy!r} but results hold no row of it")
     algorithm, alpha = metadata["algorithm"], float(metadata["alpha"])
@@ -500,8 +508,11 @@ def evaluation_section(evaluation: dict, policy: str, metadata: dict, eval_path:
             cell = {(r["policy"], int(r["agents"])): r[metric] for r in mine}
             lines.append(f"| {title} | " + " | ".join(str(n) for n in agents) + " |")
             lines.append("|---|" + "---:|" * len(agents))
-            for name in [policy, *[n for n in references if any(r["policy"] == n for r in mine)]]:
-                label = f"**{name}** (this checkpoint)" if name == policy else f"{name} (reference)"
+            own = [policy, *[n for n in shielded if any(r["policy"] == n for r in mine)]]
+            for name in [*own, *[n for n in references if any(r["policy"] == n for r in mine)]]:
+                label = (f"**{name}** (this checkpoint)" if name == policy else
+                         f"**{name}** (this checkpoint under the PIBT shield)" if name in own else
+                         f"{name} (reference)")
                 lines.append(f"| {label} | " + " | ".join(_fmt(cell.get((name, n)), pattern) for n in agents) + " |")
             for row in paper:
                 values = getattr(row, metric)
