@@ -191,6 +191,7 @@ class Trainer:
         # the code of every session that trained this run (a resume may run newer code)
         self.code_versions: list[dict] = []
         self.bar = None
+        self.bar_actor_rate: float | None = None  # last actor rate shown on the bar
         if resume:
             self._load_state()
             if restore_replay:
@@ -399,6 +400,9 @@ class Trainer:
         last_state, last_log = self.learner.updates, time.monotonic()
         last_state_time = last_replay_time = time.monotonic()
         rate_steps, rate_updates, rate_t = 0, 0, time.monotonic()
+        # Actor results arrive in bursts (one per actor call, which may outlast a log interval):
+        # the actor rate spans from the last log that had results, not from the last log.
+        steps_t = rate_t
         last_stats: dict = {}
         actors.broadcast(self.learner.cpu_weights(), self.learner.updates)
         stop_reason = ""
@@ -452,10 +456,12 @@ class Trainer:
                 self.counters["cpu_seconds"] = cpu0 + cpu.seconds()
                 if now - last_log >= cfg.log_interval_seconds:
                     span = max(now - rate_t, 1e-9)
-                    rates = {"actor_agent_steps_per_s": rate_steps / span,
-                             "learner_updates_per_s": rate_updates / span}
+                    rates = {"learner_updates_per_s": rate_updates / span}
+                    if rate_steps:  # no result since the last log: no new actor rate, not 0
+                        rates["actor_agent_steps_per_s"] = rate_steps / max(now - steps_t, 1e-9)
+                        rate_steps, steps_t = 0, now
                     self._write_scalars(writer, last_stats, rates)
-                    rate_steps, rate_updates, rate_t, last_log = 0, 0, now, now
+                    rate_updates, rate_t, last_log = 0, now, now
                 if (self.learner.updates - last_state >= cfg.state_interval_updates
                         or now - last_state_time >= cfg.state_interval_seconds):
                     self.save_state()
@@ -496,9 +502,11 @@ class Trainer:
         if self.bar is not None:
             agents, size = self.task.num_agents, self.task.map_size
             success = f"{gate.rate:.2f}" if gate.flags else "–"
+            self.bar_actor_rate = rates.get("actor_agent_steps_per_s", self.bar_actor_rate)
+            steps = "–" if self.bar_actor_rate is None else f"{self.bar_actor_rate:.0f}"
             self.bar.set_postfix_str(
                 f"stage {self.stage} | {agents} agents {size}x{size} | alpha {self.task.alpha:.1f}"
-                f" | success {success} | {rates['actor_agent_steps_per_s']:.0f} agent-steps/s"
+                f" | success {success} | {steps} agent-steps/s"
                 f" | {rates['learner_updates_per_s']:.2f} upd/s")
         if writer is None:
             return
