@@ -2,8 +2,9 @@
 
 `ProtocolConfig` is read from `config/evaluation/paper.yaml`. Instances of a scenario come from
 the DHC authors' published test sets when present (40x40), otherwise they are generated once
-from a fixed seed and cached on disk (`cache/evaluation/`, git-ignored) in the same .npz layout
-as the published sets (`maps` (K,H,W) uint8, `starts`/`goals` (K,N,2) int16, (row, col)).
+from a fixed seed and cached on disk (`cache/evaluation/` of a checkout, git-ignored; when
+installed, ~/.cache/mapf_fleet/evaluation) in the same .npz layout as the published sets
+(`maps` (K,H,W) uint8, `starts`/`goals` (K,N,2) int16, (row, col)).
 """
 
 from __future__ import annotations
@@ -15,10 +16,12 @@ from pathlib import Path
 
 import numpy as np
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
-DEFAULT_CONFIG = REPO_ROOT / "config" / "evaluation" / "paper.yaml"
-DEFAULT_TESTSETS = REPO_ROOT.parent / "shared" / "data" / "dhc_testsets"
-DEFAULT_CACHE = REPO_ROOT / "cache" / "evaluation"
+from mapf_fleet import paths
+
+# installed: <prefix>/share/mapf_fleet/config/...; from a checkout: config/... (mapf_fleet.paths)
+DEFAULT_CONFIG = paths.data_path("config", "evaluation", "paper.yaml")
+DEFAULT_TESTSETS = paths.DEFAULT_TESTSETS
+DEFAULT_CACHE = paths.cache_dir("evaluation")
 
 
 class ProtocolError(ValueError):

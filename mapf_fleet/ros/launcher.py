@@ -27,7 +27,7 @@ from pathlib import Path
 from mapf_fleet.ros import common
 from mapf_fleet.ros.instances import InstanceSource
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
+REPO_ROOT = __import__("mapf_fleet.paths").paths.data_root("models")  # share dir, else checkout
 
 
 DEFAULT_CHECKPOINT = REPO_ROOT / "models" / "default.pt"
