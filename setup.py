@@ -34,6 +34,7 @@ setup(
         (f"share/{PACKAGE}", ["package.xml"]),
         *tree_data_files("config"),
         *tree_data_files("models"),
+        *tree_data_files("launch"),  # `ros2 launch mapf_fleet fleet.launch.py` on a full ROS install
     ],
     # Runtime Python dependencies are pinned in requirements.txt (ROS comes from the ROS
     # wheels or a full ROS install, which setuptools cannot express), so none are listed here.

@@ -153,12 +153,12 @@ fi
 
 # An editable wheel does not install setup.py's data_files, so register the package in the
 # venv's ament index by hand, as symlinks into the work tree: get_package_share_directory(
-# "mapf_fleet") then finds package.xml, config/ and models/ exactly as a colcon install would,
+# "mapf_fleet") then finds package.xml, config/, models/ and launch/ exactly as a colcon install would,
 # and edits to config/ show up without re-installing.
 SHARE="$VENV/share/mapf_fleet"
 mkdir -p "$SHARE" "$VENV/share/ament_index/resource_index/packages"
 : > "$VENV/share/ament_index/resource_index/packages/mapf_fleet"
-for item in package.xml config models; do
+for item in package.xml config models launch; do
   ln -sfn "$REPO/$item" "$SHARE/$item"
 done
 
