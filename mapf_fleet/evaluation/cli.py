@@ -4,6 +4,8 @@
         [--instances 200] [--workers 2] [--json out.json] [--csv out.csv]
         [--markdown out.md] [--plot out.png]
     mapf-fleet evaluate --checkpoint heuristic --map F.map --scen a.scen b.scen --agents 32
+    mapf-fleet evaluate --checkpoint heuristic --map a.map b.map --scen a.scen b.scen --agents 32
+    mapf-fleet evaluate --checkpoint heuristic --map maps/ --scen scens/ --agents 32
 
 The references of the protocol file (the heuristic policy and LaCAM) are added to the tables
 unless --no-references. Prints the paper-layout tables (success rate, average steps) per map.
@@ -31,6 +33,7 @@ from .protocol import (
     DEFAULT_TESTSETS,
     ProtocolConfig,
     ProtocolError,
+    movingai_pairs,
     movingai_scenarios,
     protocol_scenarios,
     scenario_instances,
@@ -60,8 +63,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, help="seed of generated instances (default: the protocol's)")
     p.add_argument("--testsets", default=str(DEFAULT_TESTSETS), help="folder of the published DHC test sets")
     p.add_argument("--cache-dir", default=str(DEFAULT_CACHE), help="cache of generated instances")
-    p.add_argument("--map", help="MovingAI .map file (instead of the protocol)")
-    p.add_argument("--scen", nargs="+", default=[], help="MovingAI .scen files, one instance each")
+    p.add_argument("--map", nargs="+", default=[], metavar="MAP",
+                   help="MovingAI .map files or folders of them (instead of the protocol)")
+    p.add_argument("--scen", nargs="+", default=[], metavar="SCEN",
+                   help="MovingAI .scen files or folders, one instance each: with one map, all "
+                        "of them; with several, in --map order (as many as maps), else each "
+                        "with the map its lines name")
     p.add_argument("--max-steps", type=int, help=f"step limit for --map (default {SMALL_MAP_LIMIT} up to 40x40, else {LARGE_MAP_LIMIT})")
     p.add_argument("--workers", type=int, default=1, help="parallel processes")
     p.add_argument("--batch-size", type=int, default=200, help="episodes stepped together per job")
@@ -82,12 +89,15 @@ def _scenarios(args, config: ProtocolConfig):
             raise ProtocolError("--map needs exactly one --agents N")
         from mapf_fleet.grid.movingai import read_map
 
-        grid = read_map(args.map)
-        limit = args.max_steps or (SMALL_MAP_LIMIT if max(grid.shape) <= 40 else LARGE_MAP_LIMIT)
-        scenario, instances = movingai_scenarios(args.map, args.scen, args.agents[0], limit)
-        if args.instances:
-            instances = instances.subset(slice(0, args.instances))
-        return [(scenario, instances)]
+        out = []
+        for map_path, scen_paths in movingai_pairs(args.map, args.scen):
+            grid = read_map(map_path)
+            limit = args.max_steps or (SMALL_MAP_LIMIT if max(grid.shape) <= 40 else LARGE_MAP_LIMIT)
+            scenario, instances = movingai_scenarios(map_path, scen_paths, args.agents[0], limit)
+            if args.instances:
+                instances = instances.subset(slice(0, args.instances))
+            out.append((scenario, instances))
+        return out
     if args.scen:
         raise ProtocolError("--scen needs --map")
     count = args.instances or config.instances

@@ -260,6 +260,60 @@ def scenario_instances(
     return made
 
 
+def _expand(items: list[str | Path], suffix: str, flag: str) -> list[Path]:
+    """Files of `items`; a folder stands for its *`suffix` files (sorted)."""
+    out: list[Path] = []
+    for item in items:
+        path = Path(item)
+        if path.is_dir():
+            found = sorted(p for p in path.glob(f"*{suffix}") if p.is_file())
+            if not found:
+                raise ProtocolError(f"{flag}: no {suffix} file in folder {path}")
+            out += found
+        elif path.is_file():
+            out.append(path)
+        else:
+            raise ProtocolError(f"{flag}: no such file or folder: {path}")
+    return out
+
+
+def movingai_pairs(maps: list[str | Path], scens: list[str | Path]) -> list[tuple[Path, list[Path]]]:
+    """Which .scen files go with which .map file, as [(map, [scen, ...])] in --map order.
+    Folders stand for their *.map / *.scen files. One map takes every .scen. Several maps and as
+    many .scen files, none given as a folder, pair in order (`--map a.map b.map --scen a.scen
+    b.scen`). Otherwise each .scen goes to the map its lines name (column 2 of a MovingAI .scen).
+    A .scen of another map is refused when it is loaded (naming both files)."""
+    from mapf_fleet.grid.movingai import map_file_name, read_scen
+
+    map_files = _expand(list(maps), ".map", "--map")
+    scen_files = _expand(list(scens), ".scen", "--scen")
+    if not scen_files:
+        raise ProtocolError("--map needs at least one --scen file")
+    stems: dict[str, Path] = {}
+    for m in map_files:
+        if m.stem in stems:
+            raise ProtocolError(f"--map: {stems[m.stem]} and {m} have the same name {m.stem!r}")
+        stems[m.stem] = m
+    if len(map_files) == 1:
+        return [(map_files[0], scen_files)]
+    folders = any(Path(p).is_dir() for p in [*maps, *scens])
+    if not folders and len(scen_files) == len(map_files):
+        return [(m, [s]) for m, s in zip(map_files, scen_files)]
+    by_name = {m.name: m for m in map_files}
+    groups: dict[Path, list[Path]] = {m: [] for m in map_files}
+    for scen in scen_files:
+        entries = read_scen(scen)
+        named = map_file_name(entries[0].map_name) if entries else ""
+        if named not in by_name:
+            raise ProtocolError(f"{scen}: its lines name map {named!r} (column 2), not one of the "
+                                f"--map files {sorted(by_name)}")
+        groups[by_name[named]].append(scen)
+    alone = [str(m) for m, group in groups.items() if not group]
+    if alone:
+        raise ProtocolError(f"--scen: no .scen file names the map(s) {', '.join(alone)}")
+    return list(groups.items())
+
+
 def movingai_scenarios(
     map_path: str | Path, scen_paths: list[str | Path], num_agents: int, max_steps: int
 ) -> tuple[Scenario, InstanceSet]:

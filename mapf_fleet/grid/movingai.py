@@ -16,7 +16,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from .errors import MapFormatError
+from .errors import InstanceError, MapFormatError
 from .heuristic import bfs_distances_many
 from .instance import Instance
 
@@ -35,6 +35,7 @@ class ScenarioEntry:
     start: tuple[int, int]
     goal: tuple[int, int]
     optimal_length: float
+    line: int | None = dataclasses.field(default=None, compare=False)  # in the file read
 
 
 def _lines(path: Path) -> list[str]:
@@ -133,7 +134,8 @@ def read_scen(path: str | PathLike) -> list[ScenarioEntry]:
             if not (0 <= x < width and 0 <= y < height):
                 raise MapFormatError(path, number, f"{name} (x={x}, y={y}) is outside the "
                                                    f"{width}x{height} map")
-        entries.append(ScenarioEntry(bucket, fields[1], width, height, (sy, sx), (gy, gx), optimal))
+        entries.append(ScenarioEntry(bucket, fields[1], width, height, (sy, sx), (gy, gx), optimal,
+                                     line=number))
     return entries
 
 
@@ -158,19 +160,44 @@ def instance_to_scenario(instance: Instance, map_name: str, bucket: int = 0
             for s, g, d in zip(instance.starts, instance.goals, lengths)]
 
 
+def map_file_name(map_name: str) -> str:
+    """The file name a .scen line's map column names ("maps/den312d.map" -> "den312d.map")."""
+    return map_name.replace("\\", "/").rsplit("/", 1)[-1]
+
+
+def check_scen_map(map_path: str | PathLike, scen_path: str | PathLike,
+                   entries: Sequence[ScenarioEntry]) -> None:
+    """MapFormatError naming both files when a .scen line's map column (column 2) names another
+    map file than `map_path`: a .scen of another map is refused before its cells are checked."""
+    map_path = Path(map_path)
+    for k, e in enumerate(entries):
+        named = map_file_name(e.map_name)
+        if named and named != map_path.name:
+            raise MapFormatError(scen_path, e.line, f"entry {k} is for map {e.map_name!r} (column 2), "
+                                                    f"not {map_path}: give each map its own .scen")
+
+
 def load_movingai_instances(map_path: str | PathLike, scen_path: str | PathLike,
                             num_agents: int) -> Instance:
-    """The instance made of the map and the first `num_agents` scenario entries (validated)."""
+    """The instance made of the map and the first `num_agents` scenario entries (validated).
+    Errors name the .scen file and line: an entry of another map (column 2), a start or goal on
+    an obstacle, an unreachable goal."""
     grid = read_map(map_path)
     entries: Sequence[ScenarioEntry] = read_scen(scen_path)
     if num_agents < 1 or num_agents > len(entries):
         raise MapFormatError(scen_path, None, f"asked for {num_agents} agents, the file has "
                                               f"{len(entries)} entries")
+    check_scen_map(map_path, scen_path, entries[:num_agents])
     h, w = grid.shape
     for k, e in enumerate(entries[:num_agents]):
         if (e.map_height, e.map_width) != (h, w):
-            raise MapFormatError(scen_path, None, f"entry {k} is for a {e.map_width}x"
-                                                  f"{e.map_height} map, {map_path} is {w}x{h}")
+            raise MapFormatError(scen_path, e.line, f"entry {k} is for a {e.map_width}x"
+                                                    f"{e.map_height} map, {map_path} is {w}x{h}")
     starts = np.array([e.start for e in entries[:num_agents]], dtype=np.int64)
     goals = np.array([e.goal for e in entries[:num_agents]], dtype=np.int64)
-    return Instance(grid, starts, goals).validate()
+    try:
+        return Instance(grid, starts, goals).validate()
+    except InstanceError as exc:
+        line = entries[exc.agent].line if exc.agent is not None and exc.agent < num_agents else None
+        cell = "" if exc.cell is None else f" (x={exc.cell[1]}, y={exc.cell[0]} in .scen terms)"
+        raise MapFormatError(scen_path, line, f"{exc}{cell}, on map {map_path}") from exc
