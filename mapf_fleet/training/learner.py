@@ -14,17 +14,22 @@ but it trains seq_len x N agent-transitions instead of 1. Approximations, both s
 Every agent is trained; actors explore with epsilon on agent 0 only, as the reference does
 (`explore_all_agents`, see TrainConfig: with every agent exploring the policy learns to wait).
 
-DCC decision-causal masks: the learner *recomputes* them with the network being unrolled (the
-online net for Q(s, a), the target net for the bootstrap) instead of replaying the masks the actor
-recorded. Decided so because (1) at inference, in the evaluator and on the fleet, the masks always
+DCC decision-causal masks: by default the learner *recomputes* them with the network being
+unrolled (the online net for Q(s, a), the target net for the bootstrap) instead of replaying the
+masks the actor recorded. Decided so because (1) at inference, in the evaluator and on the fleet, the masks always
 come from the acting weights, so recomputing trains exactly the function that is deployed;
 (2) the bootstrap max_a Q_target(o_{t+n}, a) has to be the target network's own greedy value,
 which includes its own communication choice, and the actor never recorded a mask for the final
 observation of a time-limited episode; (3) replayed masks are stale by the actor's weight lag plus
 the sequence's age in replay, so the online net would be fitted on communication graphs it would
 no longer choose. The price is the causal check (one extra pass per FOV neighbour) in every
-learner step; `DCCNetwork.step(comm_mask=...)` would let a later change replay recorded masks
-(behaviour-policy masks, cheaper) if the learner becomes the bottleneck.
+learner step. `update(batch, comm_masks=...)` replays recorded masks instead (behaviour-policy
+masks, as the reference learner does; both unrolls use them, the bootstrap included): cheaper,
+but the actor does not record masks yet (see benchmarks/bench_training.py for the cost of each).
+Window steps outside the episode (burn-in before its start, n-step padding after its end) are
+masked out of each step (`_step_agents`): their padded agents all stand on one cell, and the
+causal check used to run on every pair of them (DCC paper preset, 16 agents, issue 18: 0.89 ->
+0.26 CPU s per sequence on 24-step episodes, 0.30 -> 0.23 on 256-step ones; same loss).
 
 Correctness of the alignment (obs/action/reward/next obs, stored hidden + burn-in, padding of
 short sequences, terminal cut, time-limit bootstrap) is checked against an independent
@@ -41,7 +46,7 @@ import torch.nn.functional as F
 
 from .config import TrainConfig
 from .modelio import build_model, model_step, pick_device
-from .replay import SequenceBatch
+from .replay import FAR_AWAY, SequenceBatch
 
 
 class Learner:
@@ -56,7 +61,7 @@ class Learner:
         self.updates = 0
 
     # ------------------------------------------------------------------------------------------
-    def _tensors(self, batch: SequenceBatch) -> dict:
+    def _tensors(self, batch: SequenceBatch, comm_masks=None) -> dict:
         # Agents are packed at the front of a slot: cut the padding of small settings.
         n = int(np.flatnonzero(batch.agent_mask.any(0)).max()) + 1
         dev = self.device
@@ -64,7 +69,17 @@ class Learner:
         def t(x, dtype=None):
             return torch.as_tensor(np.ascontiguousarray(x), device=dev, dtype=dtype)
 
+        masks = None
+        if comm_masks is not None:
+            if self.cfg.algo != "dcc":
+                raise ValueError("comm_masks: only the DCC learner replays communication masks")
+            shape = batch.positions.shape[:3] + batch.positions.shape[2:3]
+            if tuple(np.shape(comm_masks)) != shape:
+                raise ValueError(f"comm_masks: expected shape (B, W, N, N) = {shape}, "
+                                 f"got {tuple(np.shape(comm_masks))}")
+            masks = t(np.asarray(comm_masks)[:, :, :n, :n], torch.bool)
         return {
+            "comm_masks": masks,
             "obs": t(batch.obs[:, :, :n]), "positions": t(batch.positions[:, :, :n]),
             "last": t(batch.last_actions[:, :, :n]), "actions": t(batch.actions[:, :, :n]),
             "returns": t(batch.returns[:, :, :n]), "discount": t(batch.boot_discount),
@@ -73,23 +88,57 @@ class Learner:
             "hidden": t(batch.hidden[:, :n]), "weights": t(batch.weights),
         }
 
+    @staticmethod
+    def _step_agents(d: dict, w: int) -> torch.Tensor:
+        """(B, N) agents that exist at window step w: the sequence's agents, minus the padding
+        steps before an episode's start or after its end (positions FAR_AWAY there). Their
+        outputs are never used (the stored hidden replaces the carried one before the start; no
+        loss or bootstrap reads past the end), but unmasked they all stood on one cell, each in
+        every other's FOV, and DCC ran its causal check on every pair of them."""
+        return d["agent_mask"] & (d["positions"][:, w, :, 0] != FAR_AWAY)
+
     def _unroll(self, net, d: dict, w_from: int, w_to: int, h: torch.Tensor):
         """Run `net` over window steps [w_from, w_to); the stored hidden state replaces the
         carried one until each sample's own start index."""
         qs = []
         for w in range(w_from, w_to):
+            mask = None if d["comm_masks"] is None else d["comm_masks"][:, w]
             out = model_step(net, self.cfg.algo, d["obs"][:, w], d["positions"][:, w], h,
-                             d["last"][:, w], d["agent_mask"])
+                             d["last"][:, w], self._step_agents(d, w), comm_mask=mask)
             before_start = (d["start"] > w)[:, None, None]  # input of step w+1 still stored
             h = torch.where(before_start, d["hidden"], out.hidden)
             qs.append(out.q)
         return torch.stack(qs, 1), h
 
-    def q_and_targets(self, batch: SequenceBatch, d: dict | None = None):
+    @torch.no_grad()
+    def causal_masks(self, batch: SequenceBatch, net: torch.nn.Module | None = None
+                     ) -> np.ndarray:
+        """bool (B, W, N, N): the DCC decision-causal masks that `net` (default: the target
+        network) chooses at every window step when unrolled as the learner unrolls it, i.e.
+        what an actor acting with those weights would have recorded. For tests and benchmarks
+        of `comm_masks` (the actor does not record masks)."""
+        if self.cfg.algo != "dcc":
+            raise ValueError("causal_masks: only DCC has decision-causal masks")
+        d = self._tensors(batch)
+        net = self.target if net is None else net
+        h = d["hidden"]
+        n_slots = batch.positions.shape[2]
+        n = d["obs"].shape[2]
+        masks = np.zeros(batch.positions.shape[:2] + (n_slots, n_slots), bool)
+        for w in range(d["obs"].shape[1]):
+            out = model_step(net, "dcc", d["obs"][:, w], d["positions"][:, w], h,
+                             d["last"][:, w], self._step_agents(d, w))
+            h = torch.where((d["start"] > w)[:, None, None], d["hidden"], out.hidden)
+            masks[:, w, :n, :n] = out.comm_mask.cpu().numpy()
+        return masks
+
+    def q_and_targets(self, batch: SequenceBatch, d: dict | None = None, comm_masks=None):
         """Online Q of the taken actions (B, L, N) (with autograd), n-step targets (B, L, N)
-        and the loss mask (B, L, N) float: what the loss compares, exposed for tests."""
+        and the loss mask (B, L, N) float: what the loss compares, exposed for tests.
+        `comm_masks` (B, W, N, N) bool, DCC only: recorded decision-causal masks of every
+        window step, replayed by both the online and the target unroll (None: recomputed)."""
         cfg = self.cfg
-        d = self._tensors(batch) if d is None else d
+        d = self._tensors(batch, comm_masks) if d is None else d
         burn, length, window = cfg.burn_in, cfg.seq_len, cfg.window_len
         h0 = d["hidden"]
         with torch.no_grad():
@@ -109,10 +158,11 @@ class Learner:
         return q_taken, target, mask
 
     def compute_loss(self, batch: SequenceBatch, demo_weight: float = 0.0,
-                     demo_margin: float = 0.8):
+                     demo_margin: float = 0.8, comm_masks=None):
         """Return (loss, per-sequence priorities (B,) numpy, stats dict). With demo_weight > 0
-        the batch holds demonstrations and the DQfD margin loss on its actions is added."""
-        cfg, d = self.cfg, self._tensors(batch)
+        the batch holds demonstrations and the DQfD margin loss on its actions is added.
+        `comm_masks`: see `q_and_targets` (None, the default, recomputes the DCC masks)."""
+        cfg, d = self.cfg, self._tensors(batch, comm_masks)
         q_taken, target, mask = self.q_and_targets(batch, d)
         td = target - q_taken
         elementwise = F.huber_loss(q_taken, target, reduction="none", delta=cfg.huber_delta)
@@ -141,10 +191,11 @@ class Learner:
         self._last_q_online = None
         return loss, priorities.cpu().numpy(), stats
 
-    def update(self, batch: SequenceBatch, demo_weight: float = 0.0, demo_margin: float = 0.8):
-        """One gradient step; returns (priorities, stats)."""
+    def update(self, batch: SequenceBatch, demo_weight: float = 0.0, demo_margin: float = 0.8,
+               comm_masks=None):
+        """One gradient step; returns (priorities, stats). `comm_masks`: see `q_and_targets`."""
         self.model.train()
-        loss, priorities, stats = self.compute_loss(batch, demo_weight, demo_margin)
+        loss, priorities, stats = self.compute_loss(batch, demo_weight, demo_margin, comm_masks)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         stats["grad_norm"] = float(torch.nn.utils.clip_grad_norm_(self.model.parameters(),

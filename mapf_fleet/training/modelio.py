@@ -29,11 +29,15 @@ def hidden_dim(model: torch.nn.Module) -> int:
     return int(model.config.hidden_dim)
 
 
-def model_step(model, algo: str, obs, positions, hidden, last_actions, agent_mask=None):
-    """One batched step; `last_actions` (B, N) with -1 = none (used by DCC only)."""
+def model_step(model, algo: str, obs, positions, hidden, last_actions, agent_mask=None,
+               comm_mask=None):
+    """One batched step; `last_actions` (B, N) with -1 = none (used by DCC only); `comm_mask`
+    (B, N, N) bool replays a recorded DCC decision-causal mask (None: the network computes it)."""
     if algo == "dcc":
         return model.step(obs, positions, hidden=hidden, last_action=last_actions,
-                          agent_mask=agent_mask)
+                          agent_mask=agent_mask, comm_mask=comm_mask)
+    if comm_mask is not None:
+        raise ValueError("comm_mask: only DCC replays recorded communication masks")
     return model.step(obs, positions, hidden=hidden, agent_mask=agent_mask)
 
 
