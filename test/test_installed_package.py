@@ -20,6 +20,17 @@ REPO = Path(__file__).resolve().parents[1]
 SOURCES = ["setup.py", "setup.cfg", "package.xml", "resource", "mapf_fleet", "config", "models", "launch"]
 
 
+def _installed_here() -> list[str]:
+    """The files of mapf_fleet's distribution in the environment running the tests."""
+    import importlib.metadata
+
+    try:
+        dist = importlib.metadata.distribution("mapf_fleet")
+    except importlib.metadata.PackageNotFoundError:
+        return []
+    return sorted(str(dist.locate_file(f)) for f in dist.files or [])
+
+
 @pytest.fixture(scope="module")
 def installed(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("install")
@@ -31,8 +42,13 @@ def installed(tmp_path_factory):
             shutil.copytree(path, source / name, ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
         elif path.is_file():
             shutil.copy2(path, source / name)
+    before = _installed_here()
+    # --ignore-installed: without it pip uninstalls the project's own (editable) mapf_fleet from
+    # the running environment before installing into the prefix
     done = subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation",
-                           "--prefix", str(prefix), str(source)], capture_output=True, text=True, timeout=600)
+                           "--ignore-installed", "--prefix", str(prefix), str(source)],
+                          capture_output=True, text=True, timeout=600)
+    assert _installed_here() == before, "the install into a prefix changed the running environment"
     assert done.returncode == 0, done.stderr[-3000:]
     site = glob.glob(str(prefix / "lib" / "python*" / "site-packages"))
     assert len(site) == 1, site
