@@ -97,10 +97,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(sys.argv[1:] if argv is None else argv)
+    args = build_parser().parse_args(sys.argv[1:] if argv is None else argv)
     if not args.fps > 0:  # also rejects nan
-        parser.error(f"--fps must be > 0, got {args.fps:g}")
+        print(f"mapf-fleet render: --fps must be > 0, got {args.fps:g}", file=sys.stderr)
+        return 2
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     config = ProtocolConfig.from_yaml()
     try:
