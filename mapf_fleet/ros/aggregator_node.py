@@ -1,14 +1,25 @@
 """FleetStateAggregator: real-robot mode. Instead of simulating, it builds the fleet state of each
 tick from the robots' own pose feeds (`/robot_<i>/pose`, geometry_msgs/PoseStamped), so the
-policy nodes run unchanged (same map, state, moves and waypoint topics as with the simulator).
+policy nodes run unchanged (same map, state and moves topics as with the simulator). It is the
+tick's arbiter: the only node that commands the robots (`/robot_<i>/waypoint`).
 
-Tick k: publish the fleet state of k; collect the robots' moves for k (a move missing after
-`decision_timeout` counts as stay and is reported); each robot's commanded waypoint is its cell
-plus its move (the cell its policy node sends to `/robot_<i>/waypoint`); wait until every robot
-reports a pose in its commanded cell, or `arrival_timeout`; snap the poses to cells (map
-resolution and origin) and publish tick k + 1. A pose off the grid or on an obstacle is
-rejected with a log line naming the robot, the pose and the reason, and that robot holds its
-last valid cell. Two robots reported in one cell are counted as a collision.
+Tick k: publish the fleet state of k; collect the robots' ranked moves for k; arbitrate them
+(`arbiter.TickArbiter`, `conflict_rule`) so that every robot is commanded to its own cell or an
+adjacent free cell no other robot is commanded to, with no two robots trading cells:
+- a robot whose decision is missing (after `decision_timeout`, reported) stays, unpushable;
+- a robot that has not reached its last waypoint (the state's cell is not its waypoint) is in
+  transit: it occupies both cells (held, its waypoint reserved) and keeps its old waypoint;
+- a rotation (followers in a cycle) stays put; a follower gets its waypoint only once the robot
+  in its target cell has reported leaving it (robots move at their own pace), see
+  `arbiter.break_rotations` / `ready_to_send`; the commands are checked by
+  `arbiter.unsafe_commands` (any breach: every robot stays, logged as an error).
+Then wait until every robot reports a pose in its commanded cell, or `arrival_timeout` (a
+follower still waiting then is told to stay: it never got its waypoint); snap the poses to
+cells (map resolution and origin) and publish tick k + 1 with `last_actions` = the moves the
+robots really made. A pose off the grid or on an obstacle is rejected with a log line naming the
+robot, the pose and the reason, and that robot holds its last valid cell (and is in transit
+from then on). Two robots reported in one cell at any moment are counted (`pose_conflicts`) and
+logged; two in one cell at a tick are counted as a collision.
 
 The map and the goals come from the same sources as the simulator's (instance YAML, MovingAI
 files or a generated instance); the starts are the robots' first valid poses. The tick
@@ -27,8 +38,10 @@ from geometry_msgs.msg import PoseStamped
 from mapf_fleet_interfaces.msg import FleetOutcome
 from rclpy.node import Node
 
-from mapf_fleet.grid.actions import ACTION_DELTAS
+from mapf_fleet.grid.actions import ACTION_DELTAS, STAY
 from mapf_fleet.ros import common, fleet_io
+from mapf_fleet.ros.arbiter import (TickArbiter, check_conflict_rule, plan_robot_commands,
+                                    ready_to_send)
 from mapf_fleet.ros.lockstep import (INSTANCE_PARAMETERS, RUN_PARAMETERS, Decisions, FleetTicker,
                                      RunRecorder, instance_source, require_positive)
 
@@ -59,13 +72,20 @@ class FleetStateAggregator(Node):
         self.episode = random.getrandbits(63)
         self.positions = np.full((self.num_robots, 2), -1, dtype=np.int64)  # last valid cells
         self.last_actions = np.full(self.num_robots, -1, dtype=np.int64)
+        self.waypoints: np.ndarray | None = None  # last commanded cell per robot
+        self.conflict_rule = check_conflict_rule(str(p["conflict_rule"]))
+        self.arbiter = TickArbiter(self.grid, self.goals, self.conflict_rule)
         self.rejected = 0
+        self.pose_conflicts = 0  # moments two robots reported one cell
         self.outcome: FleetOutcome | None = None
         self.finished = threading.Event()
 
         self.ticker = FleetTicker(self.num_robots, self.episode)
         self.recorder = RunRecorder(self.episode, self.num_robots, self.goals,
-                                    int(p["max_steps"]), series=("rejected",))
+                                    int(p["max_steps"]),
+                                    series=("rejected", "executed", "overridden", "late",
+                                            "waypoints"),
+                                    conflict_rule=self.conflict_rule)
         # the poses are guarded by (and notify) the ticker's condition, so the start-up and the
         # arrival waits see moves, heartbeats and poses alike
         self._cond = self.ticker.cond
@@ -110,10 +130,17 @@ class FleetStateAggregator(Node):
                         f"{tuple(int(v) for v in self.positions[robot_id])}")
                 self._rejected_reason[robot_id] = reason
             else:
+                previous = self._reported.get(robot_id)
                 self._reported[robot_id] = cell
                 self._rejected_reason.pop(robot_id, None)
                 if self.positions[robot_id, 0] < 0:
                     self.positions[robot_id] = cell  # first valid pose: the start
+                elif previous != cell:
+                    others = [j for j, c in self._reported.items() if c == cell and j != robot_id]
+                    if others:
+                        self.pose_conflicts += 1
+                        self.get_logger().error(f"robot {robot_id} reported in cell {cell} "
+                                                f"where robots {others} are")
             self._cond.notify_all()
 
     # ---- the tick loop (own thread) ----
@@ -131,47 +158,87 @@ class FleetStateAggregator(Node):
         if unready:
             self.get_logger().warning(f"starting without ready robots {unready} "
                                       f"after {startup_timeout} s")
-        self.get_logger().info(f"all {self.num_robots} robots posed at {self.positions.tolist()}")
+        self.get_logger().info(f"all {self.num_robots} robots posed at "
+                               f"{self.positions.tolist()}, conflict rule {self.conflict_rule}")
+        self.waypoints = self.positions.copy()
         self.outcome = fleet_io.run_lockstep(
             self, self.channels, self.recorder, self.positions.copy(), self._step,
             self._publish_state, decision_timeout=float(self.params["decision_timeout"]),
             progress_every=int(self.params["progress_every"]),
-            record_file=self.params["record_file"],
-            summary_extra=lambda: f", {self.rejected} rejected poses")
+            record_file=self.params["record_file"], summary_extra=self._summary_extra)
+
+    def _summary_extra(self) -> str:
+        self.recorder.record["pose_conflicts"] = self.pose_conflicts
+        return f", {self.rejected} rejected poses, {self.pose_conflicts} pose conflicts"
 
     def _step(self, decisions: Decisions):
-        """The real robots' move: wait until they report their commanded cells (or
-        `arrival_timeout`), then take their valid reported cells as the next positions."""
+        """The real robots' move: command the arbitrated waypoints (followers once their cell is
+        vacated), wait until the robots report their commanded cells (or `arrival_timeout`),
+        then take their valid reported cells as the next positions."""
         arrival_timeout = float(self.params["arrival_timeout"])
-        commanded = self.positions + ACTION_DELTAS[decisions.actions]
-        arrived = self._wait_arrival(commanded, arrival_timeout)
-        late = np.flatnonzero(~arrived).tolist()
-        if late:
-            self.get_logger().warning(f"tick {decisions.tick}: robots {late} not at their "
-                                      f"waypoints after {arrival_timeout} s")
+        plan = plan_robot_commands(self.arbiter, self.positions.copy(), self.waypoints,
+                                   decisions.preferences, decisions.missing)
+        if plan.problems:
+            self.get_logger().error(f"tick {decisions.tick}: unsafe commands "
+                                    f"({'; '.join(plan.problems)}): every robot stays")
+        if plan.stopped:
+            self.get_logger().info(f"tick {decisions.tick}: robots {plan.stopped} would "
+                                   f"rotate: they stay")
+        if plan.late.any():
+            self.get_logger().warning(f"tick {decisions.tick}: robots "
+                                      f"{np.flatnonzero(plan.late).tolist()} still in transit: "
+                                      f"they hold both cells")
+        commanded, executed, late = plan.waypoints.copy(), plan.executed.copy(), plan.late
+        sent = self._dispatch_and_wait(commanded, arrival_timeout)
+        # never sent a new waypoint (its cell was not vacated in time): it stayed; a robot in
+        # transit had its waypoint before and keeps it
+        unsent = np.flatnonzero(~sent & ~late).tolist()
+        if unsent:
+            self.get_logger().warning(f"tick {decisions.tick}: robots {unsent} waited for their "
+                                      f"cell to be vacated: they stay")
+            commanded[unsent] = self.positions[unsent]
+            executed[unsent] = STAY
+        self.waypoints = commanded
         with self._cond:
+            arrived = np.array([tuple(commanded[i]) == tuple(self._reported.get(i, (-1, -1)))
+                                for i in range(self.num_robots)])
             previous = self.positions.copy()
             rejected = sorted(self._rejected_reason)
             for i, cell in self._reported.items():
                 if i not in self._rejected_reason:
                     self.positions[i] = cell
             self.ticker.advance()
+        if not arrived.all():
+            self.get_logger().warning(f"tick {decisions.tick}: robots "
+                                      f"{np.flatnonzero(~arrived).tolist()} not at their "
+                                      f"waypoints after {arrival_timeout} s")
         moved = self.positions - previous
         self.last_actions = np.array([_action_of(d) for d in moved], dtype=np.int64)
         _, counts = np.unique(self.positions, axis=0, return_counts=True)
         self.rejected += len(rejected)
-        return self.positions.copy(), int((counts[counts > 1]).sum()), {"rejected": rejected}
+        overridden = np.flatnonzero((executed != decisions.actions)
+                                    & ~plan.resolution.held).tolist()
+        return self.positions.copy(), int((counts[counts > 1]).sum()), {
+            "rejected": rejected, "executed": executed.tolist(), "overridden": overridden,
+            "late": np.flatnonzero(late).tolist(), "waypoints": commanded.tolist()}
 
-    def _wait_arrival(self, commanded: np.ndarray, timeout: float) -> np.ndarray:
-        """bool (N,): robots whose latest reported cell is their commanded cell."""
+    def _dispatch_and_wait(self, commanded: np.ndarray, timeout: float) -> np.ndarray:
+        """Send each robot its waypoint as soon as no other robot reports being in that cell,
+        and wait until every robot reports its commanded cell, or `timeout`. bool (N,): the
+        robots that were sent their waypoint."""
         deadline = time.monotonic() + timeout
+        sent = np.zeros(self.num_robots, dtype=bool)
         with self._cond:
             while True:
-                arrived = np.array([tuple(commanded[i]) == tuple(self._reported.get(i, (-1, -1)))
-                                    for i in range(self.num_robots)])
+                ready = ready_to_send(commanded, self._reported, np.flatnonzero(~sent).tolist())
+                if ready:
+                    self.channels.publish_waypoints(commanded, ready)
+                    sent[ready] = True
+                arrived = all(tuple(commanded[i]) == tuple(self._reported.get(i, (-1, -1)))
+                              for i in range(self.num_robots))
                 remaining = deadline - time.monotonic()
-                if arrived.all() or remaining <= 0:
-                    return arrived
+                if (arrived and sent.all()) or remaining <= 0:
+                    return sent
                 self._cond.wait(remaining)
 
     def _publish_state(self, done: bool):

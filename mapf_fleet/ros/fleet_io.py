@@ -1,7 +1,8 @@
 """The ROS side the simulator and the aggregator share: parameter declaration, the fleet topics
-they publish and subscribe (map, goals, state, markers, progress, outcome; moves, heartbeats),
-the lockstep tick loop, the tick thread and the process `main`. What differs between the two
-nodes is the `step` they give `run_lockstep`: how a tick's moves become the next positions.
+they publish and subscribe (map, goals, state, markers, progress, outcome, the robots' waypoints;
+moves, heartbeats), the lockstep tick loop, the tick thread and the process `main`. What differs
+between the two nodes is the `step` they give `run_lockstep`: how a tick's moves, arbitrated by
+`arbiter.TickArbiter`, become the next positions.
 """
 
 from __future__ import annotations
@@ -51,6 +52,11 @@ class FleetChannels:
         self.goal_pubs = [node.create_publisher(PoseStamped, common.goal_topic(i),
                                                 common.latched_qos(), event_callbacks=quiet)
                           for i in range(n)]
+        # the arbiter commands the robots: latched, so a robot whose subscription matches late
+        # (discovery still running at tick 0, a restarted driver) still gets its current waypoint
+        self.waypoint_pubs = [node.create_publisher(PoseStamped, common.waypoint_topic(i),
+                                                    common.latched_qos(1), event_callbacks=quiet)
+                              for i in range(n)]
         node.create_subscription(RobotMove, common.MOVES_TOPIC, self._on_move,
                                  common.reliable_qos(1000))
         node.create_subscription(RobotStatus, common.STATUS_TOPIC, ticker.on_status,
@@ -65,6 +71,13 @@ class FleetChannels:
         self.map_pub.publish(common.grid_to_occupancy(np.asarray(grid), self.geometry))
         for i, pub in enumerate(self.goal_pubs):
             pub.publish(common.cell_pose(*goals[i], self.geometry))
+
+    def publish_waypoints(self, cells, robots=None) -> None:
+        """Command robots (all, or the ids in `robots`) to their cells (N, 2)."""
+        stamp = self.node.get_clock().now().to_msg()
+        for i in range(len(cells)) if robots is None else robots:
+            self.waypoint_pubs[i].publish(common.cell_pose(int(cells[i][0]), int(cells[i][1]),
+                                                           self.geometry, stamp))
 
     def publish_state(self, positions, goals, last_actions, done: bool):
         """FleetState of the ticker's tick and the markers; returns the stamp used."""

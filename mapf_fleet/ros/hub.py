@@ -10,7 +10,13 @@ interface does not change with the process layout), but the robots of one proces
 - local delivery: a message between two robots of the same process goes straight into the
   mailbox (it is still published, so viewers and other processes see it).
 
-Only `comm_timeout`, `service_timeout` and `status_period` of the first hosted node are used.
+Each robot publishes its five actions ranked (`coordination.preferences.rank_actions` over its
+Q-values, `preference_mode`, ties broken by `tie_breakers(robot id, tick)`, exactly as the batched
+evaluator under `--shield pibt`), not a waypoint: the tick's arbiter (simulator or aggregator)
+resolves the moves and commands the robots.
+
+Only `comm_timeout`, `service_timeout`, `status_period` and `preference_mode` of the first hosted
+node are used.
 """
 
 from __future__ import annotations
@@ -22,7 +28,7 @@ import time
 import numpy as np
 import torch
 
-from mapf_fleet.grid.actions import ACTION_DELTAS
+from mapf_fleet.coordination.preferences import rank_actions, tie_breakers
 from mapf_fleet.grid.heuristic import cached_heuristic_bits
 from mapf_fleet.ros import common
 from mapf_fleet.ros.mailbox import Mailbox
@@ -85,6 +91,7 @@ class PolicyHub:
         self.index_of = {int(r): m for m, r in enumerate(ids)}
         first = nodes[0]
         self.comm_timeout = first.comm_timeout
+        self.preference_mode = first.preference_mode
         self.host = f"mapf_policy_hub_{os.getpid()}_{ids[0]}"
         self.node = Node(self.host)
         self.mailbox = Mailbox()
@@ -231,23 +238,21 @@ class PolicyHub:
             else:
                 last = torch.as_tensor(np.asarray(state.last_actions, dtype=np.int64)[self.ids])
                 h, requested, received, missing = self._dcc(tick, obs, last, positions)
-            actions = self.model.head(h).argmax(-1).numpy()
+            q = self.model.head(h).numpy()
+        preferences = rank_actions(obs.numpy(), q, self.preference_mode,
+                                   ties=tie_breakers(self.ids, tick))
         if self.mailbox.current_tick != tick:
             return  # the fleet moved on while we waited: this decision is stale
         self._hidden = h
         self.decisions += 1
-        stamp = self.node.get_clock().now().to_msg()
         from mapf_fleet_interfaces.msg import RobotMove
 
         for m, node in enumerate(self.nodes):
-            action = int(actions[m])
+            ranking = preferences[m].tolist()
             node.move_pub.publish(RobotMove(
-                episode=state.episode, tick=tick, robot_id=node.robot_id, action=action,
-                missing_peers=sorted(missing[m]), requested=requested[m],
+                episode=state.episode, tick=tick, robot_id=node.robot_id, action=ranking[0],
+                preferences=ranking, missing_peers=sorted(missing[m]), requested=requested[m],
                 messages_received=received[m]))
-            target = positions[node.robot_id] + ACTION_DELTAS[action]
-            node.waypoint_pub.publish(common.cell_pose(target[0], target[1], self.geometry,
-                                                       stamp))
         if any(missing):
             left_out = {int(self.ids[m]): sorted(s) for m, s in enumerate(missing) if s}
             self.node.get_logger().warning(f"tick {tick}: left out peers {left_out}")

@@ -9,6 +9,10 @@ one process share one hub (one subscription per shared topic, batched inference)
 /robot_<i>/pose and follow /robot_<i>/waypoint. Every process gets
 ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST.
 
+The simulator (or the aggregator) arbitrates each tick with `--conflict-rule`: `pibt` (default:
+PIBT over the robots' ranked actions, CS-PIBT; nothing is reverted) or `revert` (the paper's
+environment: conflicting first choices are reverted).
+
 With no arguments: 8 simulated robots on a generated 16x16 map, checkpoint models/default.pt.
 """
 
@@ -59,6 +63,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--decision-timeout", type=float, default=10.0)
     parser.add_argument("--comm-timeout", type=float, default=5.0)
     parser.add_argument("--startup-timeout", type=float, default=120.0)
+    parser.add_argument("--conflict-rule", choices=("pibt", "revert"), default="pibt",
+                        help="how the arbiter resolves a tick: pibt (PIBT over the robots' "
+                             "ranked actions) or revert (the paper's rules on first choices)")
+    parser.add_argument("--preference-mode", default=None,
+                        help="how policy nodes rank their actions from Q-values (default: "
+                             "the policy node's preference_mode, i.e. the evaluator's default)")
     parser.add_argument("--nodes-per-process", type=int, default=1)
     parser.add_argument("--single-process", action="store_true",
                         help="simulator and all policy nodes in this process")
@@ -99,6 +109,13 @@ def main(argv: list[str] | None = None) -> int:
         print("mapf-fleet up: --real-robots runs the aggregator in its own process; drop "
               "--single-process", file=sys.stderr)
         return 2
+    if args.preference_mode is not None:
+        from mapf_fleet.coordination.preferences import PREFERENCE_MODES
+
+        if args.preference_mode not in PREFERENCE_MODES:
+            print(f"mapf-fleet up: --preference-mode must be one of "
+                  f"{', '.join(PREFERENCE_MODES)}", file=sys.stderr)
+            return 2
     if args.nodes_per_process < 1:
         print("mapf-fleet up: --nodes-per-process must be >= 1", file=sys.stderr)
         return 2
@@ -117,12 +134,15 @@ def main(argv: list[str] | None = None) -> int:
                   "num_robots": args.num_robots, "size": args.size, "density": args.density,
                   "seed": args.seed, "max_steps": args.max_steps,
                   "decision_timeout": args.decision_timeout,
-                  "startup_timeout": args.startup_timeout, "record_file": record}
+                  "startup_timeout": args.startup_timeout, "record_file": record,
+                  "conflict_rule": args.conflict_rule}
     sim_params = {k: v for k, v in sim_params.items() if v != ""}
     if args.real_robots:
         sim_params = {k: v for k, v in sim_params.items() if k in _aggregator_parameters()}
         sim_params["arrival_timeout"] = args.arrival_timeout
     policy_params = {"checkpoint": checkpoint, "comm_timeout": args.comm_timeout}
+    if args.preference_mode is not None:
+        policy_params["preference_mode"] = args.preference_mode
     started = time.monotonic()
     if args.single_process:
         os.environ.update(env)
@@ -191,6 +211,9 @@ def run_single_process(num_robots, sim_params, policy_params, params_file) -> in
         simulator = SimulatorNode(parameter_overrides=[Parameter(k, value=v)
                                                        for k, v in sim_params.items()])
         overrides = [Parameter("comm_timeout", value=float(policy_params["comm_timeout"]))]
+        if "preference_mode" in policy_params:
+            overrides.append(Parameter("preference_mode",
+                                       value=str(policy_params["preference_mode"])))
         options = host_kwargs(num_robots)
         first = PolicyNode(robot_id=0, checkpoint=policy_params["checkpoint"],
                            parameter_overrides=list(overrides), **options)

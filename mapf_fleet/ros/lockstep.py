@@ -1,10 +1,11 @@
 """The lockstep bookkeeping the simulator and the aggregator share (plain Python, no rclpy).
 
 Both nodes run the same tick: publish the fleet state of tick k, collect every robot's RobotMove
-for k (a move missing after `decision_timeout` is "stay" and reported), turn the moves into the
-positions of k + 1 (this is where they differ: the simulator applies grid.resolve_moves, the
-aggregator waits for the real robots' poses), then report progress; at the end the outcome and
-the run record. `FleetTicker` holds the per-tick decisions and readiness, `RunRecorder` the
+for k (its ranked actions; a move missing after `decision_timeout` is "stay" and reported),
+arbitrate them (`arbiter.TickArbiter`, the configured conflict rule) and command the waypoints,
+turn the commands into the positions of k + 1 (this is where they differ: the simulator takes
+them, the aggregator waits for the real robots' poses), then report progress; at the end the
+outcome and the run record. `FleetTicker` holds the per-tick decisions and readiness, `RunRecorder` the
 counts, the record and the texts; the nodes feed them messages and publish what they return.
 """
 
@@ -17,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mapf_fleet.ros.arbiter import ranking_problem, single_choice_ranking
 from mapf_fleet.ros.instances import InstanceSource
 
 # name: (default, description); both nodes take their instance and their tick from these
@@ -30,6 +32,9 @@ INSTANCE_PARAMETERS = {
     "seed": (0, "seed of a generated instance"),
 }
 RUN_PARAMETERS = {
+    "conflict_rule": ("pibt", "how the tick's decisions become moves: pibt (PIBT over the "
+                              "robots' ranked actions, nothing reverted) or revert (the paper's "
+                              "rules on the first choices)"),
     "max_steps": (256, "tick limit: the run fails when robots are not all on goal by then"),
     "decision_timeout": (5.0, "seconds to wait for a robot's move before it counts as stay"),
     "startup_timeout": (60.0, "seconds to wait for every policy node to report ready"),
@@ -54,10 +59,12 @@ def require_positive(params: dict, names) -> None:
 
 @dataclass(frozen=True)
 class Decisions:
-    """The moves collected for one tick; a missing robot's action is 0 (stay)."""
+    """The moves collected for one tick; a missing robot's action is 0 (stay), its
+    preferences [0, 1, 2, 3, 4]."""
 
     tick: int
-    actions: np.ndarray            # (N,) int64
+    actions: np.ndarray            # (N,) int64: first choices
+    preferences: np.ndarray        # (N, 5) int64: each robot's actions ranked, best first
     missing: list[int]             # robots without a move by the deadline
     requested: list[list[int]]     # per robot: DHC partners / DCC requested peers
     messages: list[int]            # per robot: peer messages it used
@@ -77,6 +84,7 @@ class FleetTicker:
         self.tick = int(tick)
         self.cond = threading.Condition()
         self._moves: dict[int, int] = {}
+        self._prefs: dict[int, list[int]] = {}
         self._comm: dict[int, tuple[list[int], int]] = {}  # robot -> (requested, received)
         self._ready_peers: dict[int, int] = {}
 
@@ -87,8 +95,14 @@ class FleetTicker:
                 return None  # stale tick or another run
             if msg.robot_id >= self.num_robots or msg.action > 4:
                 return f"ignored bad move {msg.robot_id}/{msg.action}"
+            preferences = list(getattr(msg, "preferences", ()))
+            problem = ranking_problem(msg.action, preferences)
+            if problem:
+                return f"ignored bad move of robot {msg.robot_id}: {problem}"
             robot = int(msg.robot_id)
             self._moves[robot] = int(msg.action)
+            self._prefs[robot] = ([int(a) for a in preferences] if preferences
+                                  else single_choice_ranking(msg.action))
             self._comm[robot] = ([int(j) for j in msg.requested], int(msg.messages_received))
             self.cond.notify_all()
         if msg.missing_peers:
@@ -128,12 +142,15 @@ class FleetTicker:
                 if remaining <= 0:
                     break
                 self.cond.wait(remaining)
-            moves, comm = dict(self._moves), dict(self._comm)
-            self._moves, self._comm = {}, {}
+            moves, prefs, comm = dict(self._moves), dict(self._prefs), dict(self._comm)
+            self._moves, self._prefs, self._comm = {}, {}, {}
             tick = self.tick
         n = self.num_robots
+        stay_first = list(range(5))
         return Decisions(tick=tick,
                          actions=np.array([moves.get(i, 0) for i in range(n)], dtype=np.int64),
+                         preferences=np.array([prefs.get(i, stay_first) for i in range(n)],
+                                              dtype=np.int64).reshape(n, 5),
                          missing=sorted(set(range(n)) - set(moves)),
                          requested=[comm.get(i, ([], 0))[0] for i in range(n)],
                          messages=[comm.get(i, ([], 0))[1] for i in range(n)])
@@ -142,7 +159,7 @@ class FleetTicker:
         """Go on to the next tick; moves that came late for the old one are dropped."""
         with self.cond:
             self.tick += 1
-            self._moves, self._comm = {}, {}
+            self._moves, self._prefs, self._comm = {}, {}, {}
             return self.tick
 
 
@@ -151,8 +168,11 @@ class RunRecorder:
     record entries (e.g. "collided", "rejected"), given to `add_tick` as keyword arguments."""
 
     def __init__(self, episode: int, num_robots: int, goals, max_steps: int,
-                 series=("requested", "messages")):
+                 series=("requested", "messages"), conflict_rule: str = ""):
         self.episode = int(episode)
+        self.conflict_rule = conflict_rule
+        self.overridden = 0  # robots whose executed move was not their first choice (series
+        #                      "overridden": robot ids per tick)
         self.num_robots = int(num_robots)
         self.goals = np.asarray(goals, dtype=np.int64)
         self.max_steps = int(max_steps)
@@ -161,6 +181,8 @@ class RunRecorder:
         self.missed_robots: set[int] = set()
         self.record: dict = {"episode": self.episode, "positions": [], "actions": [],
                              "missed": [], **{name: [] for name in self.series}}
+        if conflict_rule:
+            self.record["conflict_rule"] = conflict_rule
         self.started = time.monotonic()
 
     def on_goal(self, positions) -> int:
@@ -190,6 +212,7 @@ class RunRecorder:
         self.record["missed"].append(list(decisions.missing))
         for name, value in series.items():
             self.record[name].append(value)
+        self.overridden += len(series.get("overridden", ()))
         self.record["positions"].append(np.asarray(positions).tolist())
         return dict(episode=self.episode, tick=decisions.tick + 1, max_steps=self.max_steps,
                     num_robots=self.num_robots, on_goal=self.on_goal(positions),
@@ -207,10 +230,14 @@ class RunRecorder:
                    f"{self.num_robots} robots on goal after {self.steps} steps, "
                    f"{self.collisions} collisions, {self.missed} missed decisions"
                    + (f" (robots {sorted(self.missed_robots)})" if self.missed_robots else "")
+                   + (f", {self.overridden} overridden moves ({self.conflict_rule})"
+                      if self.conflict_rule else "")
                    + extra)
         self.record.update(run_seconds=time.monotonic() - self.started, success=success,
                            steps=self.steps, collisions=self.collisions,
                            missed_decisions=self.missed, summary=summary)
+        if self.conflict_rule:
+            self.record["overridden_moves"] = self.overridden
         return dict(episode=self.episode, success=success, steps=self.steps,
                     num_robots=self.num_robots, collisions=self.collisions,
                     missed_decisions=self.missed, missed_robots=sorted(self.missed_robots),

@@ -1,5 +1,5 @@
 """PolicyNode: one robot's learned policy as a ROS node: its parameters (robot_id, checkpoint,
-timeouts), its move / waypoint / heartbeat publishers, its peer publisher (DHC: hidden vectors
+timeouts, preference_mode), its move and heartbeat publishers, its peer publisher (DHC: hidden vectors
 on a shared topic, two rounds; DCC: announcements) and, for DCC, its request and reply services.
 
 The robots hosted in one process are driven by one `mapf_fleet.ros.hub.PolicyHub` (shared
@@ -8,6 +8,8 @@ one robot (`ros2 run mapf_fleet policy`) or many (`mapf-fleet node policy --robo
 Every peer message carries (episode, tick); a message of an older tick is stale and ignored. A
 peer missing after `comm_timeout` is left out and reported in the move (missing_peers). A node
 started mid-run joins at the newest tick it receives (with a fresh recurrent state).
+A move carries the robot's five actions ranked (`preference_mode`); the node commands nothing:
+the tick's arbiter (simulator or aggregator) publishes the waypoints.
 """
 
 from __future__ import annotations
@@ -17,7 +19,6 @@ import time
 
 import numpy as np
 import rclpy
-from geometry_msgs.msg import PoseStamped
 from mapf_fleet_interfaces.msg import DccAnnounce, DhcHidden, RobotMove, RobotStatus
 from mapf_fleet_interfaces.srv import DccMessage
 from rcl_interfaces.msg import ParameterDescriptor
@@ -25,6 +26,7 @@ from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
+from mapf_fleet.coordination.preferences import DEFAULT_Q_MODE, PREFERENCE_MODES
 from mapf_fleet.ros import common
 
 PARAMETERS = {
@@ -33,6 +35,8 @@ PARAMETERS = {
     "comm_timeout": (2.0, "seconds to wait for a peer's message before leaving it out"),
     "service_timeout": (2.0, "seconds to wait for a peer's DCC service to be discovered"),
     "status_period": (0.5, "seconds between readiness heartbeats"),
+    "preference_mode": (DEFAULT_Q_MODE, "how a robot ranks its five actions from its Q-values "
+                                        f"for the arbiter: one of {', '.join(PREFERENCE_MODES)}"),
 }
 
 
@@ -47,7 +51,7 @@ def load_policy_model(path: str):
 
 
 class PolicyNode(Node):
-    """One robot: its parameters, its publishers (move, waypoint, heartbeat, peer messages) and,
+    """One robot: its parameters, its publishers (move, heartbeat, peer messages) and,
     for DCC, its request and reply services. The decisions are made by the process's
     `PolicyHub` (mapf_fleet.ros.hub), which batches the robots hosted in one process."""
 
@@ -75,6 +79,10 @@ class PolicyNode(Node):
         for pname in ("comm_timeout", "service_timeout", "status_period"):
             if not getattr(self, pname) > 0:
                 raise ValueError(f"parameter {pname} must be > 0, got {getattr(self, pname)}")
+        self.preference_mode = str(self.get_parameter("preference_mode").value)
+        if self.preference_mode not in PREFERENCE_MODES:
+            raise ValueError(f"parameter preference_mode must be one of {PREFERENCE_MODES}, "
+                             f"got {self.preference_mode!r}")
         if model is None:
             path = self.get_parameter("checkpoint").value
             if not path:
@@ -87,10 +95,6 @@ class PolicyNode(Node):
         quiet = common.quiet_publisher_events()
         self.move_pub = self.create_publisher(RobotMove, common.MOVES_TOPIC, common.reliable_qos(100),
                                               event_callbacks=quiet)
-        # latched: a robot whose waypoint subscription matches late (discovery still running at
-        # tick 0, a restarted driver) still gets its current waypoint instead of losing it
-        self.waypoint_pub = self.create_publisher(PoseStamped, common.waypoint_topic(self.robot_id),
-                                                  common.latched_qos(1), event_callbacks=quiet)
         self.status_pub = self.create_publisher(RobotStatus, common.STATUS_TOPIC,
                                                 common.reliable_qos(100), event_callbacks=quiet)
         if self.algo == "dhc":

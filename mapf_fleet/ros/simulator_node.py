@@ -1,8 +1,12 @@
 """SimulatorNode: the grid world as a ROS node, stepping the fleet in lockstep ticks.
 
 Tick k: publish the fleet state of k (and poses, markers); wait for every robot's move for k (a
-move missing after `decision_timeout` counts as "stay" and is reported); apply the grid world's
-conflict rules (grid.resolve_moves); publish progress; go on with k + 1. At the end the outcome
+move missing after `decision_timeout` counts as "stay" and is reported, and the robot cannot be
+pushed); arbitrate the moves with `conflict_rule` (`arbiter.TickArbiter`: "pibt" = PIBT over the
+robots' ranked actions, "revert" = the paper's grid.resolve_moves on their first choices);
+command each robot's waypoint; publish progress; go on with k + 1. The state's `last_actions`
+are the executed actions under "pibt" (DCC's last-action input, as the evaluator's shield) and
+the robots' first choices under "revert" (as the paper's environment). At the end the outcome
 (success, steps, collisions, missed decisions) is published (latched) and optionally written to
 `record_file` as JSON with the whole trajectory. The tick bookkeeping it shares with the
 aggregator is in `lockstep` (plain Python) and `fleet_io` (topics, loop, main).
@@ -20,6 +24,7 @@ from mapf_fleet_interfaces.msg import FleetOutcome
 from rclpy.node import Node
 
 from mapf_fleet.ros import common, fleet_io
+from mapf_fleet.ros.arbiter import TickArbiter, check_conflict_rule
 from mapf_fleet.ros.lockstep import (INSTANCE_PARAMETERS, RUN_PARAMETERS, Decisions, FleetTicker,
                                      RunRecorder, instance_source, require_positive)
 
@@ -48,12 +53,16 @@ class SimulatorNode(Node):
         self.outcome: FleetOutcome | None = None
         self.finished = threading.Event()
 
+        self.conflict_rule = check_conflict_rule(str(p["conflict_rule"]))
+        self.arbiter = TickArbiter(self.instance.grid, self.goals, self.conflict_rule)
         self.ticker = FleetTicker(self.num_robots, self.episode, int(p["start_tick"]))
         # who talked to whom: per robot its partners (DHC) / requested peers (DCC), and the
         # peer messages it used
         self.recorder = RunRecorder(self.episode, self.num_robots, self.goals,
                                     int(p["max_steps"]),
-                                    series=("collided", "requested", "messages"))
+                                    series=("collided", "requested", "messages",
+                                            "executed", "overridden"),
+                                    conflict_rule=self.conflict_rule)
         self.channels = fleet_io.FleetChannels(self, self.ticker, self.geometry)
         quiet = common.quiet_publisher_events()  # per-robot publishers: keep the wait set small
         self.pose_pubs = [self.create_publisher(PoseStamped, common.pose_topic(i),
@@ -62,7 +71,7 @@ class SimulatorNode(Node):
         self.channels.publish_map_and_goals(self.instance.grid, self.goals)
         self.get_logger().info(
             f"instance {self.instance.size[0]}x{self.instance.size[1]} with {self.num_robots} "
-            f"robots, episode {self.episode}")
+            f"robots, conflict rule {self.conflict_rule}, episode {self.episode}")
         self._thread = threading.Thread(
             target=fleet_io.run_reporting_failure, args=(self, "simulator", self._run),
             name="simulator", daemon=True)
@@ -90,18 +99,23 @@ class SimulatorNode(Node):
             record_file=self.params["record_file"])
 
     def _step(self, decisions: Decisions):
-        """The grid world's move: resolve_moves' conflict rules."""
-        from mapf_fleet.grid.env import resolve_moves
-
+        """The grid world's move: the arbiter's conflict rule; robots without a decision are
+        held (they stay and cannot be pushed)."""
+        held = np.zeros(self.num_robots, dtype=bool)
+        held[decisions.missing] = True
+        result = self.arbiter.resolve(self.positions, decisions.preferences, held=held)
+        if result.problem:
+            self.get_logger().error(f"tick {decisions.tick}: {result.problem}: all robots stay")
         self.ticker.advance()
-        new_positions, collided = resolve_moves(self.instance.grid, self.positions,
-                                                decisions.actions)
-        self.positions = np.asarray(new_positions, dtype=np.int64)
-        self.last_actions = decisions.actions
-        collided = np.asarray(collided, dtype=bool)
-        return self.positions, int(collided.sum()), {
-            "collided": np.flatnonzero(collided).tolist(),
-            "requested": decisions.requested, "messages": decisions.messages}
+        self.channels.publish_waypoints(result.positions)
+        self.positions = result.positions
+        # DCC's last action: what was executed under the shield (as the evaluator's
+        # policy.executed); the robot's own choice under the paper's rule (as MAPFEnv)
+        self.last_actions = result.actions if self.conflict_rule == "pibt" else decisions.actions
+        return self.positions, int(result.collided.sum()), {
+            "collided": result.collided_ids, "requested": decisions.requested,
+            "messages": decisions.messages, "executed": result.actions.tolist(),
+            "overridden": result.overridden_ids}
 
     def _publish_state(self, done: bool):
         stamp = self.channels.publish_state(self.positions, self.goals, self.last_actions, done)

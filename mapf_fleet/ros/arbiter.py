@@ -1,0 +1,319 @@
+"""The tick's arbiter (plain Python, no rclpy): turns every robot's ranked decision into the cells
+the robots are commanded to, with the configured conflict rule. The simulator and the real-robot
+aggregator both call it; only the arbiter commands waypoints.
+
+Rules (`CONFLICT_RULES`):
+  pibt    `coordination.pibt.PIBTShield` over the robots' preference orders (CS-PIBT): nobody's
+          move is reverted, a robot in the way may be pushed to another of its ranked moves.
+          The batched evaluator's `--shield pibt` (`evaluation.runner.run_decentralized`).
+  revert  the paper's environment: `grid.env.resolve_moves` on the first choices (a conflicting
+          move is reverted to "stay").
+
+Held robots (`held`): a robot whose decision is missing, or (real robots) one that has not yet
+reached its last waypoint, stays where it is and cannot be pushed. `reserved` cells are kept
+free: the waypoint of a robot still driving there (it occupies both cells). With both rules the
+commanded cells are then safe for real robots: each robot is commanded to its own cell or an
+adjacent free cell that no other robot is commanded to, no two robots trade cells, no robot
+enters a reserved cell, an obstacle or leaves the map (`unsafe_commands` checks exactly this).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mapf_fleet.grid.actions import ACTION_DELTAS, NUM_ACTIONS, STAY
+
+CONFLICT_RULES = ("pibt", "revert")
+DEFAULT_CONFLICT_RULE = "pibt"
+
+
+def check_conflict_rule(rule: str) -> str:
+    if rule not in CONFLICT_RULES:
+        raise ValueError(f"conflict_rule must be one of {CONFLICT_RULES}, got {rule!r}")
+    return rule
+
+
+def single_choice_ranking(action: int) -> list[int]:
+    """The ranking of a robot that only gave its choice: [action, stay, the rest in order]."""
+    action = int(action)
+    if not 0 <= action < NUM_ACTIONS:
+        raise ValueError(f"action {action} is not one of 0..{NUM_ACTIONS - 1}")
+    rest = [a for a in range(NUM_ACTIONS) if a not in (action, STAY)]
+    return [action] + ([STAY] if action != STAY else []) + rest
+
+
+def ranking_problem(action: int, preferences) -> str:
+    """"" when `preferences` (possibly empty) is a valid ranking whose first entry is `action`,
+    else what is wrong with it."""
+    prefs = [int(a) for a in preferences]
+    if not prefs:
+        return "" if 0 <= int(action) < NUM_ACTIONS else f"action {action} out of range"
+    if sorted(prefs) != list(range(NUM_ACTIONS)):
+        return f"preferences {prefs} are not a ranking of the actions 0..{NUM_ACTIONS - 1}"
+    if prefs[0] != int(action):
+        return f"action {action} is not its first preference {prefs}"
+    return ""
+
+
+def actions_of(positions, targets) -> np.ndarray:
+    """(N,) the action moving each robot from `positions` to `targets` (stay when none does)."""
+    delta = np.asarray(targets, dtype=np.int64) - np.asarray(positions, dtype=np.int64)
+    actions = np.full(len(delta), STAY, dtype=np.int64)
+    for a in range(1, NUM_ACTIONS):
+        actions[(delta == ACTION_DELTAS[a]).all(axis=1)] = a
+    return actions
+
+
+@dataclass(frozen=True)
+class Resolution:
+    """One arbitrated tick. `positions` (N, 2): each robot's commanded cell (the simulator's next
+    positions); `actions` (N,): the executed actions; `overridden` (N,) bool: a robot with a
+    decision whose executed action is not its first choice (pibt: pushed or yielded; revert:
+    reverted); `collided` (N,) bool: moves reverted by `resolve_moves` (pibt: none);
+    `held` (N,) bool: robots that stayed without a say (missing decision, still driving);
+    `problem`: why every robot was told to stay instead ("" normally)."""
+
+    positions: np.ndarray
+    actions: np.ndarray
+    overridden: np.ndarray
+    collided: np.ndarray
+    held: np.ndarray
+    problem: str = ""
+
+    @property
+    def overridden_ids(self) -> list[int]:
+        return np.flatnonzero(self.overridden).tolist()
+
+    @property
+    def collided_ids(self) -> list[int]:
+        return np.flatnonzero(self.collided).tolist()
+
+
+@dataclass
+class TickArbiter:
+    """The arbiter of one run: one map, one set of goals, one rule (PIBT keeps its priorities
+    from tick to tick, exactly as the evaluator's one `PIBTShield` per episode)."""
+
+    grid: np.ndarray
+    goals: np.ndarray
+    rule: str = DEFAULT_CONFLICT_RULE
+    overridden_total: int = field(default=0, init=False)
+    collided_total: int = field(default=0, init=False)
+
+    def __post_init__(self):
+        check_conflict_rule(self.rule)
+        self.grid = np.asarray(self.grid) != 0
+        self.goals = np.asarray(self.goals, dtype=np.int64)
+        self.shield = None
+        if self.rule == "pibt":
+            from mapf_fleet.coordination.pibt import PIBTShield
+
+            self.shield = PIBTShield(self.grid, self.goals)
+
+    def resolve(self, positions, preferences, held=None, reserved=()) -> Resolution:
+        """Arbitrate one tick. positions (N, 2) the robots' cells; preferences (N, 5) each row a
+        ranking (best first; a held robot's row is ignored); held (N,) bool; reserved: cells
+        (row, col) kept free."""
+        positions = np.asarray(positions, dtype=np.int64)
+        prefs = np.asarray(preferences, dtype=np.int64)
+        n = len(positions)
+        held = np.zeros(n, dtype=bool) if held is None else np.asarray(held, dtype=bool).copy()
+        reserved = [(int(r), int(c)) for r, c in reserved]
+        problem = self._position_problem(positions)
+        if problem:
+            return self._all_stay(positions, held, problem)
+        if self.rule == "pibt":
+            step = self.shield.step(positions, prefs, fixed=held, reserved=reserved)
+            actions = step.actions
+            grid = self.grid
+        else:
+            actions, grid = self._revert_inputs(positions, prefs[:, 0], held, reserved)
+        # the grid world's conflict rules, as the evaluator's env.step (pibt: nothing reverts)
+        from mapf_fleet.grid.env import resolve_moves
+
+        nxt, collided = resolve_moves(grid, positions, actions)
+        nxt = np.asarray(nxt, dtype=np.int64)
+        collided = np.asarray(collided, dtype=bool)
+        executed = actions_of(positions, nxt)
+        overridden = (executed != prefs[:, 0]) & ~held
+        self.overridden_total += int(overridden.sum())
+        self.collided_total += int(collided.sum())
+        return Resolution(nxt, executed, overridden, collided, held)
+
+    def _revert_inputs(self, positions, choices, held, reserved):
+        """The paper's rule with held robots and reserved cells: a held robot stays (so a move
+        into its cell reverts, as any move into a staying robot's cell); a reserved cell is an
+        obstacle for this tick, except where a robot stands on it (that robot is held)."""
+        actions = np.where(held, STAY, choices).astype(np.int64)
+        grid = self.grid
+        if reserved:
+            grid = grid.copy()
+            occupant = {(int(r), int(c)): i for i, (r, c) in enumerate(positions.tolist())}
+            h, w = grid.shape
+            for cell in reserved:
+                if cell in occupant:
+                    actions[occupant[cell]] = STAY
+                    held[occupant[cell]] = True
+                elif 0 <= cell[0] < h and 0 <= cell[1] < w:
+                    grid[cell] = True
+        return actions, grid
+
+    def _position_problem(self, positions) -> str:
+        h, w = self.grid.shape
+        r, c = positions[:, 0], positions[:, 1]
+        outside = (r < 0) | (r >= h) | (c < 0) | (c >= w)
+        if outside.any():
+            return f"robots {np.flatnonzero(outside).tolist()} are off the {h}x{w} map"
+        blocked = self.grid[r, c]
+        if blocked.any():
+            return f"robots {np.flatnonzero(blocked).tolist()} stand on obstacles"
+        cells, counts = np.unique(r * w + c, return_counts=True)
+        if (counts > 1).any():
+            shared = [(int(x) // w, int(x) % w) for x in cells[counts > 1]]
+            return f"robots share cells {shared}"
+        return ""
+
+    def _all_stay(self, positions, held, problem: str) -> Resolution:
+        n = len(positions)
+        if self.shield is not None:
+            # the priorities advance as if everyone stayed (on goal: back to the tie-breaker)
+            on_goal = (positions == self.goals).all(axis=1)
+            self.shield.priorities = np.where(on_goal, self.shield.base_priority,
+                                              self.shield.priorities + 1.0)
+        return Resolution(positions.copy(), np.full(n, STAY, dtype=np.int64),
+                          np.zeros(n, dtype=bool), np.zeros(n, dtype=bool), held, problem)
+
+
+def unsafe_commands(grid, positions, commanded, held=None, reserved=()) -> list[str]:
+    """What breaks the real-robot rule in these commands ([] when they are safe): every robot is
+    commanded to its own cell or an adjacent free cell of the map; no two robots to one cell;
+    no two robots trading cells; a held robot stays; nobody else enters a reserved cell or a
+    held robot's cell."""
+    grid = np.asarray(grid) != 0
+    positions = np.asarray(positions, dtype=np.int64)
+    commanded = np.asarray(commanded, dtype=np.int64)
+    n = len(positions)
+    held = np.zeros(n, dtype=bool) if held is None else np.asarray(held, dtype=bool)
+    h, w = grid.shape
+    problems = []
+    step = np.abs(commanded - positions).sum(axis=1)
+    for i in np.flatnonzero(step > 1).tolist():
+        problems.append(f"robot {i} commanded {step[i]} cells away")
+    r, c = commanded[:, 0], commanded[:, 1]
+    inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+    for i in np.flatnonzero(~inside).tolist():
+        problems.append(f"robot {i} commanded off the map to {tuple(commanded[i].tolist())}")
+    for i in np.flatnonzero(inside).tolist():
+        if grid[r[i], c[i]]:
+            problems.append(f"robot {i} commanded onto an obstacle {tuple(commanded[i].tolist())}")
+    cells: dict[tuple, int] = {}
+    for i, cell in enumerate(map(tuple, commanded.tolist())):
+        if cell in cells:
+            problems.append(f"robots {cells[cell]} and {i} commanded to one cell {cell}")
+        cells[cell] = i
+    now = {cell: i for i, cell in enumerate(map(tuple, positions.tolist()))}
+    for i in range(n):
+        j = now.get(tuple(commanded[i].tolist()), -1)
+        if j > i and j != i and tuple(commanded[j].tolist()) == tuple(positions[i].tolist()):
+            problems.append(f"robots {i} and {j} commanded to trade cells")
+    for i in np.flatnonzero(held).tolist():
+        if (commanded[i] != positions[i]).any():
+            problems.append(f"held robot {i} commanded to move")
+    blocked = {tuple(int(v) for v in cell) for cell in reserved}
+    blocked |= {tuple(positions[i].tolist()) for i in np.flatnonzero(held)}
+    for i in range(n):
+        cell = tuple(commanded[i].tolist())
+        if cell in blocked and cell != tuple(positions[i].tolist()):
+            problems.append(f"robot {i} commanded into the occupied cell {cell}")
+    return problems
+
+
+# ---- real robots: executing a resolved tick safely -------------------------------------------
+# The grid world (and PIBT) let a robot enter a cell in the tick its occupant leaves it
+# (following, rotations). Real robots move at their own pace, so the aggregator sends a
+# follower its waypoint only once the occupant has reported leaving (`ready_to_send`), and a
+# rotation (a cycle of followers: nobody could go first) stays put (`break_rotations`).
+
+def break_rotations(positions, commanded) -> tuple[np.ndarray, list[int]]:
+    """Commands without cycles of followers: each robot of a cycle (robot i commanded into the
+    cell of robot j, j into k's, ..., back to i) is told to stay instead; (commands, their ids).
+    Commands into distinct cells give each cell at most one follower, so nobody else was
+    heading into a cycle member's cell: the result is still safe."""
+    positions = np.asarray(positions, dtype=np.int64)
+    commanded = np.asarray(commanded, dtype=np.int64).copy()
+    occupant = {cell: i for i, cell in enumerate(map(tuple, positions.tolist()))}
+    successor = {}
+    for i in range(len(positions)):
+        if (commanded[i] != positions[i]).any():
+            j = occupant.get(tuple(commanded[i].tolist()), -1)
+            if j >= 0:
+                successor[i] = j
+    stopped: set[int] = set()
+    done: set[int] = set()
+    for start in successor:
+        path, i = [], start
+        while i in successor and i not in done and i not in path:
+            path.append(i)
+            i = successor[i]
+        if i in path:  # a cycle: from i round to i
+            stopped.update(path[path.index(i):])
+        done.update(path)
+    ids = sorted(stopped)
+    commanded[ids] = positions[ids]
+    return commanded, ids
+
+
+def ready_to_send(commanded, reported: dict, pending) -> list[int]:
+    """Robots among `pending` whose commanded cell no other robot reports being in now
+    (`reported`: robot id -> its latest reported cell)."""
+    held_by: dict[tuple, set] = {}
+    for j, cell in reported.items():
+        held_by.setdefault(tuple(int(v) for v in cell), set()).add(int(j))
+    ready = []
+    for i in pending:
+        there = held_by.get(tuple(int(v) for v in commanded[i]), set()) - {int(i)}
+        if not there:
+            ready.append(int(i))
+    return ready
+
+
+@dataclass(frozen=True)
+class RobotCommands:
+    """One real-robot tick's commands (`plan_robot_commands`). `waypoints` (N, 2): each robot's
+    commanded cell (in transit: its old waypoint); `executed` (N,): the actions commanded this
+    tick (held robots: stay); `late` (N,) bool: in transit; `reserved`: their waypoints;
+    `stopped`: robots of a rotation told to stay; `problems`: why every robot stays ([] normally)."""
+
+    waypoints: np.ndarray
+    executed: np.ndarray
+    resolution: Resolution
+    late: np.ndarray
+    reserved: list
+    stopped: list
+    problems: list
+
+
+def plan_robot_commands(arbiter: TickArbiter, positions, waypoints, preferences,
+                        missing=()) -> RobotCommands:
+    """The real-robot arbiter's decision for one tick. positions (N, 2): the robots' cells in the
+    tick's state; waypoints (N, 2): their last commanded cells; a robot whose cell is not its
+    waypoint has not arrived: it is held and occupies both cells (its waypoint is reserved and
+    stays its command). Robots in `missing` (no decision) are held. Rotations stay put; the
+    commands are checked with `unsafe_commands`, and any breach makes every robot stay."""
+    positions = np.asarray(positions, dtype=np.int64)
+    waypoints = np.asarray(waypoints, dtype=np.int64)
+    late = (positions != waypoints).any(axis=1)
+    held = late.copy()
+    held[list(missing)] = True
+    reserved = [tuple(int(v) for v in waypoints[i]) for i in np.flatnonzero(late)]
+    result = arbiter.resolve(positions, preferences, held=held, reserved=reserved)
+    commanded, stopped = break_rotations(positions, result.positions)
+    problems = ([result.problem] if result.problem else
+                unsafe_commands(arbiter.grid, positions, commanded, result.held, reserved))
+    if problems:
+        commanded, stopped = positions.copy(), []
+    commanded[late] = waypoints[late]  # still driving there: keep its waypoint
+    executed = np.where(result.held, STAY, actions_of(positions, commanded))
+    return RobotCommands(commanded, executed, result, late, reserved, stopped, problems)
