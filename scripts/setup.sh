@@ -142,7 +142,7 @@ fi
 
 # ---- 6. mapf_fleet (editable) ----------------------------------------------------------------
 PKG_HASH="$(inputs_hash "$VENV $REPO" "$REPO/setup.py" "$REPO/setup.cfg" "$REPO/package.xml")"
-if stamp_matches package "$PKG_HASH" && "$PY" -c 'import mapf_fleet' 2>/dev/null; then
+if stamp_matches package "$PKG_HASH" && (cd / && "$PY" -c 'import mapf_fleet') 2>/dev/null; then  # from /: not through the cwd
   say "mapf_fleet already installed (editable)"
 else
   say "pip install -e . (mapf_fleet)"
