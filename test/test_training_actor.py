@@ -140,3 +140,22 @@ def test_shield_config_is_validated():
         _cfg(shield="cbs")
     with pytest.raises(TrainConfigError, match="shield_preferences"):
         _cfg(shield_preferences="distance")
+
+
+def test_init_checkpoint_starts_the_run_from_its_weights(tmp_path):
+    from mapf_fleet.models.checkpoint import CheckpointError, save_checkpoint
+    from mapf_fleet.training.modelio import build_model
+    from mapf_fleet.training.trainer import Trainer
+
+    cfg = _cfg(use_ray=False) if "use_ray" in TrainConfig.__dataclass_fields__ else _cfg()
+    torch.manual_seed(11)
+    source = build_model(cfg)
+    path = save_checkpoint(tmp_path / "init.pt", source, {"alpha": 0.0, "curriculum": {},
+                                                          "learner_steps": 0, "training_config": {}})
+    trainer = Trainer(cfg.replace(init_checkpoint=str(path)), tmp_path / "run")
+    for name, value in source.state_dict().items():
+        assert torch.equal(trainer.learner.model.state_dict()[name], value), name
+        assert torch.equal(trainer.learner.target.state_dict()[name], value), name
+    other = cfg.replace(algo="dcc", init_checkpoint=str(path))
+    with pytest.raises(CheckpointError, match="init.pt: init_checkpoint is a dhc network"):
+        Trainer(other, tmp_path / "run2")

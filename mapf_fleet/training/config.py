@@ -89,6 +89,11 @@ class TrainConfig:
     priority_eta: float = 0.9  # sequence priority = eta * max|td| + (1 - eta) * mean|td| (R2D2)
     priority_epsilon: float = 1e-6
 
+    # A checkpoint file whose weights start the run (online and target network), e.g. to
+    # continue a shipped policy on crowded tasks; its algorithm and network configuration must
+    # be this config's. "" = random initialisation (the paper).
+    init_checkpoint: str = ""
+
     # --- demonstration warm start (DQfD-style, mapf_fleet.training.demos), off by default ---
     demo_source: str = "none"  # "none" | "heuristic" (non-learned policy) | "planner" (LaCAM)
     demo_episodes: int = 200  # demonstration episodes, spread over the stage-1 settings

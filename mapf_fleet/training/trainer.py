@@ -197,9 +197,27 @@ class Trainer:
             if restore_replay:
                 self._restore_replay()
         else:
+            if cfg.init_checkpoint:
+                self._load_init_checkpoint(cfg.init_checkpoint)
             save_config(cfg, self.run_dir / run_state.CONFIG_FILE)
         if self.stage == STAGE_SCALE and self.scale.done:
             self._enter_stage_alpha(save=False)
+
+    def _load_init_checkpoint(self, path: str) -> None:
+        """Start from a checkpoint's weights (online and target); the network must match."""
+        from mapf_fleet.models.checkpoint import CheckpointError, read_checkpoint
+
+        state, metadata = read_checkpoint(path)
+        own = self.learner.model.config.to_dict()
+        theirs = dict(metadata.get("model_config") or {})
+        if metadata.get("algorithm") != self.cfg.algo or theirs != own:
+            diff = sorted(k for k in set(own) | set(theirs) if own.get(k) != theirs.get(k))
+            raise CheckpointError(
+                f"{path}: init_checkpoint is a {metadata.get('algorithm')} network "
+                f"{ {k: theirs.get(k) for k in diff} }, this run trains {self.cfg.algo} "
+                f"{ {k: own.get(k) for k in diff} }")
+        self.learner.model.load_state_dict(state)
+        self.learner.sync_target()
 
     # -- state ----------------------------------------------------------------------------------
     def state_dict(self) -> dict:
