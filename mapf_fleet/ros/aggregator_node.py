@@ -230,7 +230,10 @@ class FleetStateAggregator(Node):
         sent = np.zeros(self.num_robots, dtype=bool)
         with self._cond:
             while True:
-                ready = ready_to_send(commanded, self._reported, np.flatnonzero(~sent).tolist())
+                # a robot whose pose is rejected may still be in its last valid cell
+                unsure = {i: tuple(self.positions[i]) for i in self._rejected_reason}
+                ready = ready_to_send(commanded, self._reported, np.flatnonzero(~sent).tolist(),
+                                      unsure)
                 if ready:
                     self.channels.publish_waypoints(commanded, ready)
                     sent[ready] = True

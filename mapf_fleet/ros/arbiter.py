@@ -265,12 +265,14 @@ def break_rotations(positions, commanded) -> tuple[np.ndarray, list[int]]:
     return commanded, ids
 
 
-def ready_to_send(commanded, reported: dict, pending) -> list[int]:
+def ready_to_send(commanded, reported: dict, pending, unsure=None) -> list[int]:
     """Robots among `pending` whose commanded cell no other robot reports being in now
-    (`reported`: robot id -> its latest reported cell)."""
+    (`reported`: robot id -> its latest reported cell; `unsure`: robot id -> a cell it may still
+    be in, e.g. the last valid cell of a robot whose pose is rejected)."""
     held_by: dict[tuple, set] = {}
-    for j, cell in reported.items():
-        held_by.setdefault(tuple(int(v) for v in cell), set()).add(int(j))
+    for cells in (reported, unsure or {}):
+        for j, cell in cells.items():
+            held_by.setdefault(tuple(int(v) for v in cell), set()).add(int(j))
     ready = []
     for i in pending:
         there = held_by.get(tuple(int(v) for v in commanded[i]), set()) - {int(i)}

@@ -1,6 +1,7 @@
 """Stand-in robots for real-robot mode (tests, demos): each publishes its pose on
-`/robot_<i>/pose` and, when a waypoint arrives on `/robot_<i>/waypoint`, moves there after a
-random delay. `--off-grid ID` makes robot ID report a pose outside the map from its first move
+`/robot_<i>/pose` and, when a waypoint arrives on `/robot_<i>/waypoint` (commanded by the
+aggregator, the tick's arbiter), jumps there after a random delay (uniform in [0, max-delay]; a
+delay beyond the aggregator's `arrival_timeout` leaves the robot in transit at the next tick). `--off-grid ID` makes robot ID report a pose outside the map from its first move
 on (to exercise the aggregator's rejection).
 
     python -m mapf_fleet.ros.stand_in_robot --instance config/fleet/instance_small.yaml \\
@@ -47,9 +48,16 @@ def main(argv: list[str] | None = None) -> int:
     pubs = {i: node.create_publisher(PoseStamped, common.pose_topic(i), common.reliable_qos(10))
             for i in poses}
     moved = set()
+    # like a real robot, each follows its latest waypoint only: a new waypoint replaces the one
+    # it was driving to (that arrival never happens), the same waypoint again changes nothing
+    heading: dict[int, tuple] = {}  # robot -> (target x, y, version)
+    versions = {i: 0 for i in poses}
 
-    def arrive(i, msg):
+    def arrive(i, msg, version):
         with lock:
+            if versions[i] != version:
+                return  # superseded by a newer waypoint
+            heading.pop(i, None)
             pose = PoseStamped()
             pose.header.frame_id = common.FRAME_ID
             pose.pose = msg.pose
@@ -60,9 +68,17 @@ def main(argv: list[str] | None = None) -> int:
         publish(i)
 
     def on_waypoint(i, msg):
+        target = (msg.pose.position.x, msg.pose.position.y)
         with lock:
+            if i in heading and heading[i][:2] == target:
+                return  # already driving there
+            versions[i] += 1
+            heading[i] = (*target, versions[i])
             delay = rng.uniform(0.0, args.max_delay)
-        threading.Timer(delay, arrive, (i, msg)).start()
+            version = versions[i]
+        timer = threading.Timer(delay, arrive, (i, msg, version))
+        timer.daemon = True
+        timer.start()
 
     def publish(i):
         with lock:

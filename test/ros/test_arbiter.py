@@ -148,6 +148,9 @@ def test_ready_to_send_waits_for_the_cell_to_be_vacated():
     assert ready_to_send(commanded, reported, [0, 1, 2]) == [1, 2]
     reported[1] = (0, 2)
     assert ready_to_send(commanded, reported, [0]) == [0]
+    # robot 1's pose is rejected (off the map): it may still be in its last valid cell
+    reported[1] = (-5, 1)
+    assert ready_to_send(commanded, reported, [0], unsure={1: (0, 1)}) == []
 
 
 def test_ticker_carries_rankings_and_falls_back_to_the_choice():
