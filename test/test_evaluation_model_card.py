@@ -461,3 +461,35 @@ def test_scalars_up_to_keeps_the_checkpoints_part():
     scalars = {"a": [(0, 1.0), (10, 2.0), (20, 3.0)], "b": [(15, 1.0)]}
     assert scalars_up_to(scalars, 10) == ({"a": [(0, 1.0), (10, 2.0)]}, 20)
     assert scalars_up_to(scalars, 20) == (scalars, None)
+
+
+def test_append_adds_the_shielded_rows_to_an_existing_card(tmp_path):
+    """`mapf-fleet card --append TITLE`: the checkpoint's shielded rows beside its own, added to
+    its existing card; a card of another checkpoint is refused."""
+    import torch
+
+    from mapf_fleet.evaluation.cli import main as evaluate_main
+    from mapf_fleet.evaluation.model_card import main as card_main
+    from mapf_fleet.evaluation.random_checkpoint import save_random_checkpoint
+
+    torch.set_num_threads(1)
+    checkpoint = save_random_checkpoint(tmp_path / "rand.pt", "dcc", "small")
+    plain, shielded = tmp_path / "plain.json", tmp_path / "shielded.json"
+    common = ["--sizes", "40", "--agents", "4", "--instances", "2", "--quiet"]
+    assert evaluate_main(["--checkpoint", str(checkpoint), "--no-references", "--json", str(plain), *common]) == 0
+    assert evaluate_main(["--checkpoint", str(checkpoint), "heuristic", "--no-references", "--shield", "pibt",
+                          "--json", str(shielded), *common]) == 0
+    card = tmp_path / "rand.md"
+    assert card_main(["--checkpoint", str(checkpoint), "--eval", str(plain), "--out", str(card)]) == 0
+    before = card.read_text()
+    assert card_main(["--checkpoint", str(checkpoint), "--eval", str(plain), str(shielded),
+                      "--out", str(card), "--append", "Under the coordination layer"]) == 0
+    after = card.read_text()
+    assert after.startswith(before)
+    added = after[len(before):]
+    assert "## Under the coordination layer" in added and "--shield pibt" in added
+    assert "**rand +PIBT** (this checkpoint under the PIBT shield)" in added
+    assert "heuristic +PIBT (reference)" in added
+    other = save_random_checkpoint(tmp_path / "other.pt", "dcc", "small", seed=5)
+    assert card_main(["--checkpoint", str(other), "--eval", str(shielded), "--out", str(card),
+                      "--append", "x"]) == 2

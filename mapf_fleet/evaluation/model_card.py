@@ -605,6 +605,62 @@ def _relative(target: Path, start: Path) -> str:
     return Path(os.path.relpath(target.resolve(), start.resolve())).as_posix()
 
 
+def evaluation_block(evaluation: dict, policy: str, metadata: dict, eval_path, title: str) -> list[str]:
+    """The card's evaluation section: the re-run commands of the JSON(s), then the tables."""
+    runs = evaluation["runs"]
+    lines = [f"## {title}", "",
+              "Re-run the numbers below with (from the directory it was run in):", ""]
+    for path, meta in runs:
+        if len(runs) > 1:
+            lines += [f"`{path.name}`:", ""]
+        lines += [f"```\n{meta.get('command', '(the evaluation JSON does not record its command)')}\n```", ""]
+        info = []
+        if meta.get("protocol_file"):
+            info.append(f"protocol `{_repo_relative(meta['protocol_file'])}`")
+        if meta.get("density") is not None:
+            info.append(f"obstacle density {meta['density']}")
+        if meta.get("seed") is not None:
+            info.append(f"generator seed {meta['seed']}")
+        if meta.get("wall_time_s") is not None:
+            info.append(f"wall time {meta['wall_time_s']:.0f} s with {meta.get('workers', '?')} worker(s)")
+        if meta.get("versions"):
+            info.append("versions " + ", ".join(f"{k} {v}" for k, v in meta["versions"].items()))
+        if info:
+            lines += ["Evaluation: " + "; ".join(info) + ".", ""]
+    if len(runs) > 1:
+        lines += ["A row measured in several of these files is taken from the first one listed.", ""]
+    lines += evaluation_section(evaluation, policy, metadata, eval_path)
+    return lines
+
+
+def append_evaluation(checkpoint: str | Path, eval_path, out: str | Path, title: str,
+                      command: str) -> str:
+    """Append an evaluation section (tables and re-run commands) to the existing card `out` of
+    `checkpoint`, e.g. its protocol under the coordination layer, for a card whose training run
+    directory is gone (a new card would lose its compute and curves). The card must name the
+    checkpoint's SHA-256; returns the appended text."""
+    from mapf_fleet.models.checkpoint import CheckpointError, load_checkpoint
+
+    checkpoint, out = Path(checkpoint), Path(out)
+    try:
+        _, metadata = load_checkpoint(checkpoint)
+    except CheckpointError as exc:
+        raise CardError(f"--checkpoint: {exc}") from exc
+    if not out.is_file():
+        raise CardError(f"--append: {out}: no such card to append to")
+    card = out.read_text()
+    if _sha256(checkpoint) not in card:
+        raise CardError(f"--append: {out} does not name the SHA-256 of {checkpoint}: the card of "
+                        f"another checkpoint (or an older version of it)")
+    evaluation, eval_path = load_evaluations(eval_path)
+    policy = match_policy(evaluation, checkpoint, eval_path)
+    now = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+    lines = evaluation_block(evaluation, policy, metadata, eval_path, title)
+    lines.insert(2, f"Appended {now} by `{command}`.")
+    lines.insert(3, "")
+    return "\n" + "\n".join(lines) + "\n"
+
+
 def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | Path | None = None,
                out: str | Path | None = None, curves: str | Path | None = None,
                command: str | None = None, compare: list[str | Path] | None = None) -> str:
@@ -745,29 +801,8 @@ def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | 
     else:
         lines.append("No curves: the card was written without `--run-dir` and `--curves`.")
 
-    runs = evaluation["runs"]
-    lines += ["", "## Evaluation (the paper's protocol)", "",
-              "Re-run the numbers below with (from the directory it was run in):", ""]
-    for path, meta in runs:
-        if len(runs) > 1:
-            lines += [f"`{path.name}`:", ""]
-        lines += [f"```\n{meta.get('command', '(the evaluation JSON does not record its command)')}\n```", ""]
-        info = []
-        if meta.get("protocol_file"):
-            info.append(f"protocol `{_repo_relative(meta['protocol_file'])}`")
-        if meta.get("density") is not None:
-            info.append(f"obstacle density {meta['density']}")
-        if meta.get("seed") is not None:
-            info.append(f"generator seed {meta['seed']}")
-        if meta.get("wall_time_s") is not None:
-            info.append(f"wall time {meta['wall_time_s']:.0f} s with {meta.get('workers', '?')} worker(s)")
-        if meta.get("versions"):
-            info.append("versions " + ", ".join(f"{k} {v}" for k, v in meta["versions"].items()))
-        if info:
-            lines += ["Evaluation: " + "; ".join(info) + ".", ""]
-    if len(runs) > 1:
-        lines += ["A row measured in several of these files is taken from the first one listed.", ""]
-    lines += evaluation_section(evaluation, policy, metadata, eval_path)
+    lines += [""] + evaluation_block(evaluation, policy, metadata, eval_path,
+                                     "Evaluation (the paper's protocol)")
     if compare:
         others = []
         for item in map(str, compare):
@@ -840,6 +875,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--run-dir", help="the trainer's run directory (config, counters, tb/ scalars)")
     p.add_argument("--out", required=True, help="Markdown file to write (models/X.md)")
     p.add_argument("--curves", metavar="PNG", help="write the training curves here (needs --run-dir)")
+    p.add_argument("--append", metavar="TITLE",
+                   help="append the --eval section under this heading to the existing card --out "
+                        "(which must name the checkpoint's SHA-256) instead of writing a new card")
     p.add_argument("--compare", nargs="+", metavar="CHECKPOINT", default=[],
                    help="other checkpoints evaluated in the --eval JSON(s), as CHECKPOINT or "
                         "CHECKPOINT=RUN_DIR (its run directory, for what the checkpoint does not "
@@ -853,6 +891,17 @@ def main(argv: list[str] | None = None) -> int:
 
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
+    if args.append:
+        try:
+            text = append_evaluation(args.checkpoint, args.eval, args.out, args.append,
+                                     "mapf-fleet card " + shlex.join(argv))
+        except CardError as exc:
+            print(f"mapf-fleet card: {exc}", file=sys.stderr)
+            return 2
+        with open(args.out, "a") as handle:
+            handle.write(text)
+        print(f"appended to {args.out}")
+        return 0
     try:
         text = build_card(args.checkpoint, args.eval, run_dir=args.run_dir, out=args.out,
                           curves=args.curves, command="mapf-fleet card " + shlex.join(argv),
