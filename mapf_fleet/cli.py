@@ -41,8 +41,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"mapf-fleet: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
         return 2
     module, func, _ = COMMANDS[name]
-    code = getattr(importlib.import_module(module), func)(rest)
-    return int(code or 0)
+    from mapf_fleet.entry import run_main
+
+    # a user error (bad file, field or value) is one line on stderr and exit 2, no traceback
+    return run_main(f"mapf-fleet {name}",
+                    lambda args: getattr(importlib.import_module(module), func)(args), rest)
 
 
 if __name__ == "__main__":

@@ -38,6 +38,7 @@ from geometry_msgs.msg import PoseStamped
 from mapf_fleet_interfaces.msg import FleetOutcome
 from rclpy.node import Node
 
+from mapf_fleet.entry import one_line_errors
 from mapf_fleet.grid.actions import ACTION_DELTAS, STAY
 from mapf_fleet.ros import common, fleet_io
 from mapf_fleet.ros.arbiter import (TickArbiter, check_conflict_rule, plan_robot_commands,
@@ -256,6 +257,7 @@ def _action_of(delta) -> int:
     return 0
 
 
+@one_line_errors("aggregator")
 def main(argv: list[str] | None = None) -> int:
     """Run the aggregator until the run ends; exit code 0 on success."""
     return fleet_io.spin_until_finished(FleetStateAggregator, "aggregator", argv)

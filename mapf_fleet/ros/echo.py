@@ -26,9 +26,14 @@ def message_to_dict(msg):
 
 
 def import_message_type(type_name: str):
-    """'pkg/msg/Name' -> the class."""
-    package, kind, name = type_name.split("/")
-    return getattr(importlib.import_module(f"{package}.{kind}"), name)
+    """'pkg/msg/Name' -> the class (ValueError naming the type when there is none)."""
+    parts = type_name.split("/")
+    try:
+        package, kind, name = parts
+        return getattr(importlib.import_module(f"{package}.{kind}"), name)
+    except (ValueError, ImportError, AttributeError):
+        raise ValueError(f"--type: no message type {type_name!r} (expected pkg/msg/Name, e.g. "
+                         f"nav_msgs/msg/OccupancyGrid)") from None
 
 
 def _start(node_name: str):

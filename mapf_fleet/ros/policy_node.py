@@ -27,6 +27,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
 from mapf_fleet.coordination.preferences import DEFAULT_Q_MODE, PREFERENCE_MODES
+from mapf_fleet.entry import one_line_errors
 from mapf_fleet.ros import common
 
 PARAMETERS = {
@@ -182,6 +183,7 @@ def spin_policy_nodes(nodes: list[PolicyNode], until=None, extra_nodes=(), on_st
             node.destroy_node()
 
 
+@one_line_errors("policy")
 def main(argv: list[str] | None = None) -> int:
     common.prepare_environment()
     args = sys.argv if argv is None else ["policy"] + list(argv)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 from mapf_fleet.ros import common
 
@@ -34,6 +35,16 @@ def parse_robot_ids(text: str) -> list[int]:
     if not ids or min(ids) < 0:
         raise ValueError(f"--robots: expected non-negative ids, got {text!r}")
     return ids
+
+
+def params_files(ros_args: list[str]) -> list[str]:
+    """The `--params-file` paths named in ROS arguments; FileNotFoundError for a missing one
+    (rcl's own message names its parser's source lines instead)."""
+    found = [ros_args[i + 1] for i, arg in enumerate(ros_args[:-1]) if arg == "--params-file"]
+    for path in found:
+        if not Path(path).is_file():
+            raise FileNotFoundError(f"params file not found: {path}")
+    return found
 
 
 def host_policy_nodes(robot_ids: list[int], ros_args: list[str]) -> int:
@@ -67,6 +78,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(own)
     if args.params_file:
         ros_args = (ros_args or ["--ros-args"]) + ["--params-file", args.params_file]
+    params_files(ros_args)
     common.prepare_environment()
     if args.robots:
         if args.name != "policy":
@@ -78,4 +90,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from mapf_fleet.entry import run_main
+
+    sys.exit(run_main(f"mapf-fleet node {sys.argv[1] if len(sys.argv) > 1 else ''}".rstrip(),
+                      main))

@@ -23,6 +23,7 @@ from geometry_msgs.msg import PoseStamped
 from mapf_fleet_interfaces.msg import FleetOutcome
 from rclpy.node import Node
 
+from mapf_fleet.entry import one_line_errors
 from mapf_fleet.ros import common, fleet_io
 from mapf_fleet.ros.arbiter import TickArbiter, check_conflict_rule
 from mapf_fleet.ros.lockstep import (INSTANCE_PARAMETERS, RUN_PARAMETERS, Decisions, FleetTicker,
@@ -123,6 +124,7 @@ class SimulatorNode(Node):
             pub.publish(common.cell_pose(*self.positions[i], self.geometry, stamp))
 
 
+@one_line_errors("simulator")
 def main(argv: list[str] | None = None) -> int:
     """Run the simulator until the run ends; exit code 0 on success."""
     return fleet_io.spin_until_finished(SimulatorNode, "simulator", argv)

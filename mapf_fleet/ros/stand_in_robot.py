@@ -16,9 +16,11 @@ import sys
 import threading
 import time
 
+from mapf_fleet.entry import one_line_errors
 from mapf_fleet.ros import common
 
 
+@one_line_errors("stand_in_robot")
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="stand_in_robot", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)

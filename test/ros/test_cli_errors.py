@@ -1,0 +1,77 @@
+"""Bad input at the entry points is one line on stderr (file, field, value) and exit code 2, never
+a traceback (issue 17 item 9): `mapf-fleet` sub-commands, `mapf-fleet node ...`, the node
+processes `up` starts (`python -m mapf_fleet.ros.run`) and the stand-in robots."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+CLI = [sys.executable, "-m", "mapf_fleet.cli"]
+RUN = [sys.executable, "-m", "mapf_fleet.ros.run"]
+STAND_IN = [sys.executable, "-m", "mapf_fleet.ros.stand_in_robot"]
+
+
+@pytest.fixture(scope="module")
+def bad_files(tmp_path_factory, checkpoints):
+    import torch
+
+    folder = tmp_path_factory.mktemp("bad_input")
+    good = open(checkpoints["dhc"], "rb").read()
+    (folder / "truncated.pt").write_bytes(good[:1000])
+    (folder / "corrupt.pt").write_bytes(b"not a checkpoint at all\n" * 10)
+    torch.save({"weights": torch.zeros(3)}, folder / "foreign.pt")  # torch file, not ours
+    (folder / "bad.map").write_text("type octile\nheight 2\nwidth 3\nmap\n...\n.@\n")
+    (folder / "bad.scen").write_text("version 1\n")
+    (folder / "no_goals.yaml").write_text('grid: ["...."]\nstarts: [[0, 0]]\n')
+    return folder
+
+
+# (id, command, text the one line must contain)
+CASES = [
+    ("policy-no-checkpoint", CLI + ["node", "policy"], "parameter 'checkpoint' is required"),
+    ("evaluate-truncated", CLI + ["evaluate", "--checkpoint", "{d}/truncated.pt", "--sizes", "40",
+                                  "--agents", "4", "--instances", "1"],
+     "truncated.pt: not a readable checkpoint"),
+    ("render-corrupt", CLI + ["render", "--checkpoint", "{d}/corrupt.pt", "--size", "10",
+                              "--agents", "2", "--out", "{d}/x.gif"],
+     "corrupt.pt: not a readable checkpoint"),
+    ("render-foreign", CLI + ["render", "--checkpoint", "{d}/foreign.pt", "--size", "10",
+                              "--agents", "2", "--out", "{d}/x.gif"], "foreign.pt: field format"),
+    ("simulator-bad-map-row", CLI + ["node", "simulator", "--ros-args", "-p",
+                                     "map_file:={d}/bad.map", "-p", "scen_file:={d}/bad.scen"],
+     "bad.map:6: row has 2 characters, expected 3"),
+    ("simulator-bad-map-row-run", RUN + ["simulator", "--ros-args", "-p", "map_file:={d}/bad.map",
+                                         "-p", "scen_file:={d}/bad.scen"],
+     "bad.map:6: row has 2 characters"),
+    ("aggregator-instance-missing-field", CLI + ["node", "aggregator", "--ros-args", "-p",
+                                                 "instance_file:={d}/no_goals.yaml"],
+     "no_goals.yaml: missing field 'goals'"),
+    ("stand-in-instance-missing-field", STAND_IN + ["--instance", "{d}/no_goals.yaml"],
+     "no_goals.yaml: missing field 'goals'"),
+    ("up-decision-timeout-0", CLI + ["up", "--decision-timeout", "0", "--single-process",
+                                     "--num-robots", "2", "--size", "8", "--checkpoint",
+                                     "{dhc}", "--quiet"], "decision_timeout must be > 0"),
+    ("simulator-num-robots-abc", CLI + ["node", "simulator", "--ros-args", "-p",
+                                        "num_robots:=abc"], "'num_robots' to 'abc'"),
+    ("node-missing-params-file", CLI + ["node", "simulator", "--params-file",
+                                        "{d}/missing.yaml"], "missing.yaml"),
+    ("echo-bogus-type", CLI + ["echo", "/fleet/map", "--type", "bogus", "--timeout", "1"],
+     "bogus"),
+]
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize("command,expected", [c[1:] for c in CASES], ids=[c[0] for c in CASES])
+def test_bad_input_is_one_line_and_exit_2(command, expected, bad_files, checkpoints, ros_env):
+    command = [arg.format(d=bad_files, dhc=checkpoints["dhc"]) for arg in command]
+    env = dict(ros_env)
+    env.pop("MAPF_FLEET_TRACEBACK", None)
+    done = subprocess.run(command, env=env, capture_output=True, text=True, timeout=180)
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert "Traceback" not in done.stderr, done.stderr
+    assert done.returncode == 2, (done.returncode, done.stderr)
+    assert len(lines) == 1, done.stderr
+    assert expected in lines[0], lines[0]
