@@ -84,17 +84,91 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _ros_args(params: dict, params_file: str) -> list[str]:
-    args = ["--ros-args"]
-    if params_file:
-        args += ["--params-file", params_file]
+# `up` options -> the parameters they set, of the simulator (or aggregator) and of the policy nodes
+SIM_OPTION_PARAMS = {"instance": "instance_file", "map": "map_file", "scen": "scen_file",
+                     "num_robots": "num_robots", "size": "size", "density": "density",
+                     "seed": "seed", "max_steps": "max_steps",
+                     "decision_timeout": "decision_timeout", "startup_timeout": "startup_timeout",
+                     "conflict_rule": "conflict_rule", "arrival_timeout": "arrival_timeout",
+                     "record": "record_file"}
+POLICY_OPTION_PARAMS = {"checkpoint": "checkpoint", "comm_timeout": "comm_timeout",
+                        "preference_mode": "preference_mode"}
+
+
+def apply_parameter_sources(own: list[str], args, ros_args: list[str]) -> None:
+    """Precedence as `ros2 launch` users expect: command line > params file > `up`'s defaults.
+    Sets each option of `args` to the value its node will really get (the params file
+    `--params-file F`, then `up`'s options given on the command line, then the user's
+    `--ros-args` rules and files, in that order; see mapf_fleet.ros.params), and records what
+    `_ros_args` needs: `args.ros_args`, `args.explicit_params`, `args.fixed_params`."""
+    from mapf_fleet.ros import params as rp
+
+    explicit_parser = build_parser()
+    for action in explicit_parser._actions:
+        action.default = argparse.SUPPRESS
+    explicit = set(vars(explicit_parser.parse_args(own)))
+    types = {action.dest: action.type for action in explicit_parser._actions if action.type}
+    rules, ros_files, ros_namespace = rp.ros_arg_rules(ros_args)
+    files = ([args.params_file] if args.params_file else [])
+    for path in files + ros_files:
+        rp.read_params_file(path)  # a missing or malformed file: one line, exit 2
+    namespace = ros_namespace or getattr(args, "namespace", "") or "/"
+    sim_name = "mapf_aggregator" if args.real_robots else "mapf_simulator"
+    args.ros_args = list(ros_args)
+    args.explicit_params = {param for table in (SIM_OPTION_PARAMS, POLICY_OPTION_PARAMS)
+                            for option, param in table.items() if option in explicit}
+    args.fixed_params = {}
+    for kind, table, names in (("sim", SIM_OPTION_PARAMS, [sim_name]),
+                               ("policy", POLICY_OPTION_PARAMS,
+                                [f"mapf_policy_{i}" for i in range(1024)])):
+        fixed: set[str] = set()
+        for name in names:
+            fqn = rp.node_fqn(name, namespace)
+            fixed |= set(rp.params_file_values(files + ros_files, fqn))
+            fixed |= set(rp.command_line_values(rules, name))
+        args.fixed_params[kind] = fixed
+        # the value the first node of this kind gets, in command-line order
+        fqn = rp.node_fqn(names[0], namespace)
+        values = rp.params_file_values(files, fqn)
+        values.update({table[o]: getattr(args, o) for o in table if o in explicit})
+        for index, arg in enumerate(ros_args[:-1]):
+            if arg == "--params-file":
+                values.update(rp.params_file_values([ros_args[index + 1]], fqn))
+            elif arg in ("-p", "--param"):
+                values.update(rp.command_line_values(rp.ros_arg_rules(
+                    ["-p", ros_args[index + 1]])[0], names[0]))
+        for option, param in table.items():
+            if param in values:
+                value = values[param]
+                try:
+                    value = types[option](value) if option in types else value
+                except (TypeError, ValueError):
+                    raise ValueError(f"parameter {param}: expected {types[option].__name__}, "
+                                     f"got {value!r}") from None
+                setattr(args, option, value)
+    args.fixed_params["both"] = args.fixed_params["sim"] | args.fixed_params["policy"]
+
+
+def _ros_args(params: dict, args, kind: str) -> list[str]:
+    """A node's ROS arguments: the params file, `up`'s defaults that no params file or `-p`
+    rule sets for it, the options given on `up`'s command line, the user's `--ros-args`
+    (rcl: a later value replaces an earlier one)."""
+    out = ["--ros-args"]
+    if args.params_file:
+        out += ["--params-file", args.params_file]
+    fixed = args.fixed_params.get(kind, set())
     for name, value in params.items():
-        args += ["-p", f"{name}:={value}"]
-    return args
+        if name in args.explicit_params or name not in fixed:
+            out += ["-p", f"{name}:={value}"]
+    return out + list(args.ros_args)
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(sys.argv[1:] if argv is None else argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    own, ros_args = common.split_ros_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(own)
+    apply_parameter_sources(own, args, ros_args)
     checkpoint = args.checkpoint or default_checkpoint()
     if not checkpoint or not Path(checkpoint).is_file():
         if args.checkpoint:
@@ -146,7 +220,7 @@ def main(argv: list[str] | None = None) -> int:
     started = time.monotonic()
     if args.single_process:
         os.environ.update(env)
-        code = run_single_process(num_robots, sim_params, policy_params, args.params_file)
+        code = run_single_process(num_robots, sim_params, policy_params, args)
     else:
         code = run_processes(num_robots, sim_params, policy_params, args, env)
     elapsed = time.monotonic() - started
@@ -169,11 +243,11 @@ def run_processes(num_robots, sim_params, policy_params, args, env) -> int:
         for first in range(0, num_robots, k):
             ids = f"{first}-{min(first + k, num_robots) - 1}"
             procs.append(subprocess.Popen(
-                runner + ["policy", "--robots", ids] + _ros_args(policy_params, args.params_file),
+                runner + ["policy", "--robots", ids] + _ros_args(policy_params, args, "policy"),
                 env=env, stdout=quiet_out, stderr=quiet_out))
         simulator = subprocess.Popen(
             runner + ["aggregator" if args.real_robots else "simulator"]
-            + _ros_args(sim_params, args.params_file), env=env,
+            + _ros_args(sim_params, args, "sim"), env=env,
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         for line in simulator.stdout:
             if not args.quiet:
@@ -199,26 +273,19 @@ def stop_processes(procs, grace: float = 3.0) -> None:
             proc.wait()
 
 
-def run_single_process(num_robots, sim_params, policy_params, params_file) -> int:
+def run_single_process(num_robots, sim_params, policy_params, args) -> int:
     import rclpy
-    from rclpy.parameter import Parameter
 
     from mapf_fleet.ros.policy_node import PolicyNode, host_kwargs, spin_policy_nodes
     from mapf_fleet.ros.simulator_node import SimulatorNode
 
-    rclpy.init(args=["up"] + (["--ros-args", "--params-file", params_file] if params_file else []))
+    # the same ROS arguments (and precedence) as the processes get, for every node of this one
+    rclpy.init(args=["up"] + _ros_args({**sim_params, **policy_params}, args, "both"))
     try:
-        simulator = SimulatorNode(parameter_overrides=[Parameter(k, value=v)
-                                                       for k, v in sim_params.items()])
-        overrides = [Parameter("comm_timeout", value=float(policy_params["comm_timeout"]))]
-        if "preference_mode" in policy_params:
-            overrides.append(Parameter("preference_mode",
-                                       value=str(policy_params["preference_mode"])))
+        simulator = SimulatorNode()
         options = host_kwargs(num_robots)
-        first = PolicyNode(robot_id=0, checkpoint=policy_params["checkpoint"],
-                           parameter_overrides=list(overrides), **options)
-        policies = [first] + [PolicyNode(robot_id=i, model=first.model,
-                                         parameter_overrides=list(overrides), **options)
+        first = PolicyNode(robot_id=0, checkpoint=policy_params["checkpoint"], **options)
+        policies = [first] + [PolicyNode(robot_id=i, model=first.model, **options)
                               for i in range(1, num_robots)]
         # one hub drives every robot of this process; the simulator shares the executor
         spin_policy_nodes(policies, until=simulator.finished.is_set, extra_nodes=[simulator],

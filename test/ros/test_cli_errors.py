@@ -58,6 +58,8 @@ CASES = [
                                         "num_robots:=abc"], "'num_robots' to 'abc'"),
     ("node-missing-params-file", CLI + ["node", "simulator", "--params-file",
                                         "{d}/missing.yaml"], "missing.yaml"),
+    ("up-missing-params-file", CLI + ["up", "--params-file", "{d}/missing.yaml", "--checkpoint",
+                                      "{dhc}", "--quiet"], "missing.yaml"),
     ("echo-bogus-type", CLI + ["echo", "/fleet/map", "--type", "bogus", "--timeout", "1"],
      "bogus"),
 ]
