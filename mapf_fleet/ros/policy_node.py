@@ -91,6 +91,7 @@ class PolicyNode(Node):
             model, _ = load_policy_model(path)
         self.model = model
         self.algo = model.config.algo
+        self.add_on_set_parameters_callback(self._on_set_parameters)
         self.hub = None  # set by PolicyHub
         self._peer_clients: dict[tuple[str, int], object] = {}
         quiet = common.quiet_publisher_events()
@@ -109,6 +110,18 @@ class PolicyNode(Node):
                                 self._on_dcc_request, callback_group=group)
             self.create_service(DccMessage, common.dcc_reply_service(self.robot_id),
                                 self._on_dcc_reply, callback_group=group)
+
+    def _on_set_parameters(self, parameters):
+        """Policy node parameters are read once, when the node (and its process's hub) starts:
+        a change at runtime would be accepted and read back without any effect, so it is
+        refused with the reason (`ros2 param set` prints it)."""
+        from rcl_interfaces.msg import SetParametersResult
+
+        names = ", ".join(p.name for p in parameters)
+        return SetParametersResult(
+            successful=False,
+            reason=f"{names}: read when the policy node starts; restart robot "
+                   f"{self.robot_id}'s node with the new value (--ros-args -p NAME:=VALUE)")
 
     def _on_dcc_request(self, request, response):
         response.accepted = self.hub is not None and self.hub.deliver("request", self.robot_id,
@@ -142,17 +155,19 @@ class PolicyNode(Node):
 
 
 def needs_spinning(node: PolicyNode) -> bool:
-    """A DHC policy node only publishes (the hub subscribes for it); a DCC node serves its
-    request and reply services. Nodes hosted with others have no parameter services (see
-    `host_kwargs`), so a DHC node then has nothing to spin and stays out of the executor, whose
-    per-spin cost grows with every entity it holds."""
-    return node.algo == "dcc" or node.has_parameter_services
+    """Whether the node serves the fleet's protocol: a DCC node its request and reply services;
+    a DHC node only publishes (the hub subscribes for it). Such nodes are spun by the hub's
+    executor; the others only serve their parameter services, in a second executor, so the
+    decision path's executor (whose per-spin cost grows with every entity it holds) stays
+    small."""
+    return node.algo == "dcc"
 
 
 def host_kwargs(count: int) -> dict:
-    """Node options when `count` robots share a process: without the six parameter services
-    per node (the parameters are still declared and loaded from the YAML and command line)."""
-    return {} if count <= 1 else {"start_parameter_services": False}
+    """Node options when `count` robots share a process. Every robot keeps its parameter
+    services (issue 17 item 16: each robot's parameters can be read, and set, whatever the
+    process layout); they are spun apart from the decision path (`spin_policy_nodes`)."""
+    return {}
 
 
 def spin_policy_nodes(nodes: list[PolicyNode], until=None, extra_nodes=(), on_started=None) -> None:
@@ -168,6 +183,14 @@ def spin_policy_nodes(nodes: list[PolicyNode], until=None, extra_nodes=(), on_st
     for node in spun:
         executor.add_node(node)
     spinner = common.SpinThread(executor).start()
+    # nodes with nothing but their parameter services: their own executor and thread
+    parameter_nodes = [n for n in nodes if not needs_spinning(n) and n.has_parameter_services]
+    parameter_spinner = None
+    if parameter_nodes:
+        parameter_executor = SingleThreadedExecutor()
+        for node in parameter_nodes:
+            parameter_executor.add_node(node)
+        parameter_spinner = common.SpinThread(parameter_executor).start()
     hub.start()
     if on_started is not None:
         on_started()
@@ -179,6 +202,8 @@ def spin_policy_nodes(nodes: list[PolicyNode], until=None, extra_nodes=(), on_st
     finally:
         hub.stop()
         spinner.stop()
+        if parameter_spinner is not None:
+            parameter_spinner.stop()
         for node in list(extra_nodes) + hub.all_nodes:
             node.destroy_node()
 
