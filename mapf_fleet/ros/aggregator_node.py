@@ -44,7 +44,8 @@ from mapf_fleet.ros import common, fleet_io
 from mapf_fleet.ros.arbiter import (TickArbiter, check_conflict_rule, plan_robot_commands,
                                     ready_to_send)
 from mapf_fleet.ros.lockstep import (INSTANCE_PARAMETERS, RUN_PARAMETERS, Decisions, FleetTicker,
-                                     RunRecorder, instance_source, require_positive)
+                                     RunRecorder, instance_source, require_positive,
+                                     set_parameters_result)
 
 PARAMETERS = {
     **INSTANCE_PARAMETERS,
@@ -98,6 +99,10 @@ class FleetStateAggregator(Node):
                                      lambda msg, i=i: self._on_pose(i, msg),
                                      common.reliable_qos(10))
         self.channels.publish_map_and_goals(self.grid, self.goals)
+        # decision_timeout, arrival_timeout, progress_every apply from the next tick; any other
+        # change at runtime is refused with the reason (lockstep.RUNTIME_PARAMETERS)
+        self.add_on_set_parameters_callback(
+            lambda parameters: set_parameters_result(self.params, parameters, self.get_logger()))
         self._thread = threading.Thread(
             target=fleet_io.run_reporting_failure, args=(self, "aggregator", self._run),
             name="aggregator", daemon=True)
@@ -166,7 +171,8 @@ class FleetStateAggregator(Node):
             self, self.channels, self.recorder, self.positions.copy(), self._step,
             self._publish_state, decision_timeout=float(self.params["decision_timeout"]),
             progress_every=int(self.params["progress_every"]),
-            record_file=self.params["record_file"], summary_extra=self._summary_extra)
+            record_file=self.params["record_file"], summary_extra=self._summary_extra,
+            settings=self.params)
 
     def _summary_extra(self) -> str:
         self.recorder.record["pose_conflicts"] = self.pose_conflicts

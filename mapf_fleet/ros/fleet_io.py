@@ -96,7 +96,7 @@ class FleetChannels:
 def run_lockstep(node, channels: FleetChannels, recorder: RunRecorder, positions, step,
                  publish_state, *, decision_timeout: float, tick_period: float = 0.0,
                  progress_every: int = 10, record_file: str = "",
-                 summary_extra=lambda: "") -> FleetOutcome:
+                 summary_extra=lambda: "", settings: dict | None = None) -> FleetOutcome:
     """Tick until every robot is on its goal or `recorder.max_steps` ticks.
 
     Each tick: `publish_state(done=False)`, collect the moves, then
@@ -110,6 +110,10 @@ def run_lockstep(node, channels: FleetChannels, recorder: RunRecorder, positions
     while (not recorder.all_on_goal(positions) and recorder.steps < recorder.max_steps
            and rclpy.ok()):
         started = time.monotonic()
+        if settings is not None:  # the node's parameters, changed at runtime (lockstep)
+            decision_timeout = float(settings.get("decision_timeout", decision_timeout))
+            tick_period = float(settings.get("tick_period", tick_period))
+            progress_every = int(settings.get("progress_every", progress_every))
         publish_state(done=False)
         decisions = ticker.collect(decision_timeout)
         if decisions.missing:

@@ -44,6 +44,49 @@ RUN_PARAMETERS = {
 }
 
 
+# parameters that may change during a run (`ros2 param set`), read again at every tick, with the
+# condition a new value must meet; every other parameter is read at start-up and a change is
+# refused with the reason
+RUNTIME_PARAMETERS = {
+    "tick_period": (lambda v: v >= 0, ">= 0"),
+    "decision_timeout": (lambda v: v > 0, "> 0"),
+    "progress_every": (lambda v: v >= 1, ">= 1"),
+    "arrival_timeout": (lambda v: v > 0, "> 0"),
+}
+
+
+def parameter_change_problem(name: str, value, declared: dict) -> str:
+    """Why parameter `name` may not become `value` at runtime ("" when it may)."""
+    if name not in declared:
+        return f"{name}: no such parameter"
+    if name not in RUNTIME_PARAMETERS:
+        runtime = ", ".join(n for n in RUNTIME_PARAMETERS if n in declared)
+        return (f"{name}: read at start-up, cannot change during a run (restart the node with "
+                f"-p {name}:=VALUE); changeable at runtime: {runtime}")
+    check, text = RUNTIME_PARAMETERS[name]
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not check(value):
+        return f"{name}: must be {text}, got {value!r}"
+    return ""
+
+
+def set_parameters_result(params: dict, parameters, logger=None):
+    """For a node's `add_on_set_parameters_callback`: apply the changes to `params` (the dict
+    the tick loop reads every tick) when all of them are allowed, else refuse them all with the
+    reasons (rcl_interfaces SetParametersResult)."""
+    from rcl_interfaces.msg import SetParametersResult
+
+    problems = [p for p in (parameter_change_problem(q.name, q.value, params)
+                            for q in parameters) if p]
+    if problems:
+        return SetParametersResult(successful=False, reason="; ".join(problems))
+    for parameter in parameters:
+        if logger is not None and params[parameter.name] != parameter.value:
+            logger.info(f"parameter {parameter.name}: {params[parameter.name]} -> "
+                        f"{parameter.value} (from the next tick)")
+        params[parameter.name] = parameter.value
+    return SetParametersResult(successful=True)
+
+
 def instance_source(params: dict) -> InstanceSource:
     """The (validated) instance source named by a node's INSTANCE_PARAMETERS values."""
     return InstanceSource(params["instance_file"], params["map_file"], params["scen_file"],

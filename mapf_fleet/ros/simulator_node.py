@@ -27,7 +27,8 @@ from mapf_fleet.entry import one_line_errors
 from mapf_fleet.ros import common, fleet_io
 from mapf_fleet.ros.arbiter import TickArbiter, check_conflict_rule
 from mapf_fleet.ros.lockstep import (INSTANCE_PARAMETERS, RUN_PARAMETERS, Decisions, FleetTicker,
-                                     RunRecorder, instance_source, require_positive)
+                                     RunRecorder, instance_source, require_positive,
+                                     set_parameters_result)
 
 PARAMETERS = {
     # name: (default, description)
@@ -73,6 +74,10 @@ class SimulatorNode(Node):
         self.get_logger().info(
             f"instance {self.instance.size[0]}x{self.instance.size[1]} with {self.num_robots} "
             f"robots, conflict rule {self.conflict_rule}, episode {self.episode}")
+        # tick_period, decision_timeout, progress_every apply from the next tick; changing any
+        # other parameter at runtime is refused with the reason (lockstep.RUNTIME_PARAMETERS)
+        self.add_on_set_parameters_callback(
+            lambda parameters: set_parameters_result(self.params, parameters, self.get_logger()))
         self._thread = threading.Thread(
             target=fleet_io.run_reporting_failure, args=(self, "simulator", self._run),
             name="simulator", daemon=True)
@@ -97,7 +102,7 @@ class SimulatorNode(Node):
             decision_timeout=float(self.params["decision_timeout"]),
             tick_period=float(self.params["tick_period"]),
             progress_every=int(self.params["progress_every"]),
-            record_file=self.params["record_file"])
+            record_file=self.params["record_file"], settings=self.params)
 
     def _step(self, decisions: Decisions):
         """The grid world's move: the arbiter's conflict rule; robots without a decision are

@@ -70,3 +70,62 @@ def test_every_robot_hosted_in_one_process_has_parameter_services(ros_env, check
     finally:
         proc.terminate()
         proc.wait(20)
+
+
+@pytest.mark.ros
+def test_simulator_applies_runtime_parameters_and_refuses_the_rest(ros_env):
+    """`ros2 param set /mapf_simulator tick_period 1.0` slows the ticks down from the next tick;
+    a parameter read at start-up (max_steps) or a bad value is refused with the reason."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+    from rclpy.parameter_client import AsyncParameterClient
+
+    from mapf_fleet.ros import common
+    from mapf_fleet.ros.simulator_node import SimulatorNode
+
+    rclpy.init(args=["test"])
+    try:
+        # no policy nodes: every tick waits decision_timeout (0.2 s) for the missing robots
+        simulator = SimulatorNode(parameter_overrides=[
+            Parameter("num_robots", value=2), Parameter("size", value=8),
+            Parameter("startup_timeout", value=0.3), Parameter("decision_timeout", value=0.2),
+            Parameter("max_steps", value=25), Parameter("progress_every", value=100)])
+        client_node = rclpy.create_node("parameter_test_client")
+        executor = SingleThreadedExecutor()
+        executor.add_node(simulator)
+        executor.add_node(client_node)
+        spinner = common.SpinThread(executor).start()
+        simulator.start()
+        try:
+            client = AsyncParameterClient(client_node, "mapf_simulator")
+            assert client.wait_for_services(timeout_sec=20.0)
+            deadline = time.monotonic() + 20
+            while simulator.tick < 2 and time.monotonic() < deadline:
+                time.sleep(0.05)
+            result = _wait(client.set_parameters([Parameter("tick_period", value=1.0)]))
+            assert result.results[0].successful, result.results[0].reason
+            values = _wait(client.get_parameters(["tick_period"])).values
+            assert values[0].double_value == 1.0
+            time.sleep(1.2)  # the tick running when it was set ends
+            first, started = simulator.tick, time.monotonic()
+            time.sleep(3.0)
+            rate = (simulator.tick - first) / (time.monotonic() - started)
+            assert rate < 1.5, f"{rate:.1f} ticks/s with tick_period 1.0 (0.2 s before)"
+            for name, value, reason in [("max_steps", 1000, "read at start-up"),
+                                        ("num_robots", 5, "read at start-up"),
+                                        ("decision_timeout", -1.0, "must be > 0"),
+                                        ("tick_period", -0.5, "must be >= 0")]:
+                result = _wait(client.set_parameters([Parameter(name, value=value)]))
+                assert not result.results[0].successful, name
+                assert reason in result.results[0].reason, result.results[0].reason
+            assert simulator.params["max_steps"] == 25
+            _wait(client.set_parameters([Parameter("tick_period", value=0.0)]))
+            assert simulator.finished.wait(30.0)
+            assert simulator.recorder.steps == 25
+        finally:
+            spinner.stop()
+            simulator.destroy_node()
+            client_node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
