@@ -1,0 +1,212 @@
+"""`mapf-fleet echo` and `mapf-fleet topics` against stand-in publishers (test/ros/graph_helper.py):
+QoS matched to the publisher (issue 17 item 5), clean end on SIGINT/SIGTERM, and `topics`
+waiting for discovery to settle (item 10)."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+
+HELPER = str(Path(__file__).with_name("graph_helper.py"))
+CLI = [sys.executable, "-m", "mapf_fleet.cli"]
+
+
+class Processes:
+    """Helper processes of one test, ended (SIGINT, then SIGKILL) when the test ends."""
+
+    def __init__(self, env):
+        self.env = env
+        self.procs: list[subprocess.Popen] = []
+
+    def helper(self, *args: str, wait_for: str | None = "ready", timeout: float = 30.0):
+        proc = subprocess.Popen([sys.executable, HELPER, *args], env=self.env, text=True,
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        self.procs.append(proc)
+        if wait_for is not None:
+            wait_line(proc, wait_for, timeout)
+        return proc
+
+    def cli(self, *args: str, **kwargs) -> subprocess.Popen:
+        proc = subprocess.Popen([*CLI, *args], env=self.env, text=True, stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, **kwargs)
+        self.procs.append(proc)
+        return proc
+
+    def close(self):
+        for proc in self.procs:
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+        for proc in self.procs:
+            try:
+                proc.wait(10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+
+
+def wait_line(proc: subprocess.Popen, text: str, timeout: float) -> None:
+    """Read proc's stdout until a line equal to `text` (the helpers print few lines)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        line = proc.stdout.readline()
+        if line.strip() == text:
+            return
+        if not line and proc.poll() is not None:
+            raise AssertionError(f"helper ended ({proc.returncode}) before {text!r}: "
+                                 f"{proc.stderr.read()}")
+    raise AssertionError(f"no {text!r} from the helper within {timeout} s")
+
+
+@pytest.fixture
+def procs(ros_env):
+    group = Processes(ros_env)
+    yield group
+    group.close()
+
+
+def run_echo(procs: Processes, *args: str, timeout: float = 40.0):
+    proc = procs.cli("echo", *args)
+    try:
+        out, err = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, err = proc.communicate()
+        pytest.fail(f"echo {' '.join(args)} printed nothing within {timeout} s\n{out}\n{err}")
+    return proc.returncode, out, err
+
+
+@pytest.mark.ros
+def test_echo_once_prints_the_map_latched_before_echo_started(procs):
+    """The fleet's layout: processes subscribing to /fleet/map (the policy hubs), then the
+    simulator publishes the map once, then echo starts. Echo often discovers the topic through a
+    subscriber before the publisher; choosing QoS at that moment gave a volatile subscription
+    that never printed (about 1 try in 3 here; 5 of 5 in a busy fleet). Each round starts a new
+    publisher process, so each round runs the discovery race again."""
+    for _ in range(4):
+        procs.helper("subscriber", "/fleet/map")
+    for round_ in range(5):
+        publisher = procs.helper("latched", "/fleet/map")
+        code, out, err = run_echo(procs, "/fleet/map", "--once", timeout=30.0)
+        assert code == 0, f"round {round_}: {err}"
+        assert "resolution: 0.5" in out and out.rstrip().endswith("---"), out
+        assert out.count("---") == 1
+        publisher.send_signal(signal.SIGINT)
+        publisher.wait(10)
+
+
+@pytest.mark.ros
+def test_echo_takes_the_durability_of_a_latched_publisher_outside_the_fleet(procs):
+    """Not one of the fleet's known latched topics: transient-local must come from the
+    discovered publisher."""
+    procs.helper("latched", "/test/latched_map")
+    code, out, err = run_echo(procs, "/test/latched_map", "--once")
+    assert code == 0, err
+    assert "resolution: 0.5" in out
+
+
+@pytest.mark.ros
+def test_echo_matches_a_best_effort_publisher(procs):
+    """A reliable subscription never matches a best-effort publisher: echo must take the
+    publisher's reliability."""
+    procs.helper("best-effort", "/test/chatter")
+    code, out, err = run_echo(procs, "/test/chatter", "-n", "2")
+    assert code == 0, err
+    assert out.count("data: tick") == 2, out
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize("signum, codes", [(signal.SIGTERM, (0, 143)), (signal.SIGINT, (0, 130))])
+@pytest.mark.parametrize("state", ["receiving", "discovering"])
+def test_echo_ends_cleanly_on_signal(procs, signum, codes, state):
+    if state == "receiving":
+        procs.helper("best-effort", "/test/chatter")
+    proc = procs.cli("echo", "/test/chatter" if state == "receiving" else "/test/absent",
+                     "--timeout", "60")
+    if state == "receiving":
+        wait_line(proc, "---", 40.0)  # it prints messages: it is in its receive loop
+    else:
+        time.sleep(3.0)  # rclpy is up and discovery is running
+    sent = time.monotonic()
+    proc.send_signal(signum)
+    try:
+        _, err = proc.communicate(timeout=10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.communicate()
+        pytest.fail(f"echo still running 10 s after {signal.Signals(signum).name}")
+    assert time.monotonic() - sent < 5.0
+    assert proc.returncode in codes, err
+    assert "Traceback" not in err, err
+
+
+@pytest.mark.ros
+def test_echo_unknown_type_is_one_line_error(procs):
+    code, out, err = run_echo(procs, "/test/x", "--type", "bogus")
+    assert code == 2
+    assert err.strip().splitlines() == [
+        "mapf-fleet echo: message type 'bogus' is not of the form pkg/msg/Name"]
+
+
+def test_choose_qos_follows_publishers():
+    from rclpy.qos import DurabilityPolicy as D
+    from rclpy.qos import ReliabilityPolicy as R
+
+    from mapf_fleet.ros.echo import choose_qos, is_latched_topic
+
+    def pub(reliability, durability):
+        return SimpleNamespace(qos_profile=SimpleNamespace(reliability=reliability,
+                                                           durability=durability))
+
+    qos = choose_qos("/x", [pub(R.RELIABLE, D.TRANSIENT_LOCAL)])
+    assert (qos.reliability, qos.durability) == (R.RELIABLE, D.TRANSIENT_LOCAL)
+    qos = choose_qos("/x", [pub(R.RELIABLE, D.TRANSIENT_LOCAL), pub(R.BEST_EFFORT, D.VOLATILE)])
+    assert (qos.reliability, qos.durability) == (R.BEST_EFFORT, D.VOLATILE)
+    for topic in ("/fleet/map", "/fleet/outcome", "/robot_3/goal", "/robot_12/waypoint",
+                  "/fleet_a/fleet/map"):
+        assert is_latched_topic(topic), topic
+        assert choose_qos(topic, []).durability == D.TRANSIENT_LOCAL
+    for topic in ("/fleet/state", "/robot_3/pose", "/fleet/mapx", "/x/map"):
+        assert not is_latched_topic(topic), topic
+        assert choose_qos(topic, []).durability == D.VOLATILE
+
+
+@pytest.mark.ros
+def test_topics_waits_for_discovery_to_settle(procs):
+    """Publishers appear over 4.5 s (a fleet coming up): every one must be listed."""
+    trickle = procs.helper("trickle", "16", "0.3")
+    started = time.monotonic()
+    proc = procs.cli("topics")
+    out, err = proc.communicate(timeout=60)
+    elapsed = time.monotonic() - started
+    assert proc.returncode == 0, err
+    listed = [line.split()[0] for line in out.splitlines() if line.startswith("/trickle/")]
+    assert listed == [f"/trickle/t_{k:02d}" for k in range(16)], out
+    assert all(line.endswith("[std_msgs/msg/String]") for line in out.splitlines()
+               if line.startswith("/trickle/"))
+    assert elapsed < 30.0
+    wait_line(trickle, "done", 10)
+
+
+@pytest.mark.ros
+def test_topics_is_bounded_by_wait_and_settles_early_on_a_quiet_graph(procs):
+    procs.helper("latched", "/test/latched_map")
+    started = time.monotonic()
+    proc = procs.cli("topics", "--wait", "30")
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    assert "/test/latched_map [nav_msgs/msg/OccupancyGrid]" in out.splitlines()
+    assert time.monotonic() - started < 20.0  # settled well before the 30 s bound
+    # a graph that keeps changing: --wait bounds the command and says the list may be partial
+    procs.helper("trickle", "100", "0.2")
+    started = time.monotonic()
+    proc = procs.cli("topics", "--wait", "3")
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    assert time.monotonic() - started < 8.0
+    assert "discovery still changing after 3 s" in err
