@@ -95,7 +95,7 @@ class FleetStateAggregator(Node):
         self._rejected_reason: dict[int, str] = {}
         self.channels = fleet_io.FleetChannels(self, self.ticker, self.geometry)
         for i in range(self.num_robots):
-            self.create_subscription(PoseStamped, common.pose_topic(i),
+            self.create_subscription(PoseStamped, common.rel(common.pose_topic(i)),
                                      lambda msg, i=i: self._on_pose(i, msg),
                                      common.reliable_qos(10))
         self.channels.publish_map_and_goals(self.grid, self.goals)

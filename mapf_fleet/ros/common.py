@@ -20,6 +20,11 @@ import numpy as np
 # and the venv is the ROS prefix so ament lookups work.
 FLEET_ENV_DEFAULTS = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
 
+# The fleet's names in the default namespace (what viewers, echo and bag see there). The nodes
+# create their topics and services under the RELATIVE names (`rel(...)`), resolved in the node's
+# namespace: /fleet/map and /robot_3/pose by default, /fleet_a/fleet/map and
+# /fleet_a/robot_3/pose with `-r __ns:=/fleet_a` (`mapf-fleet up --namespace /fleet_a`), so
+# fleets in different namespaces share a ROS_DOMAIN_ID without hearing each other.
 MAP_TOPIC = "/fleet/map"
 STATE_TOPIC = "/fleet/state"
 MOVES_TOPIC = "/fleet/moves"
@@ -30,6 +35,23 @@ STATUS_TOPIC = "/fleet/robot_status"
 DHC_HIDDEN_TOPIC = "/fleet/dhc/hidden"
 DCC_ANNOUNCE_TOPIC = "/fleet/dcc/announce"
 FRAME_ID = "map"
+
+
+def rel(name: str) -> str:
+    """The relative form of a fleet topic or service name: resolved under the node's
+    namespace (see above)."""
+    return name.lstrip("/")
+
+
+def in_namespace(name: str, namespace: str = "") -> str:
+    """The full name of fleet topic `name` in `namespace` ('/fleet/map', '/fleet_a' ->
+    '/fleet_a/fleet/map', 'fleet/map' too); a name already in the namespace is kept."""
+    namespace = namespace.strip("/")
+    if not namespace:
+        return "/" + name.lstrip("/")
+    if name.startswith("/") and name.startswith(f"/{namespace}/"):
+        return name
+    return f"/{namespace}/{name.lstrip('/')}"
 
 
 def robot_ns(robot_id: int) -> str:

@@ -39,27 +39,29 @@ class FleetChannels:
         self.ticker = ticker
         self.geometry = geometry
         n = ticker.num_robots
-        self.map_pub = node.create_publisher(OccupancyGrid, common.MAP_TOPIC, common.latched_qos())
-        self.state_pub = node.create_publisher(FleetState, common.STATE_TOPIC,
+        self.map_pub = node.create_publisher(OccupancyGrid, common.rel(common.MAP_TOPIC),
+                                             common.latched_qos())
+        self.state_pub = node.create_publisher(FleetState, common.rel(common.STATE_TOPIC),
                                                common.reliable_qos(10))
-        self.progress_pub = node.create_publisher(FleetProgress, common.PROGRESS_TOPIC,
+        self.progress_pub = node.create_publisher(FleetProgress, common.rel(common.PROGRESS_TOPIC),
                                                   common.reliable_qos(10))
-        self.outcome_pub = node.create_publisher(FleetOutcome, common.OUTCOME_TOPIC,
+        self.outcome_pub = node.create_publisher(FleetOutcome, common.rel(common.OUTCOME_TOPIC),
                                                  common.latched_qos())
-        self.markers_pub = node.create_publisher(MarkerArray, common.MARKERS_TOPIC,
+        self.markers_pub = node.create_publisher(MarkerArray, common.rel(common.MARKERS_TOPIC),
                                                  common.reliable_qos(2))
         quiet = common.quiet_publisher_events()  # per-robot publishers: keep the wait set small
-        self.goal_pubs = [node.create_publisher(PoseStamped, common.goal_topic(i),
+        self.goal_pubs = [node.create_publisher(PoseStamped, common.rel(common.goal_topic(i)),
                                                 common.latched_qos(), event_callbacks=quiet)
                           for i in range(n)]
         # the arbiter commands the robots: latched, so a robot whose subscription matches late
         # (discovery still running at tick 0, a restarted driver) still gets its current waypoint
-        self.waypoint_pubs = [node.create_publisher(PoseStamped, common.waypoint_topic(i),
+        self.waypoint_pubs = [node.create_publisher(PoseStamped,
+                                                    common.rel(common.waypoint_topic(i)),
                                                     common.latched_qos(1), event_callbacks=quiet)
                               for i in range(n)]
-        node.create_subscription(RobotMove, common.MOVES_TOPIC, self._on_move,
+        node.create_subscription(RobotMove, common.rel(common.MOVES_TOPIC), self._on_move,
                                  common.reliable_qos(1000))
-        node.create_subscription(RobotStatus, common.STATUS_TOPIC, ticker.on_status,
+        node.create_subscription(RobotStatus, common.rel(common.STATUS_TOPIC), ticker.on_status,
                                  common.reliable_qos(1000))
 
     def _on_move(self, msg: RobotMove):  # executor thread: store and notify only

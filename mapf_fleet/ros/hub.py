@@ -31,6 +31,7 @@ import torch
 from mapf_fleet.coordination.preferences import rank_actions, tie_breakers
 from mapf_fleet.grid.heuristic import cached_heuristic_bits
 from mapf_fleet.ros import common
+from mapf_fleet.ros.lockstep import EpisodeBinding
 from mapf_fleet.ros.mailbox import Mailbox
 
 
@@ -102,6 +103,9 @@ class PolicyHub:
         self._latest_state = None
         self._episode = None
         self._tick = -1
+        # the run this hub serves: never a foreign simulator's (lockstep.EpisodeBinding)
+        self.binding = EpisodeBinding(first.episode_timeout)
+        self._ignored_episodes: set[int] = set()
         self._hidden: torch.Tensor | None = None  # (M, H) carried post-communication hidden
         self._stop = threading.Event()
         self._hosts: dict[int, str] = {}  # robot id -> host, from heartbeats
@@ -110,17 +114,19 @@ class PolicyHub:
         for node in nodes:
             node.hub = self
         group = ReentrantCallbackGroup()
-        self.node.create_subscription(OccupancyGrid, common.MAP_TOPIC, self._on_map,
+        self.node.create_subscription(OccupancyGrid, common.rel(common.MAP_TOPIC), self._on_map,
                                       common.latched_qos(), callback_group=group)
-        self.node.create_subscription(FleetState, common.STATE_TOPIC, self._on_state,
+        self.node.create_subscription(FleetState, common.rel(common.STATE_TOPIC), self._on_state,
                                       common.reliable_qos(10), callback_group=group)
-        self.node.create_subscription(RobotStatus, common.STATUS_TOPIC, self._on_status,
+        self.node.create_subscription(RobotStatus, common.rel(common.STATUS_TOPIC),
+                                      self._on_status,
                                       common.reliable_qos(1000), callback_group=group)
         if self.algo == "dhc":
-            self.node.create_subscription(DhcHidden, common.DHC_HIDDEN_TOPIC, self._on_hidden,
+            self.node.create_subscription(DhcHidden, common.rel(common.DHC_HIDDEN_TOPIC),
+                                          self._on_hidden,
                                           common.reliable_qos(1000), callback_group=group)
         else:
-            self.node.create_subscription(DccAnnounce, common.DCC_ANNOUNCE_TOPIC,
+            self.node.create_subscription(DccAnnounce, common.rel(common.DCC_ANNOUNCE_TOPIC),
                                           self._on_announce, common.reliable_qos(1000),
                                           callback_group=group)
         self.node.create_timer(first.status_period, self._heartbeat, callback_group=group)
@@ -137,6 +143,15 @@ class PolicyHub:
 
     def _on_state(self, msg):
         with self._state_cond:
+            bound = self.binding.episode
+            if not self.binding.accept(msg.episode, msg.done):
+                if msg.episode not in self._ignored_episodes:
+                    self._ignored_episodes.add(msg.episode)
+                    self.node.get_logger().warning(
+                        f"ignoring the fleet state of episode {msg.episode}: robots "
+                        f"{self.ids.tolist()} serve episode {bound} (another simulator in "
+                        f"this namespace? give each fleet its own: up --namespace /NAME)")
+                return
             self._latest_state = msg  # a slow or restarted hub skips to the newest tick
             self._state_cond.notify_all()
 
@@ -173,7 +188,7 @@ class PolicyHub:
         peers = self.peers_reachable()
         for node in self.nodes:
             node.status_pub.publish(RobotStatus(
-                episode=self._episode or 0, robot_id=node.robot_id, tick=max(self._tick, 0),
+                episode=self.binding.reported, robot_id=node.robot_id, tick=max(self._tick, 0),
                 ready=self.grid is not None, peers=peers, host=self.host,
                 detail=f"{self.algo}, {len(self.nodes)} robots on this host, "
                        f"{self.decisions} decisions, {self.mailbox.stale_dropped} stale "

@@ -80,6 +80,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--record", default="", help="write trajectory and outcome JSON here")
     parser.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID to use")
     parser.add_argument("--params-file", default="", help="ROS parameters YAML for all nodes")
+    parser.add_argument("--namespace", default="",
+                        help="ROS namespace of the whole fleet (e.g. /fleet_a: topics "
+                             "/fleet_a/fleet/state, /fleet_a/robot_0/pose, ...), so fleets in "
+                             "different namespaces share a ROS_DOMAIN_ID; same as --ros-args "
+                             "-r __ns:=/fleet_a")
     parser.add_argument("--quiet", action="store_true", help="no live progress")
     return parser
 
@@ -154,6 +159,8 @@ def _ros_args(params: dict, args, kind: str) -> list[str]:
     rule sets for it, the options given on `up`'s command line, the user's `--ros-args`
     (rcl: a later value replaces an earlier one)."""
     out = ["--ros-args"]
+    if getattr(args, "namespace", ""):
+        out += ["-r", f"__ns:=/{args.namespace.strip('/')}"]
     if args.params_file:
         out += ["--params-file", args.params_file]
     fixed = args.fixed_params.get(kind, set())

@@ -100,6 +100,39 @@ def require_positive(params: dict, names) -> None:
             raise ValueError(f"parameter {name} must be > 0, got {params[name]}")
 
 
+class EpisodeBinding:
+    """Which run (episode) a policy hub serves, so that it never serves a foreign simulator.
+
+    Rule: a hub binds to the episode of the first fleet state it receives and ignores the states
+    of every other episode while bound. It is free again when its run ends (the state with
+    `done`) or when no state of its episode has come for `timeout` seconds (its simulator is
+    gone: killed, or its process ended); the next state of any episode then binds it. Its
+    heartbeats report the bound episode (0 when free), and a simulator counts as ready only
+    robots that are free or bound to its own episode (`FleetTicker.on_status`), so a second
+    simulator in the same namespace waits for free robots instead of taking them mid-run.
+    Separate fleets on one ROS_DOMAIN_ID belong in separate namespaces (`up --namespace`)."""
+
+    def __init__(self, timeout: float):
+        self.timeout = float(timeout)
+        self.episode: int | None = None
+        self._seen = 0.0
+
+    def accept(self, episode: int, done: bool, now: float | None = None) -> bool:
+        """Whether a state of `episode` is to be served (binding a free hub to it)."""
+        now = time.monotonic() if now is None else now
+        if (self.episode is not None and int(episode) != self.episode
+                and now - self._seen < self.timeout):
+            return False
+        self.episode = None if done else int(episode)
+        self._seen = now
+        return True
+
+    @property
+    def reported(self) -> int:
+        """The episode to report in heartbeats: the bound one, 0 when free."""
+        return self.episode or 0
+
+
 @dataclass(frozen=True)
 class Decisions:
     """The moves collected for one tick; a missing robot's action is 0 (stay), its
@@ -154,6 +187,8 @@ class FleetTicker:
         return None
 
     def on_status(self, msg) -> None:
+        if int(getattr(msg, "episode", 0)) not in (0, self.episode):
+            return  # a robot serving another simulator's run (EpisodeBinding) is not ours
         with self.cond:
             if msg.robot_id < self.num_robots and msg.ready:
                 self._ready_peers[int(msg.robot_id)] = int(msg.peers)

@@ -36,6 +36,8 @@ PARAMETERS = {
     "comm_timeout": (2.0, "seconds to wait for a peer's message before leaving it out"),
     "service_timeout": (2.0, "seconds to wait for a peer's DCC service to be discovered"),
     "status_period": (0.5, "seconds between readiness heartbeats"),
+    "episode_timeout": (30.0, "seconds without a fleet state of the run this robot serves "
+                              "after which another simulator's run may take it over"),
     "preference_mode": (DEFAULT_Q_MODE, "how a robot ranks its five actions from its Q-values "
                                         f"for the arbiter: one of {', '.join(PREFERENCE_MODES)}"),
 }
@@ -77,7 +79,8 @@ class PolicyNode(Node):
         self.comm_timeout = float(self.get_parameter("comm_timeout").value)
         self.service_timeout = float(self.get_parameter("service_timeout").value)
         self.status_period = float(self.get_parameter("status_period").value)
-        for pname in ("comm_timeout", "service_timeout", "status_period"):
+        self.episode_timeout = float(self.get_parameter("episode_timeout").value)
+        for pname in ("comm_timeout", "service_timeout", "status_period", "episode_timeout"):
             if not getattr(self, pname) > 0:
                 raise ValueError(f"parameter {pname} must be > 0, got {getattr(self, pname)}")
         self.preference_mode = str(self.get_parameter("preference_mode").value)
@@ -95,20 +98,22 @@ class PolicyNode(Node):
         self.hub = None  # set by PolicyHub
         self._peer_clients: dict[tuple[str, int], object] = {}
         quiet = common.quiet_publisher_events()
-        self.move_pub = self.create_publisher(RobotMove, common.MOVES_TOPIC, common.reliable_qos(100),
+        self.move_pub = self.create_publisher(RobotMove, common.rel(common.MOVES_TOPIC),
+                                              common.reliable_qos(100),
                                               event_callbacks=quiet)
-        self.status_pub = self.create_publisher(RobotStatus, common.STATUS_TOPIC,
+        self.status_pub = self.create_publisher(RobotStatus, common.rel(common.STATUS_TOPIC),
                                                 common.reliable_qos(100), event_callbacks=quiet)
         if self.algo == "dhc":
-            self.peer_pub = self.create_publisher(DhcHidden, common.DHC_HIDDEN_TOPIC,
+            self.peer_pub = self.create_publisher(DhcHidden, common.rel(common.DHC_HIDDEN_TOPIC),
                                                   common.reliable_qos(1000), event_callbacks=quiet)
         else:
             group = ReentrantCallbackGroup()
-            self.peer_pub = self.create_publisher(DccAnnounce, common.DCC_ANNOUNCE_TOPIC,
+            self.peer_pub = self.create_publisher(DccAnnounce,
+                                                  common.rel(common.DCC_ANNOUNCE_TOPIC),
                                                   common.reliable_qos(1000), event_callbacks=quiet)
-            self.create_service(DccMessage, common.dcc_request_service(self.robot_id),
+            self.create_service(DccMessage, common.rel(common.dcc_request_service(self.robot_id)),
                                 self._on_dcc_request, callback_group=group)
-            self.create_service(DccMessage, common.dcc_reply_service(self.robot_id),
+            self.create_service(DccMessage, common.rel(common.dcc_reply_service(self.robot_id)),
                                 self._on_dcc_reply, callback_group=group)
 
     def _on_set_parameters(self, parameters):
@@ -141,8 +146,8 @@ class PolicyNode(Node):
         key = (kind, int(peer))
         client = self._peer_clients.get(key)
         if client is None:
-            name = (common.dcc_request_service if kind == "request" else
-                    common.dcc_reply_service)(peer)
+            name = common.rel((common.dcc_request_service if kind == "request" else
+                               common.dcc_reply_service)(peer))
             client = self.create_client(DccMessage, name)
             self._peer_clients[key] = client
         if not client.service_is_ready() and not client.wait_for_service(self.service_timeout):

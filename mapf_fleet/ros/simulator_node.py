@@ -67,7 +67,7 @@ class SimulatorNode(Node):
                                     conflict_rule=self.conflict_rule)
         self.channels = fleet_io.FleetChannels(self, self.ticker, self.geometry)
         quiet = common.quiet_publisher_events()  # per-robot publishers: keep the wait set small
-        self.pose_pubs = [self.create_publisher(PoseStamped, common.pose_topic(i),
+        self.pose_pubs = [self.create_publisher(PoseStamped, common.rel(common.pose_topic(i)),
                                                 common.reliable_qos(10), event_callbacks=quiet)
                           for i in range(self.num_robots)]
         self.channels.publish_map_and_goals(self.instance.grid, self.goals)

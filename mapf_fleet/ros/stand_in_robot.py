@@ -29,6 +29,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--off-grid", type=int, default=-1, help="robot reporting off the map")
     parser.add_argument("--resolution", type=float, default=1.0)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--namespace", default="", help="the fleet's ROS namespace "
+                        "(up --namespace): topics /NAMESPACE/robot_<i>/...")
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
     if args.max_delay < 0:
         parser.error(f"--max-delay must be >= 0, got {args.max_delay}")
@@ -43,11 +45,14 @@ def main(argv: list[str] | None = None) -> int:
     geometry = common.MapGeometry(args.resolution)
     rng = random.Random(args.seed)
     lock = threading.Lock()
-    rclpy.init(args=["stand_in_robot"])
+    namespace = args.namespace.strip("/")
+    rclpy.init(args=["stand_in_robot"]
+               + (["--ros-args", "-r", f"__ns:=/{namespace}"] if namespace else []))
     node = rclpy.create_node("mapf_stand_in_robots")
     poses = {i: common.cell_pose(int(r), int(c), geometry)
              for i, (r, c) in enumerate(instance.starts)}
-    pubs = {i: node.create_publisher(PoseStamped, common.pose_topic(i), common.reliable_qos(10))
+    pubs = {i: node.create_publisher(PoseStamped, common.rel(common.pose_topic(i)),
+                                     common.reliable_qos(10))
             for i in poses}
     moved = set()
     # like a real robot, each follows its latest waypoint only: a new waypoint replaces the one
@@ -89,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
             pubs[i].publish(pose)
 
     for i in poses:
-        node.create_subscription(PoseStamped, common.waypoint_topic(i),
+        node.create_subscription(PoseStamped, common.rel(common.waypoint_topic(i)),
                                  lambda msg, i=i: on_waypoint(i, msg), common.latched_qos(1))
     # a pose feed publishes continuously, like a localisation stack
     node.create_timer(0.2, lambda: [publish(i) for i in poses])
