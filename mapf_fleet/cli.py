@@ -20,6 +20,7 @@ COMMANDS = {
     "up": ("mapf_fleet.ros.launcher", "main", "start a simulated (or real-robot) fleet"),
     "echo": ("mapf_fleet.ros.echo", "main", "print a topic's messages as YAML"),
     "topics": ("mapf_fleet.ros.echo", "topics_main", "list the fleet's topics"),
+    "record": ("mapf_fleet.ros.bag", "main", "record the fleet's topics into a rosbag2 (MCAP)"),
     "node": ("mapf_fleet.ros.run", "main", "run one node, like `ros2 run mapf_fleet <node>`"),
 }
 

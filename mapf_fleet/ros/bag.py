@@ -1,0 +1,265 @@
+"""`mapf-fleet record DIR`: record the fleet's topics into a rosbag2 (MCAP storage), like
+`ros2 bag record -s mcap`, with the pure-Python `rosbags` library (no rosbag2 install needed).
+
+What it records by default: /fleet/map, /fleet/state, /fleet/moves, /fleet/progress,
+/fleet/outcome (subscribed at once, so nothing of a fleet started next to it is missed) and every
+/robot_<i>/pose, /robot_<i>/goal and /robot_<i>/waypoint as they are discovered (also under a
+namespace, e.g. /fleet_a/fleet/state). `--topics T ...` records exactly those topics instead.
+
+How it writes: subscriptions are raw (`raw=True`), so each message arrives as the CDR bytes that
+rosbag2 itself stores, and is written as is with its receive time (system clock, ns). The
+subscription QoS follows the publishers (`echo.choose_qos`): transient-local for the latched
+map/outcome/goals/waypoints, so their last value is recorded even when published before the
+recorder started; each topic's offered QoS profiles are stored in the bag, so `ros2 bag play`
+republishes latched topics latched. The custom `mapf_fleet_interfaces` types are registered in
+rosbags' ROS 2 Jazzy typestore from their .msg files, so the bag carries their definitions and
+RIHS01 hashes. The bag is a rosbag2 of metadata version 9 (Jazzy), readable by `ros2 bag info`,
+`ros2 bag play` and `rosbags.rosbag2.Reader`.
+
+SIGINT or SIGTERM (or `--duration`) stops it: it closes the bag (metadata.yaml written) and
+exits 0. The fleet launcher starts it as a child process with `recorder_command(bag_dir)` and
+stops it with `stop_recorder(proc)`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+from mapf_fleet.ros import common
+
+INTERFACES_PACKAGE = "mapf_fleet_interfaces"
+POSE_TYPE = "geometry_msgs/msg/PoseStamped"
+# The fleet's own topics and their types (docs/architecture.md, mapf_fleet.ros).
+FLEET_TOPICS = {
+    common.MAP_TOPIC: "nav_msgs/msg/OccupancyGrid",
+    common.STATE_TOPIC: f"{INTERFACES_PACKAGE}/msg/FleetState",
+    common.MOVES_TOPIC: f"{INTERFACES_PACKAGE}/msg/RobotMove",
+    common.PROGRESS_TOPIC: f"{INTERFACES_PACKAGE}/msg/FleetProgress",
+    common.OUTCOME_TOPIC: f"{INTERFACES_PACKAGE}/msg/FleetOutcome",
+}
+# Topics recorded by default when discovered (any namespace in front).
+DEFAULT_TOPIC_RE = re.compile(
+    r"^(/[^/]+)*/(fleet/(map|state|moves|progress|outcome)|robot_\d+/(pose|goal|waypoint))$")
+READY_PREFIX = "mapf-fleet record: recording to"
+DISCOVERY_PERIOD_S = 0.25
+
+
+class RecordError(RuntimeError):
+    """A bag cannot be written (its message names the directory or topic and the problem)."""
+
+
+def interface_msg_dir() -> Path:
+    """Where the .msg files of mapf_fleet_interfaces are: the installed share directory (the
+    definitions the built message classes come from), else the source tree."""
+    try:
+        from ament_index_python.packages import get_package_share_directory
+
+        installed = Path(get_package_share_directory(INTERFACES_PACKAGE)) / "msg"
+        if any(installed.glob("*.msg")):
+            return installed
+    except (ImportError, LookupError, ValueError):
+        pass
+    source = Path(__file__).resolve().parents[2] / INTERFACES_PACKAGE / "msg"
+    if any(source.glob("*.msg")):
+        return source
+    raise RecordError(f"no .msg files of {INTERFACES_PACKAGE} found (looked in the ament index "
+                      f"and {source})")
+
+
+def fleet_typestore(msg_dir: Path | None = None):
+    """rosbags' ROS 2 Jazzy typestore with the mapf_fleet_interfaces messages registered."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    types = {}
+    for path in sorted((msg_dir or interface_msg_dir()).glob("*.msg")):
+        types.update(get_types_from_msg(path.read_text(), f"{INTERFACES_PACKAGE}/msg/{path.stem}"))
+    typestore.register(types)
+    return typestore
+
+
+def _duration(value):
+    """(sec, nsec) of an rclpy Duration (rclpy reports "infinite" as the largest duration, which
+    is also how rosbag2 writes it)."""
+    from rosbags.interfaces import QosTime
+
+    nanoseconds = int(getattr(value, "nanoseconds", 0))
+    return QosTime(nanoseconds // 1_000_000_000, nanoseconds % 1_000_000_000)
+
+
+def rosbags_qos(profile):
+    """rosbags' Qos of an rclpy QoSProfile (the offered QoS stored for each topic)."""
+    from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
+                                    QosReliability)
+
+    return Qos(history=QosHistory(int(profile.history)), depth=int(profile.depth),
+               reliability=QosReliability(int(profile.reliability)),
+               durability=QosDurability(int(profile.durability)),
+               deadline=_duration(profile.deadline), lifespan=_duration(profile.lifespan),
+               liveliness=QosLiveliness(int(profile.liveliness)),
+               liveliness_lease_duration=_duration(profile.liveliness_lease_duration),
+               avoid_ros_namespace_conventions=bool(profile.avoid_ros_namespace_conventions))
+
+
+class BagRecorder:
+    """Subscribes to topics on `node` and writes what arrives into a new rosbag2 (MCAP) at
+    `bag_dir`. `topics` None: the fleet's topics (FLEET_TOPICS at once, the rest of
+    DEFAULT_TOPIC_RE as discovered); else exactly those names. Call `discover()` periodically
+    (the constructor arms a timer on the node for it) and `close()` once the node has stopped
+    spinning."""
+
+    def __init__(self, node, bag_dir, topics: list[str] | None = None, log=None):
+        from rosbags.rosbag2 import StoragePlugin, Writer
+        from rosbags.rosbag2.errors import WriterError
+
+        self.node = node
+        self.bag_dir = Path(bag_dir)
+        self.log = log or (lambda text: print(text, file=sys.stderr, flush=True))
+        self.topics = None if topics is None else list(dict.fromkeys(topics))
+        self.typestore = fleet_typestore()
+        if self.bag_dir.exists():
+            raise RecordError(f"{self.bag_dir} exists already: a rosbag2 is written into a new "
+                              "directory")
+        self.writer = Writer(self.bag_dir, version=9, storage_plugin=StoragePlugin.MCAP)
+        try:
+            self.writer.open()
+        except (OSError, WriterError) as exc:
+            raise RecordError(f"cannot create the bag {self.bag_dir}: {exc}") from None
+        self._lock = threading.Lock()
+        self._closed = False
+        self._subscriptions = {}  # topic -> (connection, subscription)
+        self._skipped: set[str] = set()
+        self.counts: dict[str, int] = {}
+        wanted = FLEET_TOPICS if self.topics is None else {
+            name: FLEET_TOPICS[name] for name in self.topics if name in FLEET_TOPICS}
+        for name, type_name in wanted.items():
+            self._subscribe(name, type_name, node.get_publishers_info_by_topic(name))
+        self.discover()
+        self._timer = node.create_timer(DISCOVERY_PERIOD_S, self.discover)
+
+    def wanted(self, topic: str) -> bool:
+        return bool(DEFAULT_TOPIC_RE.match(topic)) if self.topics is None else topic in self.topics
+
+    def discover(self):
+        """Subscribe to every wanted topic of the graph not recorded yet."""
+        if self._closed:
+            return
+        for name, types in self.node.get_topic_names_and_types():
+            if name in self._subscriptions or name in self._skipped or not self.wanted(name):
+                continue
+            self._subscribe(name, types[0], self.node.get_publishers_info_by_topic(name))
+
+    def _subscribe(self, topic: str, type_name: str, publishers):
+        from mapf_fleet.ros.echo import choose_qos, import_message_type, is_latched_topic
+
+        try:
+            msg_class = import_message_type(type_name)
+            self.typestore.get_msgdef(type_name)
+        except (ValueError, KeyError) as exc:
+            self._skipped.add(topic)
+            self.log(f"mapf-fleet record: not recording {topic}: type {type_name} unknown ({exc})")
+            return
+        qos = choose_qos(topic, publishers, depth=1000)
+        # the publishers' offered QoS; none discovered yet: what the fleet's publishers offer
+        offered = [rosbags_qos(p.qos_profile) for p in publishers] or [
+            rosbags_qos(choose_qos(topic, [], depth=1 if is_latched_topic(topic) else 10))]
+        with self._lock:
+            connection = self.writer.add_connection(topic, type_name, typestore=self.typestore,
+                                                     offered_qos_profiles=offered)
+            self.counts[topic] = 0
+        subscription = self.node.create_subscription(
+            msg_class, topic, lambda data, c=connection: self._write(c, data), qos, raw=True)
+        self._subscriptions[topic] = (connection, subscription)
+
+    def _write(self, connection, data: bytes):
+        stamp = time.time_ns()
+        with self._lock:
+            if self._closed:
+                return
+            self.writer.write(connection, stamp, data)
+            self.counts[connection.topic] += 1
+
+    @property
+    def message_count(self) -> int:
+        return sum(self.counts.values())
+
+    def close(self):
+        """Close the bag (writes metadata.yaml); later messages are dropped. Idempotent."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            self.writer.close()
+
+
+def recorder_command(bag_dir, topics: list[str] | None = None,
+                     python: str | None = None) -> list[str]:
+    """The command line that records the fleet's topics into the new rosbag2 `bag_dir`, for a
+    launcher to start as a child process (with the fleet's environment: ROS_DOMAIN_ID,
+    ROS_AUTOMATIC_DISCOVERY_RANGE). It prints a line starting with READY_PREFIX on stdout once
+    its subscriptions exist; stop it with `stop_recorder`."""
+    command = [python or sys.executable, "-m", "mapf_fleet.cli", "record", str(bag_dir)]
+    if topics:
+        command += ["--topics", *topics]
+    return command
+
+
+def stop_recorder(proc: subprocess.Popen, grace: float = 0.5, timeout: float = 10.0) -> int:
+    """End a recorder started from `recorder_command`: after `grace` seconds (messages still in
+    flight when the fleet ended), SIGINT, then wait up to `timeout` s for it to close the bag
+    (SIGKILL after that: the bag then lacks metadata.yaml). Returns its exit status."""
+    if proc.poll() is None:
+        time.sleep(grace)
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    return proc.returncode
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="mapf-fleet record", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("bag_dir", metavar="DIR", help="the rosbag2 directory to create")
+    parser.add_argument("--topics", nargs="+", metavar="TOPIC",
+                        help="record exactly these topics (default: the fleet's topics)")
+    parser.add_argument("--duration", type=float, default=0.0,
+                        help="stop after this many seconds (default: until SIGINT/SIGTERM)")
+    args = parser.parse_args(sys.argv[1:] if argv is None else argv)
+    if args.topics:
+        bad = [t for t in args.topics if not t.startswith("/")]
+        if bad:
+            parser.error(f"topic names must be absolute: {', '.join(bad)}")
+    if args.duration < 0:
+        parser.error("--duration must be >= 0")
+    from mapf_fleet.ros.echo import ros_command
+
+    with ros_command("mapf_fleet_recorder") as (node, stop):
+        if stop.event.is_set():
+            return 0
+        try:
+            recorder = BagRecorder(node, args.bag_dir, args.topics)
+        except RecordError as exc:
+            print(f"mapf-fleet record: {exc}", file=sys.stderr)
+            return 2
+        try:
+            print(f"{READY_PREFIX} {args.bag_dir}", flush=True)
+            deadline = time.monotonic() + args.duration if args.duration else None
+            while not stop.wait(0.2):
+                if deadline is not None and time.monotonic() >= deadline:
+                    break
+        finally:
+            recorder.close()
+    counts = {topic: n for topic, n in recorder.counts.items()}
+    print(f"mapf-fleet record: wrote {sum(counts.values())} messages on {len(counts)} topics to "
+          f"{args.bag_dir}", flush=True)
+    return 0
