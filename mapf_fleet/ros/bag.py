@@ -3,8 +3,9 @@
 
 What it records by default: /fleet/map, /fleet/state, /fleet/moves, /fleet/progress,
 /fleet/outcome (subscribed at once, so nothing of a fleet started next to it is missed) and every
-/robot_<i>/pose, /robot_<i>/goal and /robot_<i>/waypoint as they are discovered (also under a
-namespace, e.g. /fleet_a/fleet/state). `--topics T ...` records exactly those topics instead.
+/robot_<i>/pose, /robot_<i>/goal and /robot_<i>/waypoint as they are discovered; with
+`--namespace /fleet_a` the same topics of the fleet in /fleet_a (/fleet_a/fleet/state, ...).
+`--topics T ...` records exactly those topics instead.
 
 How it writes: subscriptions are raw (`raw=True`), so each message arrives as the CDR bytes that
 rosbag2 itself stores, and is written as is with its receive time (system clock, ns). The
@@ -44,9 +45,16 @@ FLEET_TOPICS = {
     common.PROGRESS_TOPIC: f"{INTERFACES_PACKAGE}/msg/FleetProgress",
     common.OUTCOME_TOPIC: f"{INTERFACES_PACKAGE}/msg/FleetOutcome",
 }
-# Topics recorded by default when discovered (any namespace in front).
-DEFAULT_TOPIC_RE = re.compile(
-    r"^(/[^/]+)*/(fleet/(map|state|moves|progress|outcome)|robot_\d+/(pose|goal|waypoint))$")
+
+
+def default_topic_re(namespace: str = "") -> re.Pattern:
+    """The topics recorded by default when discovered: the fleet's, in `namespace`."""
+    prefix = re.escape("/" + namespace.strip("/")) if namespace.strip("/") else ""
+    return re.compile(
+        prefix + r"/(fleet/(map|state|moves|progress|outcome)|robot_\d+/(pose|goal|waypoint))$")
+
+
+DEFAULT_TOPIC_RE = default_topic_re()
 READY_PREFIX = "mapf-fleet record: recording to"
 DISCOVERY_PERIOD_S = 0.25
 
@@ -110,12 +118,13 @@ def rosbags_qos(profile):
 
 class BagRecorder:
     """Subscribes to topics on `node` and writes what arrives into a new rosbag2 (MCAP) at
-    `bag_dir`. `topics` None: the fleet's topics (FLEET_TOPICS at once, the rest of
-    DEFAULT_TOPIC_RE as discovered); else exactly those names. Call `discover()` periodically
+    `bag_dir`. `topics` None: the fleet's topics in `namespace` (FLEET_TOPICS at once, the rest
+    of `default_topic_re(namespace)` as discovered); else exactly those names. Call `discover()` periodically
     (the constructor arms a timer on the node for it) and `close()` once the node has stopped
     spinning."""
 
-    def __init__(self, node, bag_dir, topics: list[str] | None = None, log=None):
+    def __init__(self, node, bag_dir, topics: list[str] | None = None, log=None,
+                 namespace: str = ""):
         from rosbags.rosbag2 import StoragePlugin, Writer
         from rosbags.rosbag2.errors import WriterError
 
@@ -137,15 +146,18 @@ class BagRecorder:
         self._subscriptions = {}  # topic -> (connection, subscription)
         self._skipped: set[str] = set()
         self.counts: dict[str, int] = {}
-        wanted = FLEET_TOPICS if self.topics is None else {
-            name: FLEET_TOPICS[name] for name in self.topics if name in FLEET_TOPICS}
+        self.pattern = default_topic_re(namespace)
+        fleet = {common.in_namespace(name, namespace): type_name
+                 for name, type_name in FLEET_TOPICS.items()}
+        wanted = fleet if self.topics is None else {
+            name: fleet[name] for name in self.topics if name in fleet}
         for name, type_name in wanted.items():
             self._subscribe(name, type_name, node.get_publishers_info_by_topic(name))
         self.discover()
         self._timer = node.create_timer(DISCOVERY_PERIOD_S, self.discover)
 
     def wanted(self, topic: str) -> bool:
-        return bool(DEFAULT_TOPIC_RE.match(topic)) if self.topics is None else topic in self.topics
+        return bool(self.pattern.fullmatch(topic)) if self.topics is None else topic in self.topics
 
     def discover(self):
         """Subscribe to every wanted topic of the graph not recorded yet."""
@@ -199,13 +211,15 @@ class BagRecorder:
             self.writer.close()
 
 
-def recorder_command(bag_dir, topics: list[str] | None = None,
+def recorder_command(bag_dir, topics: list[str] | None = None, namespace: str = "",
                      python: str | None = None) -> list[str]:
     """The command line that records the fleet's topics into the new rosbag2 `bag_dir`, for a
     launcher to start as a child process (with the fleet's environment: ROS_DOMAIN_ID,
     ROS_AUTOMATIC_DISCOVERY_RANGE). It prints a line starting with READY_PREFIX on stdout once
     its subscriptions exist; stop it with `stop_recorder`."""
     command = [python or sys.executable, "-m", "mapf_fleet.cli", "record", str(bag_dir)]
+    if namespace.strip("/"):
+        command += ["--namespace", namespace]
     if topics:
         command += ["--topics", *topics]
     return command
@@ -232,6 +246,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("bag_dir", metavar="DIR", help="the rosbag2 directory to create")
     parser.add_argument("--topics", nargs="+", metavar="TOPIC",
                         help="record exactly these topics (default: the fleet's topics)")
+    parser.add_argument("--namespace", default="",
+                        help="the fleet's namespace (`up --namespace`): record /NS/fleet/... and "
+                             "/NS/robot_<i>/...")
     parser.add_argument("--duration", type=float, default=0.0,
                         help="stop after this many seconds (default: until SIGINT/SIGTERM)")
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
@@ -247,7 +264,7 @@ def main(argv: list[str] | None = None) -> int:
         if stop.event.is_set():
             return 0
         try:
-            recorder = BagRecorder(node, args.bag_dir, args.topics)
+            recorder = BagRecorder(node, args.bag_dir, args.topics, namespace=args.namespace)
         except RecordError as exc:
             print(f"mapf-fleet record: {exc}", file=sys.stderr)
             return 2

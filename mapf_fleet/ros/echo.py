@@ -192,6 +192,8 @@ def topics_main(argv: list[str] | None = None) -> int:
     parser.add_argument("--settle", type=float, default=3.0,
                         help="discovery has settled when the topics and nodes have not changed "
                              "for this many seconds (default 3)")
+    parser.add_argument("--namespace", default="",
+                        help="list only the topics of the fleet in this namespace (/fleet_a)")
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
     if not args.wait > 0 or not args.settle > 0:
         parser.error("--wait and --settle must be > 0")
@@ -199,7 +201,10 @@ def topics_main(argv: list[str] | None = None) -> int:
         topics, settled = settled_topics(node, stop, args.settle, args.wait)
         if stop.event.is_set():
             return 0
+        prefix = "/" + args.namespace.strip("/") + "/" if args.namespace.strip("/") else "/"
         for name, types in topics:
+            if not name.startswith(prefix):
+                continue
             print(f"{name} [{', '.join(types)}]")
         if not settled:
             print(f"mapf-fleet topics: discovery still changing after {args.wait:g} s; the list "
@@ -232,7 +237,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("-n", type=int, default=0, help="exit after this many messages")
     parser.add_argument("--timeout", type=float, default=10.0,
                         help="seconds to wait for the topic and a publisher to appear (default 10)")
+    parser.add_argument("--namespace", default="",
+                        help="the fleet's namespace: TOPIC /fleet/map means /NS/fleet/map")
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
+    args.topic = common.in_namespace(args.topic, args.namespace)
     limit = 1 if args.once else args.n
     msg_type = None
     if args.type is not None:

@@ -134,3 +134,18 @@ def test_recorded_fleet_matches_json_record(tmp_path, ros_env, checkpoints):
         assert len(messages[f"/robot_{robot}/goal"]) >= 1
     stamps = [stamp for _, stamp_msgs in messages.items() for stamp, _ in stamp_msgs]
     assert abs(min(stamps) / 1e9 - time.time()) < 600  # receive times, system clock
+
+
+def test_default_topics_are_the_fleets_in_its_namespace():
+    from mapf_fleet.ros.bag import default_topic_re
+
+    plain, named = default_topic_re(), default_topic_re("/fleet_a")
+    for topic in ("/fleet/map", "/fleet/state", "/fleet/moves", "/fleet/progress",
+                  "/fleet/outcome", "/robot_0/pose", "/robot_12/goal", "/robot_3/waypoint"):
+        assert plain.fullmatch(topic) and not named.fullmatch(topic), topic
+        assert named.fullmatch("/fleet_a" + topic) and not plain.fullmatch("/fleet_a" + topic)
+    for topic in ("/fleet/markers", "/fleet/robot_status", "/fleet/dhc/hidden", "/robot_x/pose",
+                  "/rosout", "/fleet_b/fleet/map"):
+        assert not plain.fullmatch(topic) and not named.fullmatch(topic), topic
+    command = recorder_command("b", namespace="/fleet_a")
+    assert command[-3:] == ["b", "--namespace", "/fleet_a"]

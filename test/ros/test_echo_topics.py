@@ -111,6 +111,18 @@ def test_echo_takes_the_durability_of_a_latched_publisher_outside_the_fleet(proc
 
 
 @pytest.mark.ros
+def test_echo_and_topics_take_the_fleets_namespace(procs):
+    procs.helper("latched", "/fleet_a/fleet/map")
+    code, out, err = run_echo(procs, "/fleet/map", "--namespace", "/fleet_a", "--once")
+    assert code == 0, err
+    assert "resolution: 0.5" in out
+    proc = procs.cli("topics", "--namespace", "fleet_a")
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    assert out.splitlines() == ["/fleet_a/fleet/map [nav_msgs/msg/OccupancyGrid]"]
+
+
+@pytest.mark.ros
 def test_echo_matches_a_best_effort_publisher(procs):
     """A reliable subscription never matches a best-effort publisher: echo must take the
     publisher's reliability."""
