@@ -74,7 +74,9 @@ def interface_msg_dir() -> Path:
             return installed
     except (ImportError, LookupError, ValueError):
         pass
-    source = Path(__file__).resolve().parents[2] / INTERFACES_PACKAGE / "msg"
+    from mapf_fleet.paths import SOURCE_ROOT
+
+    source = SOURCE_ROOT / INTERFACES_PACKAGE / "msg"  # a checkout: the package beside mapf_fleet
     if any(source.glob("*.msg")):
         return source
     raise RecordError(f"no .msg files of {INTERFACES_PACKAGE} found (looked in the ament index "
