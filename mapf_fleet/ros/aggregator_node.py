@@ -16,10 +16,12 @@ adjacent free cell no other robot is commanded to, with no two robots trading ce
 Then wait until every robot reports a pose in its commanded cell, or `arrival_timeout` (a
 follower still waiting then is told to stay: it never got its waypoint); snap the poses to
 cells (map resolution and origin) and publish tick k + 1 with `last_actions` = the moves the
-robots really made. A pose off the grid or on an obstacle is rejected with a log line naming the
-robot, the pose and the reason, and that robot holds its last valid cell (and is in transit
-from then on). Two robots reported in one cell at any moment are counted (`pose_conflicts`) and
-logged; two in one cell at a tick are counted as a collision.
+robots really made. A pose with a NaN / infinite coordinate, off the grid, on an obstacle or
+more than one cell from the robot's last accepted cell (a jump) is rejected with one log line
+naming the robot, the pose (field and value) and the reason (`arbiter.check_pose`), and that
+robot holds its last valid cell (and is in transit from then on). Two robots reported in one
+cell at any moment are counted (`pose_conflicts`) and logged; two in one cell at a tick are
+counted as a collision.
 
 The map and the goals come from the same sources as the simulator's (instance YAML, MovingAI
 files or a generated instance); the starts are the robots' first valid poses. The tick
@@ -41,8 +43,8 @@ from rclpy.node import Node
 from mapf_fleet.entry import one_line_errors
 from mapf_fleet.grid.actions import ACTION_DELTAS, STAY
 from mapf_fleet.ros import common, fleet_io
-from mapf_fleet.ros.arbiter import (TickArbiter, check_conflict_rule, plan_robot_commands,
-                                    ready_to_send)
+from mapf_fleet.ros.arbiter import (TickArbiter, check_conflict_rule, check_pose,
+                                    plan_robot_commands, ready_to_send)
 from mapf_fleet.ros.lockstep import (INSTANCE_PARAMETERS, RUN_PARAMETERS, Decisions, FleetTicker,
                                      RunRecorder, instance_source, require_positive,
                                      set_parameters_result)
@@ -93,6 +95,7 @@ class FleetStateAggregator(Node):
         self._cond = self.ticker.cond
         self._reported: dict[int, tuple[int, int]] = {}  # latest snapped cell per robot
         self._rejected_reason: dict[int, str] = {}
+        self._accepted: dict[int, tuple[int, int]] = {}  # last accepted cell per robot
         self.channels = fleet_io.FleetChannels(self, self.ticker, self.geometry)
         for i in range(self.num_robots):
             self.create_subscription(PoseStamped, common.rel(common.pose_topic(i)),
@@ -113,31 +116,30 @@ class FleetStateAggregator(Node):
 
     # ---- pose feeds ----
     def check_pose(self, robot_id: int, x: float, y: float) -> tuple[tuple[int, int] | None, str]:
-        """(cell, "") for a pose on a free cell, else (None, reason)."""
-        row, col = self.geometry.xy_to_cell(x, y)
-        h, w = self.grid.shape
-        if not (0 <= row < h and 0 <= col < w):
-            return None, f"off the {h}x{w} grid (cell {row},{col})"
-        if self.grid[row, col]:
-            return None, f"on an obstacle (cell {row},{col})"
-        return (row, col), ""
+        """(cell, "") for a pose on a free cell at most one move from the robot's last accepted
+        cell, else (None, reason): `arbiter.check_pose` (NaN / inf, off the grid, obstacle,
+        jump)."""
+        checked = check_pose(self.grid, self.geometry, x, y, self._accepted.get(robot_id))
+        return checked.cell, checked.reason
 
     def _on_pose(self, robot_id: int, msg: PoseStamped):
-        x, y = float(msg.pose.position.x), float(msg.pose.position.y)
-        cell, reason = self.check_pose(robot_id, x, y)
+        x, y = msg.pose.position.x, msg.pose.position.y
         with self._cond:
+            checked = check_pose(self.grid, self.geometry, x, y, self._accepted.get(robot_id))
+            cell, reason = checked.cell, checked.reason
             if cell is None:
-                raw = self.geometry.xy_to_cell(x, y)
-                self._reported[robot_id] = raw  # it did move there: counts for arrival
+                if checked.raw is not None:
+                    self._reported[robot_id] = checked.raw  # it did move there: counts for arrival
                 if self._rejected_reason.get(robot_id) != reason:
                     self.get_logger().error(
-                        f"robot {robot_id}: pose rejected: x={x:.3f} y={y:.3f} is {reason}; "
+                        f"robot {robot_id}: pose rejected: x={x:.3f} y={y:.3f}: {reason}; "
                         f"the robot holds its last valid cell "
                         f"{tuple(int(v) for v in self.positions[robot_id])}")
                 self._rejected_reason[robot_id] = reason
             else:
                 previous = self._reported.get(robot_id)
                 self._reported[robot_id] = cell
+                self._accepted[robot_id] = cell
                 self._rejected_reason.pop(robot_id, None)
                 if self.positions[robot_id, 0] < 0:
                     self.positions[robot_id] = cell  # first valid pose: the start
@@ -159,7 +161,7 @@ class FleetStateAggregator(Node):
                                          also=lambda: bool((self.positions[:, 0] >= 0).all()))
         with self._cond:
             unposed = np.flatnonzero(self.positions[:, 0] < 0).tolist()
-        if unposed:
+        if unposed and not self.ticker.stopped:
             raise RuntimeError(f"no valid pose from robots {unposed} within {startup_timeout} s")
         if unready:
             self.get_logger().warning(f"starting without ready robots {unready} "
@@ -247,7 +249,7 @@ class FleetStateAggregator(Node):
                 arrived = all(tuple(commanded[i]) == tuple(self._reported.get(i, (-1, -1)))
                               for i in range(self.num_robots))
                 remaining = deadline - time.monotonic()
-                if (arrived and sent.all()) or remaining <= 0:
+                if (arrived and sent.all()) or remaining <= 0 or self.ticker.stopped:
                     return sent
                 self._cond.wait(remaining)
 

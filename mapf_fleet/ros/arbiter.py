@@ -282,6 +282,45 @@ def ready_to_send(commanded, reported: dict, pending, unsure=None) -> list[int]:
 
 
 @dataclass(frozen=True)
+class PoseCheck:
+    """A reported pose checked (`check_pose`): `cell` when accepted, else None and `reason`;
+    `raw`: the cell the pose lies in (None for a non-finite coordinate)."""
+
+    cell: tuple | None
+    reason: str
+    raw: tuple | None
+
+
+def check_pose(grid, geometry, x, y, last=None) -> PoseCheck:
+    """Check a robot's reported pose (x, y) against the map (`geometry`: a
+    `common.MapGeometry`) and its last accepted cell `last` (None: its first pose). Rejected: a
+    coordinate that is not a finite number (NaN, inf: the reason names the field and value), a
+    cell off the grid or on an obstacle, or a cell more than one move from `last` (robots move
+    one cell per tick, to a 4-neighbour: a jump means a bad pose or a lost localisation)."""
+    for field_name, value in (("pose.position.x", x), ("pose.position.y", y)):
+        try:
+            finite = np.isfinite(float(value))
+        except (TypeError, ValueError):
+            finite = False
+        if not finite:
+            return PoseCheck(None, f"{field_name} is {value!r}, not a finite number", None)
+    raw = tuple(int(v) for v in geometry.xy_to_cell(float(x), float(y)))
+    h, w = np.asarray(grid).shape
+    row, col = raw
+    if not (0 <= row < h and 0 <= col < w):
+        return PoseCheck(None, f"off the {h}x{w} grid (cell {row},{col})", raw)
+    if grid[row][col]:
+        return PoseCheck(None, f"on an obstacle (cell {row},{col})", raw)
+    if last is not None:
+        last = tuple(int(v) for v in last)
+        jump = abs(row - last[0]) + abs(col - last[1])
+        if jump > 1:
+            return PoseCheck(None, f"a jump of {jump} cells from cell {last[0]},{last[1]} to "
+                                   f"{row},{col} (robots move one cell at a time)", raw)
+    return PoseCheck(raw, "", raw)
+
+
+@dataclass(frozen=True)
 class RobotCommands:
     """One real-robot tick's commands (`plan_robot_commands`). `waypoints` (N, 2): each robot's
     commanded cell (in transit: its old waypoint); `executed` (N,): the actions commanded this

@@ -178,25 +178,57 @@ def cell_pose(row: int, col: int, geometry: MapGeometry, stamp=None):
 class SpinThread:
     """Spin an executor in its own thread (DESIGN.md section 2: never call
     spin_until_future_complete in a loop); `stop()` shuts it down and joins the thread, which must
-    happen before the nodes are destroyed."""
+    happen before the nodes are destroyed.
 
-    def __init__(self, executor):
+    A callback that raises never ends the thread silently: the exception is logged with its
+    traceback (on the logger of the executor's first node), kept in `error`, passed to
+    `on_error`, and the thread stops spinning; the process's main loop then ends the process
+    with a non-zero code (`fleet_io.spin_until_finished`, `policy_node.spin_policy_nodes`).
+    Bad input a node expects (a NaN pose) is handled in its callback and never gets here. A
+    context or executor shut down under it ends it quietly."""
+
+    def __init__(self, executor, on_error=None):
         self.executor = executor
+        self.on_error = on_error
+        self.error: BaseException | None = None
+        self._stopping = False
         self._thread = threading.Thread(target=self._run, name="ros-spin", daemon=True)
 
     def _run(self):
+        from rclpy.executors import ExternalShutdownException, ShutdownException
+
         try:
             self.executor.spin()
-        except Exception:  # context shut down under us (Ctrl-C): nothing left to do
+        except (ExternalShutdownException, ShutdownException):
             pass
+        except Exception as exc:
+            if self._stopping or not self.executor.context.ok():
+                return  # shut down under us: nothing left to do
+            self.error = exc
+            log_callback_error(self.executor, exc)
+            if self.on_error is not None:
+                self.on_error(exc)
 
     def start(self) -> "SpinThread":
         self._thread.start()
         return self
 
     def stop(self, timeout: float = 5.0):
+        self._stopping = True
         self.executor.shutdown(timeout_sec=timeout)
         self._thread.join(timeout)
+
+
+def log_callback_error(executor, exc: BaseException) -> None:
+    """Log a callback's exception with its traceback on the executor's first node's logger."""
+    import traceback
+
+    import rclpy.logging
+
+    nodes = executor.get_nodes()
+    logger = nodes[0].get_logger() if nodes else rclpy.logging.get_logger("mapf_fleet")
+    text = "".join(traceback.format_exception(exc)).rstrip()
+    logger.error(f"a callback failed: {exc!r}; this process stops (exit code 1)\n{text}")
 
 
 def split_ros_args(argv: list[str]) -> tuple[list[str], list[str]]:

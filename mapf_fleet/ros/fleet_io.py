@@ -105,12 +105,14 @@ def run_lockstep(node, channels: FleetChannels, recorder: RunRecorder, positions
     `step(decisions) -> (positions, collisions, series)` makes the next tick (it must call
     `ticker.advance()`); progress is published and logged. At the end: the final state, the
     outcome (published, latched; `summary_extra()` is appended to its summary) and the record.
+    `ticker.stop()` (a signal, a failed callback) ends the run before the next tick: the outcome
+    is "stopped at tick k" and the record is written all the same.
     """
     logger = node.get_logger()
     ticker = channels.ticker
     recorder.start(positions)
     while (not recorder.all_on_goal(positions) and recorder.steps < recorder.max_steps
-           and rclpy.ok()):
+           and rclpy.ok() and not ticker.stopped):
         started = time.monotonic()
         if settings is not None:  # the node's parameters, changed at runtime (lockstep)
             decision_timeout = float(settings.get("decision_timeout", decision_timeout))
@@ -118,6 +120,8 @@ def run_lockstep(node, channels: FleetChannels, recorder: RunRecorder, positions
             progress_every = int(settings.get("progress_every", progress_every))
         publish_state(done=False)
         decisions = ticker.collect(decision_timeout)
+        if ticker.stopped:
+            break  # this tick is not played: the record stays consistent
         if decisions.missing:
             logger.warning(recorder.missing_text(decisions, decision_timeout))
         positions, collisions, series = step(decisions)
@@ -128,7 +132,10 @@ def run_lockstep(node, channels: FleetChannels, recorder: RunRecorder, positions
         if tick_period > 0:
             time.sleep(max(0.0, tick_period - (time.monotonic() - started)))
     publish_state(done=True)
-    outcome = FleetOutcome(**recorder.finish(positions, extra=summary_extra()))
+    stopped_at = (ticker.tick if ticker.stopped and not recorder.all_on_goal(positions)
+                  and recorder.steps < recorder.max_steps else None)
+    outcome = FleetOutcome(**recorder.finish(positions, extra=summary_extra(),
+                                             stopped_at=stopped_at))
     channels.outcome_pub.publish(outcome)
     logger.info(outcome.summary)
     if record_file:
@@ -142,7 +149,9 @@ def run_reporting_failure(node, name: str, run) -> None:
     try:
         run()
     except Exception as exc:  # keep the process alive long enough to report
-        node.get_logger().error(f"{name} failed: {exc!r}")
+        import traceback
+
+        node.get_logger().error(f"{name} failed: {exc!r}\n{traceback.format_exc().rstrip()}")
         node.outcome = FleetOutcome(episode=node.episode, success=False,
                                     summary=f"{name} failed: {exc!r}")
     finally:
@@ -150,27 +159,49 @@ def run_reporting_failure(node, name: str, run) -> None:
 
 
 def spin_until_finished(make_node, name: str, argv: list[str] | None = None) -> int:
-    """Process main of a lockstep node: spin it, run its ticks, exit 0 on success."""
+    """Process main of a lockstep node: spin it, run its ticks, exit 0 on success, 1 on failure.
+
+    SIGINT / SIGTERM (at any time, start-up included) stop the run: the outcome "stopped at tick
+    k" is published and the record written, then the process exits 130 / 143; a second signal
+    exits within a second. A callback that raises (logged by `SpinThread` with its traceback) stops the
+    run the same way and the process exits 1."""
+    from rclpy.signals import SignalHandlerOptions
+
+    from mapf_fleet.ros.processes import stop_signals
+
     common.prepare_environment()
     args = sys.argv if argv is None else [name] + list(argv)
-    rclpy.init(args=args)
-    node = make_node()
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    spinner = common.SpinThread(executor).start()
-    node.start()
+    signals = stop_signals()  # rclpy's own handlers stay out (processes.py)
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    node = spinner = None
     try:
+        if signals.requested:  # during start-up (imports, init)
+            return signals.exit_code
+        node = make_node()
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        spinner = common.SpinThread(executor).start()
+        node.start()
         while not node.finished.wait(0.2):
-            pass
-        time.sleep(0.5)  # let the latched outcome reach late subscribers
-    except KeyboardInterrupt:
-        pass
+            if signals.requested or spinner.error is not None:
+                node.ticker.stop()
+            if signals.forced:  # a second signal: one more second for the record, then exit
+                node.finished.wait(1.0)
+                break
+        if node.finished.is_set() and not signals.requested:
+            time.sleep(0.5)  # let the latched outcome reach late subscribers
     finally:
-        spinner.stop()
-        success = bool(node.outcome is not None and node.outcome.success)
-        node.destroy_node()
+        if spinner is not None:
+            spinner.stop()
+        if node is not None:
+            node.destroy_node()
         rclpy.try_shutdown()
-    return 0 if success else 1
+        signals.restore()
+    if signals.requested:
+        return signals.exit_code
+    if spinner.error is not None:
+        return 1
+    return 0 if node.outcome is not None and node.outcome.success else 1
 
 
 def fleet_markers(positions, goals, geometry, stamp) -> MarkerArray:

@@ -71,6 +71,40 @@ class LocalObserver:
         return obs.reshape(m, 6, self.size, self.size)
 
 
+class StateWatch:
+    """Notices when the fleet state stops coming (plain Python): after `kill -9` of the
+    simulator the policy nodes would otherwise wait without a word. `note(tick, done)` on each
+    state received; `silence()` returns a line to log, once per silence of `timeout` s: before
+    the first state (since start-up), or mid-run (since the last state of a run not yet done; a
+    finished run is expected to go quiet). After a reported silence `note` returns a line saying
+    the state is back."""
+
+    def __init__(self, timeout: float = 30.0, now: float | None = None):
+        self.timeout = float(timeout)
+        self._since = time.monotonic() if now is None else now
+        self._tick: int | None = None
+        self._done = False
+        self._reported = False
+
+    def note(self, tick: int, done: bool, now: float | None = None) -> str | None:
+        back = self._reported
+        self._since = time.monotonic() if now is None else now
+        self._tick, self._done, self._reported = int(tick), bool(done), False
+        return f"fleet state received again (tick {tick})" if back else None
+
+    def silence(self, now: float | None = None) -> str | None:
+        now = time.monotonic() if now is None else now
+        quiet = now - self._since
+        if self._reported or self._done or quiet < self.timeout:
+            return None
+        self._reported = True
+        if self._tick is None:
+            return (f"no fleet state yet after {quiet:.0f} s: waiting for the simulator (or "
+                    f"aggregator) on {common.STATE_TOPIC} in this ROS domain and namespace")
+        return (f"no fleet state for {quiet:.0f} s since tick {self._tick}: the simulator (or "
+                f"aggregator) stopped or is unreachable; the robots wait")
+
+
 class PolicyHub:
     def __init__(self, nodes, model):
         from mapf_fleet_interfaces.msg import (DccAnnounce, DhcHidden, FleetState,
@@ -106,6 +140,7 @@ class PolicyHub:
         # the run this hub serves: never a foreign simulator's (lockstep.EpisodeBinding)
         self.binding = EpisodeBinding(first.episode_timeout)
         self._ignored_episodes: set[int] = set()
+        self.watch = StateWatch(getattr(first, "episode_timeout", 30.0))
         self._hidden: torch.Tensor | None = None  # (M, H) carried post-communication hidden
         self._stop = threading.Event()
         self._hosts: dict[int, str] = {}  # robot id -> host, from heartbeats
@@ -153,7 +188,10 @@ class PolicyHub:
                         f"this namespace? give each fleet its own: up --namespace /NAME)")
                 return
             self._latest_state = msg  # a slow or restarted hub skips to the newest tick
+            back = self.watch.note(msg.tick, msg.done)
             self._state_cond.notify_all()
+        if back:
+            self.node.get_logger().info(back)
 
     def _on_status(self, msg):
         self._hosts[int(msg.robot_id)] = msg.host
@@ -213,6 +251,9 @@ class PolicyHub:
                         (self._latest_state.episode == self._episode and
                          self._latest_state.tick <= self._tick)):
                     self._state_cond.wait(0.2)
+                    silence = self.watch.silence()
+                    if silence:
+                        self.node.get_logger().warning(f"robots {self.ids.tolist()}: {silence}")
                 if self._stop.is_set():
                     return
                 state = self._latest_state

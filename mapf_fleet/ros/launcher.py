@@ -22,7 +22,7 @@ import argparse
 import glob
 import json
 import os
-import subprocess
+import shutil
 import sys
 import tempfile
 import time
@@ -35,6 +35,13 @@ REPO_ROOT = __import__("mapf_fleet.paths").paths.data_root("models")  # share di
 
 
 DEFAULT_CHECKPOINT = REPO_ROOT / "models" / "default.pt"
+
+# Robots' nodes one process hosts at most (`--single-process`: all of them; else
+# `--nodes-per-process`). Creating the nodes of one process takes time that grows with the
+# square of their number (every new publisher is matched against the process's others on the
+# shared topics): 200 robots ~1 s, 500 ~10 s, 2000 ~3 min on a 2-core machine, 10000 would take
+# about an hour before the first tick.
+MAX_NODES_PER_PROCESS = 512
 
 
 def default_checkpoint() -> str:
@@ -171,6 +178,9 @@ def _ros_args(params: dict, args, kind: str) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from mapf_fleet.ros.processes import stop_signals
+
+    signals = stop_signals()  # first thing: SIGINT / SIGTERM while loading are kept, no traceback
     argv = list(sys.argv[1:] if argv is None else argv)
     own, ros_args = common.split_ros_args(argv)
     parser = build_parser()
@@ -200,6 +210,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.nodes_per_process < 1:
         print("mapf-fleet up: --nodes-per-process must be >= 1", file=sys.stderr)
         return 2
+    problem = checkpoint_problem(checkpoint)
+    if problem:  # before anything starts: the policy processes would die one by one
+        print(f"mapf-fleet up: {problem}", file=sys.stderr)
+        return 2
     try:
         source = InstanceSource(args.instance, args.map, args.scen, args.num_robots, args.size,
                                 args.density, args.seed)
@@ -207,10 +221,16 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, OSError) as exc:
         print(f"mapf-fleet up: bad instance: {exc}", file=sys.stderr)
         return 2
+    problem = layout_problem(num_robots, args.single_process, args.nodes_per_process)
+    if problem:
+        print(f"mapf-fleet up: {problem}", file=sys.stderr)
+        return 2
     env = common.prepare_environment(dict(os.environ))
     if args.domain_id is not None:
         env["ROS_DOMAIN_ID"] = str(args.domain_id)
-    record = args.record or os.path.join(tempfile.mkdtemp(prefix="mapf_fleet_"), "run.json")
+    # the default record and the policy processes' logs; removed when `up` ends
+    args.work_dir = work = tempfile.mkdtemp(prefix="mapf_fleet_")
+    record = args.record or os.path.join(work, "run.json")
     sim_params = {"instance_file": args.instance, "map_file": args.map, "scen_file": args.scen,
                   "num_robots": args.num_robots, "size": args.size, "density": args.density,
                   "seed": args.seed, "max_steps": args.max_steps,
@@ -225,13 +245,59 @@ def main(argv: list[str] | None = None) -> int:
     if args.preference_mode is not None:
         policy_params["preference_mode"] = args.preference_mode
     started = time.monotonic()
-    if args.single_process:
-        os.environ.update(env)
-        code = run_single_process(num_robots, sim_params, policy_params, args)
-    else:
-        code = run_processes(num_robots, sim_params, policy_params, args, env)
-    elapsed = time.monotonic() - started
-    return report(record, elapsed) if code in (0, 1) else code
+    try:
+        if args.single_process:
+            os.environ.update(env)
+            code, problem = run_single_process(num_robots, sim_params, policy_params, args)
+        else:
+            code, problem = run_processes(num_robots, sim_params, policy_params, args, env)
+        elapsed = time.monotonic() - started
+        return finish(code, problem, record, elapsed, bool(args.record))
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+        signals.restore()
+
+
+def checkpoint_problem(path: str) -> str:
+    """"" when `path` loads as a policy (as the policy nodes load it), else the reason, e.g.
+    "bad.pt: not a readable checkpoint (corrupt, truncated or not weights-only): ..."."""
+    from mapf_fleet.models.checkpoint import load_checkpoint
+
+    try:
+        load_checkpoint(path)
+    except (ValueError, OSError) as exc:  # CheckpointError is a ValueError
+        return str(exc).strip().splitlines()[0] if str(exc).strip() else repr(exc)
+    return ""
+
+
+def layout_problem(num_robots: int, single_process: bool, nodes_per_process: int) -> str:
+    """Why this process layout is refused ("" when it is not): more than
+    MAX_NODES_PER_PROCESS robots' nodes in one process."""
+    per_process = num_robots if single_process else min(nodes_per_process, num_robots)
+    if per_process <= MAX_NODES_PER_PROCESS:
+        return ""
+    layout = "--single-process" if single_process else f"--nodes-per-process {nodes_per_process}"
+    return (f"{layout} would host {per_process} robots' nodes in one process; the limit is "
+            f"{MAX_NODES_PER_PROCESS}, because creating them takes time growing with the square "
+            f"of their number (500 ~10 s, 2000 ~3 min, 10000 about an hour before the first "
+            f"tick). Use --nodes-per-process K with K <= {MAX_NODES_PER_PROCESS} (e.g. 8).")
+
+
+def finish(code: int, problem: str, record: str, elapsed: float, keep_record: bool) -> int:
+    """`up`'s exit code after its run: the outcome's (0 success, 1 failure), 128 + the signal
+    that stopped it (130 / 143, the outcome "stopped at tick k" still reported), 1 when a
+    process of the fleet died (`problem`), or the simulator's own error code (2: it refused its
+    parameters, with its message above)."""
+    if code not in (0, 1) and code < 128 and not problem:
+        return code
+    if code >= 128 and not Path(record).exists():
+        print(f"mapf-fleet up: stopped by signal {code - 128} before the run started",
+              file=sys.stderr)
+        return code
+    result = report(record, elapsed, keep_record)
+    if code >= 128:
+        return code
+    return 1 if problem else result
 
 
 def _aggregator_parameters() -> set[str]:
@@ -240,54 +306,51 @@ def _aggregator_parameters() -> set[str]:
     return set(PARAMETERS)
 
 
-def run_processes(num_robots, sim_params, policy_params, args, env) -> int:
-    python = sys.executable
-    runner = [python, "-m", "mapf_fleet.ros.run"]
-    procs: list[subprocess.Popen] = []
-    quiet_out = subprocess.DEVNULL
+def run_processes(num_robots, sim_params, policy_params, args, env) -> tuple[int, str]:
+    """Start the policy processes and the simulator (or aggregator) and supervise them
+    (`processes.supervise`): the simulator's output is shown (unless --quiet), each policy
+    process's goes to a log in `args.work_dir`, reported (its last lines) if it dies; SIGINT /
+    SIGTERM stop the run (record, "stopped at tick k") and every child. Each child runs in its
+    own session (a terminal's Ctrl-C reaches `up` only, which passes it on once) and gets
+    SIGTERM if `up` dies. (exit code: the simulator's, or 128 + the signal; the problem
+    reported, or "")."""
+    from mapf_fleet.ros.processes import Child, stop_children, stop_signals, supervise
+
+    runner = [sys.executable, "-m", "mapf_fleet.ros.run"]
+    signals = stop_signals()
+    if signals.requested:
+        return signals.exit_code, ""
+    children: list[Child] = []
     try:
         k = args.nodes_per_process
         for first in range(0, num_robots, k):
             ids = f"{first}-{min(first + k, num_robots) - 1}"
-            procs.append(subprocess.Popen(
+            children.append(Child(
+                f"policy process (robots {ids})",
                 runner + ["policy", "--robots", ids] + _ros_args(policy_params, args, "policy"),
-                env=env, stdout=quiet_out, stderr=quiet_out))
-        simulator = subprocess.Popen(
-            runner + ["aggregator" if args.real_robots else "simulator"]
-            + _ros_args(sim_params, args, "sim"), env=env,
-            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        for line in simulator.stdout:
-            if not args.quiet:
-                print(line.rstrip(), flush=True)
-        return simulator.wait()
-    except KeyboardInterrupt:
-        return 130
-    finally:
-        stop_processes(procs)
+                env, log_path=os.path.join(args.work_dir, f"policy_{ids}.log")))
+        name = "aggregator" if args.real_robots else "simulator"
+        echo = None if args.quiet else (lambda line: print(line, flush=True))
+        main = Child(name, runner + [name] + _ros_args(sim_params, args, "sim"), env, echo=echo)
+    except BaseException:
+        stop_children(children)
+        raise
+    code, problem = supervise(main, children, signals, echoed=not args.quiet)
+    if signals.requested:
+        return signals.exit_code, problem
+    return (1 if problem else code), problem
 
 
-def stop_processes(procs, grace: float = 3.0) -> None:
-    """SIGTERM, then SIGKILL what did not stop (a hung Fast DDS process ignores SIGTERM)."""
-    for proc in procs:
-        if proc.poll() is None:
-            proc.terminate()
-    deadline = time.monotonic() + grace
-    for proc in procs:
-        try:
-            proc.wait(max(0.0, deadline - time.monotonic()))
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-
-
-def run_single_process(num_robots, sim_params, policy_params, args) -> int:
+def run_single_process(num_robots, sim_params, policy_params, args) -> tuple[int, str]:
     import rclpy
 
-    from mapf_fleet.ros.policy_node import PolicyNode, host_kwargs, spin_policy_nodes
+    from mapf_fleet.ros.policy_node import (PolicyNode, host_kwargs, init_process,
+                                            spin_policy_nodes)
     from mapf_fleet.ros.simulator_node import SimulatorNode
 
     # the same ROS arguments (and precedence) as the processes get, for every node of this one
-    rclpy.init(args=["up"] + _ros_args({**sim_params, **policy_params}, args, "both"))
+    # SIGINT / SIGTERM stop the simulator's run (record, "stopped at tick k"): exit 130 / 143
+    signals = init_process(["up"] + _ros_args({**sim_params, **policy_params}, args, "both"))
     try:
         simulator = SimulatorNode()
         options = host_kwargs(num_robots)
@@ -295,20 +358,30 @@ def run_single_process(num_robots, sim_params, policy_params, args) -> int:
         policies = [first] + [PolicyNode(robot_id=i, model=first.model, **options)
                               for i in range(1, num_robots)]
         # one hub drives every robot of this process; the simulator shares the executor
-        spin_policy_nodes(policies, until=simulator.finished.is_set, extra_nodes=[simulator],
-                          on_started=simulator.start)
-        return 0 if simulator.outcome is not None and simulator.outcome.success else 1
+        code = spin_policy_nodes(policies, until=simulator.finished.is_set,
+                                 extra_nodes=[simulator], on_started=simulator.start,
+                                 signals=signals, on_stop=simulator.ticker.stop)
+        if code:
+            return code, ("" if signals.requested else "a callback failed (logged above)")
+        return (0 if simulator.outcome is not None and simulator.outcome.success else 1), ""
     finally:
         rclpy.try_shutdown()
+        signals.restore()
 
 
-def report(record_path: str, elapsed: float) -> int:
+def report(record_path: str, elapsed: float, show_path: bool = True) -> int:
+    """Print the run's outcome and its speed; 0 on success, else 1. The ticks/s are measured
+    from the first tick (the record's `run_seconds`), not over start-up."""
     try:
         record = json.loads(Path(record_path).read_text())
     except (OSError, ValueError) as exc:
         print(f"mapf-fleet up: no outcome ({exc})", file=sys.stderr)
         return 1
-    ticks = max(int(record.get("steps", 0)), 1)
+    ticks = int(record.get("steps", 0))
+    run_seconds = float(record.get("run_seconds", 0.0))
     print(f"outcome: {record['summary']}")
-    print(f"wall time {elapsed:.1f} s, {ticks / elapsed:.2f} ticks/s; record: {record_path}")
+    speed = (f"{ticks} ticks in {run_seconds:.1f} s from the first tick, "
+             f"{ticks / run_seconds:.2f} ticks/s" if ticks and run_seconds > 0 else "no tick")
+    print(f"wall time {elapsed:.1f} s; {speed}"
+          + (f"; record: {record_path}" if show_path else ""))
     return 0 if record.get("success") else 1

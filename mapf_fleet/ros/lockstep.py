@@ -163,6 +163,14 @@ class FleetTicker:
         self._prefs: dict[int, list[int]] = {}
         self._comm: dict[int, tuple[list[int], int]] = {}  # robot -> (requested, received)
         self._ready_peers: dict[int, int] = {}
+        self.stopped = False  # stop(): the run ends (signal, failed callback), waits return
+
+    def stop(self) -> None:
+        """End the run: `wait_ready` and `collect` return at once, `run_lockstep` finishes with
+        a "stopped at tick k" outcome. Any thread may call it."""
+        with self.cond:
+            self.stopped = True
+            self.cond.notify_all()
 
     def on_move(self, msg) -> str | None:
         """Store a RobotMove of the current tick; a text to log as a warning, or None."""
@@ -205,7 +213,7 @@ class FleetTicker:
         `timeout` seconds; return the robots still not ready."""
         deadline = time.monotonic() + timeout
         with self.cond:
-            while time.monotonic() < deadline:
+            while time.monotonic() < deadline and not self.stopped:
                 if not self.unready() and also():
                     break
                 self.cond.wait(0.1)
@@ -215,7 +223,7 @@ class FleetTicker:
         """The moves of the current tick, waiting up to `timeout` seconds for all of them."""
         deadline = time.monotonic() + timeout
         with self.cond:
-            while len(self._moves) < self.num_robots:
+            while len(self._moves) < self.num_robots and not self.stopped:
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     break
@@ -301,16 +309,22 @@ class RunRecorder:
         return (f"tick {tick}: {self.on_goal(positions)}/{self.num_robots} on goal, "
                 f"{self.collisions} collisions, {self.missed} missed decisions")
 
-    def finish(self, positions, extra: str = "") -> dict:
-        """The FleetOutcome fields (with its summary); `extra` is appended to the summary."""
-        success = self.all_on_goal(positions)
-        summary = (f"{'success' if success else 'failure'}: {self.on_goal(positions)}/"
+    def finish(self, positions, extra: str = "", stopped_at: int | None = None) -> dict:
+        """The FleetOutcome fields (with its summary); `extra` is appended to the summary.
+        `stopped_at`: the run was stopped (signal, failure) at that tick: a failure whose
+        summary starts with "stopped at tick k"."""
+        success = self.all_on_goal(positions) and stopped_at is None
+        verdict = ('success' if success else 'failure') if stopped_at is None else \
+            f"stopped at tick {stopped_at}"
+        summary = (f"{verdict}: {self.on_goal(positions)}/"
                    f"{self.num_robots} robots on goal after {self.steps} steps, "
                    f"{self.collisions} collisions, {self.missed} missed decisions"
                    + (f" (robots {sorted(self.missed_robots)})" if self.missed_robots else "")
                    + (f", {self.overridden} overridden moves ({self.conflict_rule})"
                       if self.conflict_rule else "")
                    + extra)
+        if stopped_at is not None:
+            self.record["stopped_at_tick"] = int(stopped_at)
         self.record.update(run_seconds=time.monotonic() - self.started, success=success,
                            steps=self.steps, collisions=self.collisions,
                            missed_decisions=self.missed, summary=summary)

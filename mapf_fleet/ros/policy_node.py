@@ -175,11 +175,29 @@ def host_kwargs(count: int) -> dict:
     return {}
 
 
-def spin_policy_nodes(nodes: list[PolicyNode], until=None, extra_nodes=(), on_started=None) -> None:
+def init_process(args: list[str]):
+    """`rclpy.init(args)` for a fleet process, with SIGINT / SIGTERM caught by the returned
+    `processes.StopSignals` instead of rclpy's handlers (which would invalidate the context under
+    a running publisher): the process ends its work and exits 130 / 143."""
+    from rclpy.signals import SignalHandlerOptions
+
+    from mapf_fleet.ros.processes import stop_signals
+
+    signals = stop_signals()
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    return signals
+
+
+def spin_policy_nodes(nodes: list[PolicyNode], until=None, extra_nodes=(), on_started=None,
+                      signals=None, on_stop=None) -> int:
     """Spin policy nodes hosted in this process (one PolicyHub for all of them) plus
-    `extra_nodes` (e.g. a simulator) until `until()` is true or Ctrl-C. One single-threaded
-    executor: the callbacks only store and notify (the hub thread computes), and a thread pool
-    costs more than it saves under the GIL."""
+    `extra_nodes` (e.g. a simulator) until `until()` is true, a stop signal (`signals`, a
+    `processes.StopSignals`) or a failed callback (logged by `SpinThread`). With `on_stop` (e.g.
+    stop the simulator's run), a signal or failure calls it once and the loop goes on until
+    `until()` (a second signal: at once). One single-threaded executor: the callbacks only store
+    and notify (the hub thread computes), and a thread pool costs more than it saves under the
+    GIL. Returns the process's exit code: 0, 128 + the signal (130 / 143), or 1 after a failed
+    callback."""
     from mapf_fleet.ros.hub import PolicyHub
 
     hub = PolicyHub(nodes, nodes[0].model)
@@ -199,11 +217,22 @@ def spin_policy_nodes(nodes: list[PolicyNode], until=None, extra_nodes=(), on_st
     hub.start()
     if on_started is not None:
         on_started()
+    code, stopping = 0, False
     try:
         while rclpy.ok() and not (until and until()):
+            failed = any(s is not None and s.error is not None
+                         for s in (spinner, parameter_spinner))
+            signalled = signals is not None and signals.requested
+            if failed or signalled:
+                code = signals.exit_code if signalled else 1
+                if on_stop is None or (signalled and signals.forced):
+                    break
+                if not stopping:
+                    stopping = True
+                    on_stop()
             time.sleep(0.05)
     except KeyboardInterrupt:
-        pass
+        code = 130
     finally:
         hub.stop()
         spinner.stop()
@@ -211,19 +240,20 @@ def spin_policy_nodes(nodes: list[PolicyNode], until=None, extra_nodes=(), on_st
             parameter_spinner.stop()
         for node in list(extra_nodes) + hub.all_nodes:
             node.destroy_node()
+    return code
 
 
 @one_line_errors("policy")
 def main(argv: list[str] | None = None) -> int:
     common.prepare_environment()
     args = sys.argv if argv is None else ["policy"] + list(argv)
-    rclpy.init(args=args)
+    signals = init_process(args)
     try:
         node = PolicyNode()
-        spin_policy_nodes([node])
+        return spin_policy_nodes([node], signals=signals)
     finally:
         rclpy.try_shutdown()
-    return 0
+        signals.restore()
 
 
 if __name__ == "__main__":

@@ -50,9 +50,10 @@ def params_files(ros_args: list[str]) -> list[str]:
 def host_policy_nodes(robot_ids: list[int], ros_args: list[str]) -> int:
     import rclpy
 
-    from mapf_fleet.ros.policy_node import PolicyNode, host_kwargs, spin_policy_nodes
+    from mapf_fleet.ros.policy_node import (PolicyNode, host_kwargs, init_process,
+                                            spin_policy_nodes)
 
-    rclpy.init(args=["policy"] + ros_args)
+    signals = init_process(["policy"] + ros_args)  # SIGINT / SIGTERM: exit 130 / 143
     try:
         options = host_kwargs(len(robot_ids))
         first = PolicyNode(robot_id=robot_ids[0], **options)
@@ -60,13 +61,16 @@ def host_policy_nodes(robot_ids: list[int], ros_args: list[str]) -> int:
         model = first.model
         nodes = [first] + [PolicyNode(robot_id=i, model=model, **options)
                          for i in robot_ids[1:]]
-        spin_policy_nodes(nodes)
+        return spin_policy_nodes(nodes, signals=signals)
     finally:
         rclpy.try_shutdown()
-    return 0
+        signals.restore()
 
 
 def main(argv: list[str] | None = None) -> int:
+    from mapf_fleet.ros.processes import stop_signals
+
+    stop_signals()  # first thing: a SIGINT / SIGTERM while the node loads is kept (exit 130 / 143)
     argv = list(sys.argv[1:] if argv is None else argv)
     own, ros_args = common.split_ros_args(argv)
     parser = argparse.ArgumentParser(prog="mapf-fleet node", description=__doc__,

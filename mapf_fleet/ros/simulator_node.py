@@ -92,7 +92,9 @@ class SimulatorNode(Node):
     # ---- the lockstep loop (own thread) ----
     def _run(self):
         missing = self.ticker.wait_ready(float(self.params["startup_timeout"]))
-        if missing:
+        if self.ticker.stopped:
+            self.get_logger().info(f"stopped while waiting for robots {missing}")
+        elif missing:
             self.get_logger().warning(f"starting without ready robots {missing} "
                                       f"after {self.params['startup_timeout']} s")
         else:

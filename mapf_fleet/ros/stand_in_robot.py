@@ -46,8 +46,15 @@ def main(argv: list[str] | None = None) -> int:
     rng = random.Random(args.seed)
     lock = threading.Lock()
     namespace = args.namespace.strip("/")
+    from rclpy.signals import SignalHandlerOptions
+
+    from mapf_fleet.ros.processes import stop_signals
+
+    signals = stop_signals()  # SIGINT / SIGTERM: stop, exit 130 / 143
+    closed = threading.Event()  # set (under `lock`) before the node is destroyed
     rclpy.init(args=["stand_in_robot"]
-               + (["--ros-args", "-r", f"__ns:=/{namespace}"] if namespace else []))
+               + (["--ros-args", "-r", f"__ns:=/{namespace}"] if namespace else []),
+               signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node("mapf_stand_in_robots")
     poses = {i: common.cell_pose(int(r), int(c), geometry)
              for i, (r, c) in enumerate(instance.starts)}
@@ -89,6 +96,8 @@ def main(argv: list[str] | None = None) -> int:
 
     def publish(i):
         with lock:
+            if closed.is_set():
+                return  # a delayed arrival after the stop
             pose = poses[i]
             pose.header.stamp = node.get_clock().now().to_msg()
             pubs[i].publish(pose)
@@ -100,14 +109,19 @@ def main(argv: list[str] | None = None) -> int:
     node.create_timer(0.2, lambda: [publish(i) for i in poses])
     executor = SingleThreadedExecutor()
     executor.add_node(node)
+    # a failed callback is logged with its traceback and ends the process with code 1
+    spinner = common.SpinThread(executor).start()
     try:
-        executor.spin()
-    except (KeyboardInterrupt, Exception):
-        pass
+        while not signals.requested and spinner.error is None:
+            time.sleep(0.1)
     finally:
-        node.destroy_node()
+        spinner.stop()
+        with lock:
+            closed.set()
+            node.destroy_node()
         rclpy.try_shutdown()
-    return 0
+        signals.restore()
+    return signals.exit_code or (1 if spinner.error is not None else 0)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,291 @@
+"""Process plumbing of the fleet (plain Python, no rclpy): stop signals, child processes and
+their supervision by `mapf-fleet up`.
+
+- `StopSignals`: SIGINT and SIGTERM become a stop request (an Event) that the process acts on,
+  as `ros2 launch` users expect: the run ends cleanly (record and "stopped at tick k" outcome
+  written, children stopped), no KeyboardInterrupt traceback (not on a second Ctrl-C either), and
+  the exit code is 128 + the signal (130 / 143). The fleet's processes call
+  `rclpy.init(signal_handler_options=SignalHandlerOptions.NO)`, so rclpy's handlers do not shut
+  the context down under a running tick ("Failed to publish: publisher's context is invalid").
+- `Child`: a child process whose output goes to a log file (or is echoed line by line), with its
+  last lines for a report.
+- `supervise`: `mapf-fleet up`'s loop over its children.
+"""
+
+from __future__ import annotations
+
+import collections
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+def signal_name(signum: int) -> str:
+    try:
+        return signal.Signals(signum).name
+    except ValueError:
+        return f"signal {signum}"
+
+
+class StopSignals:
+    """SIGINT / SIGTERM -> `event` (first signal in `signum`, how many in `count`). Install in
+    the main thread (`with StopSignals() as signals:` or `.install()`); the previous handlers
+    come back with `restore()`."""
+
+    def __init__(self):
+        self.event = threading.Event()
+        self.signum: int | None = None
+        self.count = 0
+        self._previous: dict = {}
+
+    def install(self) -> "StopSignals":
+        if threading.current_thread() is threading.main_thread() and not self._previous:
+            for sig in STOP_SIGNALS:
+                self._previous[sig] = signal.signal(sig, self._handle)
+        return self
+
+    @property
+    def installed(self) -> bool:
+        return bool(self._previous)
+
+    def restore(self) -> None:
+        for sig, previous in self._previous.items():
+            signal.signal(sig, previous)
+        self._previous.clear()
+
+    def __enter__(self) -> "StopSignals":
+        return self.install()
+
+    def __exit__(self, *exc) -> None:
+        self.restore()
+
+    def _handle(self, signum, frame) -> None:  # main thread, between bytecodes: no locks here
+        if self.signum is None:
+            self.signum = int(signum)
+        self.count += 1
+        self.event.set()
+
+    @property
+    def requested(self) -> bool:
+        return self.event.is_set()
+
+    @property
+    def forced(self) -> bool:
+        """A second signal: stop waiting for a clean end."""
+        return self.count >= 2
+
+    @property
+    def exit_code(self) -> int | None:
+        """128 + the first signal (130 SIGINT, 143 SIGTERM), None without a signal."""
+        return None if self.signum is None else 128 + self.signum
+
+    @property
+    def name(self) -> str:
+        return "" if self.signum is None else signal_name(self.signum)
+
+
+_PROCESS_SIGNALS: StopSignals | None = None
+
+
+def stop_signals() -> StopSignals:
+    """The process's `StopSignals`, installed on the first call (from the main thread): a
+    process's entry point calls it first thing, so a signal that comes while it is still
+    importing or loading is kept and acted on as soon as its loop runs."""
+    global _PROCESS_SIGNALS
+    if _PROCESS_SIGNALS is None or not _PROCESS_SIGNALS.installed:
+        _PROCESS_SIGNALS = StopSignals().install()
+    return _PROCESS_SIGNALS
+
+
+def _prctl():
+    try:
+        import ctypes
+
+        return ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):  # not Linux
+        return None
+
+
+_PRCTL = _prctl()
+PR_SET_PDEATHSIG = 1
+
+
+def child_setup() -> None:
+    """`preexec_fn` of a child of `up`:
+    - it gets SIGTERM when its parent dies (Linux), so not even a `kill -9` of `mapf-fleet up`
+      leaves orphans (the prctl function is looked up beforehand: nothing is imported between
+      fork and exec);
+    - SIGINT and SIGTERM start ignored, until its entry point installs `stop_signals()`: a stop
+      that comes while it is still importing is not a KeyboardInterrupt traceback (nor a
+      death without a record); `supervise` sends it again until it is gone."""
+    if _PRCTL is not None:
+        _PRCTL(PR_SET_PDEATHSIG, int(signal.SIGTERM))
+    for sig in STOP_SIGNALS:
+        signal.signal(sig, signal.SIG_IGN)
+
+
+def exit_text(code: int | None) -> str:
+    if code is None:
+        return "is running"
+    if code < 0:
+        return f"was killed by {signal_name(-code)}"
+    return f"exited with code {code}"
+
+
+class Child:
+    """A child process named `name` (for reports). Its stdout and stderr go to `log_path`, or
+    else are read line by line by a thread that passes each line to `echo` (None: discard) and
+    keeps the last ones. It runs in its own session, so a terminal's Ctrl-C reaches the parent
+    only (which passes it on once), and gets SIGTERM when the parent dies (`child_setup`)."""
+
+    def __init__(self, name: str, argv: list[str], env: dict, log_path: str | None = None,
+                 echo=None, keep_lines: int = 40):
+        self.name = name
+        self._lines: collections.deque[str] = collections.deque(maxlen=keep_lines)
+        self.log_path = log_path
+        self._reader = None
+        if log_path is not None:
+            with open(log_path, "wb") as log:
+                self.proc = subprocess.Popen(argv, env=env, stdin=subprocess.DEVNULL,
+                                             stdout=log, stderr=subprocess.STDOUT,
+                                             start_new_session=True,
+                                             preexec_fn=child_setup)
+        else:
+            self.proc = subprocess.Popen(argv, env=env, stdin=subprocess.DEVNULL,
+                                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                         text=True, errors="replace", start_new_session=True,
+                                         preexec_fn=child_setup)
+            self._reader = threading.Thread(target=self._read, args=(echo,),
+                                            name=f"output of {name}", daemon=True)
+            self._reader.start()
+
+    def _read(self, echo) -> None:
+        for line in self.proc.stdout:
+            line = line.rstrip("\n")
+            self._lines.append(line)
+            if echo is not None:
+                echo(line)
+
+    def poll(self) -> int | None:
+        return self.proc.poll()
+
+    def send_signal(self, signum: int) -> None:
+        if self.proc.poll() is None:
+            try:
+                self.proc.send_signal(signum)
+            except ProcessLookupError:
+                pass
+
+    def wait_output(self, timeout: float = 2.0) -> None:
+        """Wait until the echo thread has read everything (after the process ended)."""
+        if self._reader is not None:
+            self._reader.join(timeout)
+
+    def tail(self, lines: int = 15) -> list[str]:
+        """The last `lines` lines of its output."""
+        if self.log_path is None:
+            self.wait_output()
+            return list(self._lines)[-lines:]
+        try:
+            with open(self.log_path, "rb") as log:
+                log.seek(0, os.SEEK_END)
+                log.seek(max(0, log.tell() - 16384))
+                text = log.read().decode("utf-8", "replace")
+        except OSError:
+            return []
+        return text.splitlines()[-lines:]
+
+    def report(self, lines: int = 15) -> str:
+        """'<name> <exit text>; its last output lines:' and the lines, indented."""
+        tail = [line for line in self.tail(lines) if line.strip()]
+        text = f"{self.name} {exit_text(self.poll())}"
+        if not tail:
+            return text + " (no output)"
+        return text + "; its last output lines:\n" + "\n".join(f"    {line}" for line in tail)
+
+
+def stop_children(children: list[Child], grace: float = 3.0) -> None:
+    """SIGTERM, then SIGKILL what did not stop within `grace` s (a hung Fast DDS process may
+    ignore SIGTERM)."""
+    for child in children:
+        child.send_signal(signal.SIGTERM)
+    deadline = time.monotonic() + grace
+    for child in children:
+        try:
+            child.proc.wait(max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            child.proc.kill()
+            child.proc.wait()
+    for child in children:
+        child.wait_output(1.0)
+
+
+def supervise(main: Child, others: list[Child], signals: StopSignals, *, grace: float = 10.0,
+              poll: float = 0.1, echoed: bool = False,
+              warn=lambda text: print(text, file=sys.stderr, flush=True)) -> tuple[int, str]:
+    """Wait for `main` (the simulator or aggregator: it ends the run) while watching `others`.
+
+    - A stop signal is passed on to `main`, which ends its run (record, outcome) and exits with
+      128 + the signal; the signal is sent again every 2 s from 3 s on (a child still starting up
+      ignores it), and if it has not exited `grace` s later (1 s after a second signal to `up`),
+      it is killed.
+    - Another child ending while the run goes on is reported with its last output lines (`warn`)
+      and `main` is asked to stop (SIGINT).
+    - `main` ending otherwise than with 0, 1 or the signal it was sent is reported (with its last
+      lines unless they were `echoed` already).
+    Every child is stopped before this returns. (main's exit code, the problem reported or "").
+    """
+    problem = ""
+    sent: set[int] = set()
+    deadline = None
+    resend = float("inf")
+    killed = False
+    try:
+        while main.poll() is None:
+            now = time.monotonic()
+            if signals.requested and signals.signum not in sent:
+                main.send_signal(signals.signum)
+                sent.add(signals.signum)
+                deadline = now + grace if deadline is None else deadline
+                resend = now + 3.0
+            elif sent and deadline is not None and now > resend:
+                # not gone yet (still importing, signals ignored until then; or stuck): again
+                # (a second signal received: the child exits within a second)
+                main.send_signal(max(sent))
+                resend = now + 2.0
+            if signals.forced and deadline is not None:
+                deadline = min(deadline, now + 1.0)
+            if not problem and not signals.requested:
+                dead = [c for c in others if c.poll() is not None]
+                if dead:
+                    problem = "; ".join(f"{c.name} {exit_text(c.poll())}" for c in dead)
+                    for child in dead:
+                        warn(f"mapf-fleet up: {child.report()}")
+                    warn(f"mapf-fleet up: stopping the {main.name}")
+                    main.send_signal(signal.SIGINT)
+                    sent.add(int(signal.SIGINT))
+                    deadline, resend = now + grace, now + 3.0
+            if deadline is not None and now > deadline:
+                warn(f"mapf-fleet up: the {main.name} did not stop in time: killed")
+                main.proc.kill()
+                killed = True
+                break
+            time.sleep(poll)
+        code = main.proc.wait()
+    finally:
+        stop_children([main] + list(others))
+    expected = {0, 1} | {128 + s for s in sent} | {-s for s in sent}
+    if killed:
+        expected.add(-int(signal.SIGKILL))
+    if code not in expected and not problem:
+        if code < 0 or code >= 128:  # killed, or died of a signal: no outcome of its own
+            problem = f"{main.name} {exit_text(code)}"
+            warn(f"mapf-fleet up: {problem}" if echoed else f"mapf-fleet up: {main.report()}")
+        elif not echoed:  # its own error (e.g. 2: a bad parameter): show its message
+            warn(f"mapf-fleet up: {main.report()}")
+    return code, problem

@@ -1,0 +1,231 @@
+"""Issue 17 items 1-4 and 12, the plain-Python pieces (no ROS graph): the pose check (NaN, inf,
+jumps), stop signals, a lockstep run stopped at tick k, the supervision of `mapf-fleet up`'s
+children (a dead policy process reported with its last lines, a signal passed on once, nothing
+left running), `up`'s checkpoint and layout checks, its ticks/s, and the policy hub's notice
+that the fleet state stopped coming."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sys
+import textwrap
+import time
+
+import numpy as np
+import pytest
+
+from mapf_fleet.ros.arbiter import check_pose
+from mapf_fleet.ros.common import MapGeometry
+from mapf_fleet.ros.lockstep import FleetTicker, RunRecorder
+
+GRID = np.zeros((4, 4), dtype=np.uint8)
+GRID[1, 1] = 1
+
+
+# ---- item 1 and 2: the pose check ----
+@pytest.mark.parametrize("x, y, field, value", [
+    (float("nan"), 0.5, "pose.position.x", "nan"),
+    (0.5, float("inf"), "pose.position.y", "inf"),
+    (float("-inf"), 0.5, "pose.position.x", "-inf"),
+])
+def test_check_pose_rejects_non_finite_coordinates_naming_field_and_value(x, y, field, value):
+    checked = check_pose(GRID, MapGeometry(), x, y, last=(0, 0))
+    assert checked.cell is None and checked.raw is None
+    assert field in checked.reason and value in checked.reason
+
+
+def test_check_pose_rejects_a_jump_of_two_cells_and_accepts_one_move():
+    geometry = MapGeometry()
+    # robot 0 from (0, 0) to (2, 0): x is the column, y the row
+    jump = check_pose(GRID, geometry, *geometry.cell_to_xy(2, 0), last=(0, 0))
+    assert jump.cell is None and jump.raw == (2, 0)
+    assert "jump of 2 cells" in jump.reason and "0,0" in jump.reason and "2,0" in jump.reason
+    diagonal = check_pose(GRID, geometry, *geometry.cell_to_xy(1, 2), last=(0, 1))
+    assert diagonal.cell is None and "jump of 2 cells" in diagonal.reason
+    assert check_pose(GRID, geometry, *geometry.cell_to_xy(1, 0), last=(0, 0)).cell == (1, 0)
+    assert check_pose(GRID, geometry, *geometry.cell_to_xy(0, 0), last=(0, 0)).cell == (0, 0)
+    # the first pose (no last cell) may be anywhere free; off-grid and obstacles as before
+    assert check_pose(GRID, geometry, *geometry.cell_to_xy(3, 3)).cell == (3, 3)
+    assert "off the 4x4 grid" in check_pose(GRID, geometry, -5.0, 0.5).reason
+    assert "on an obstacle" in check_pose(GRID, geometry, 1.5, 1.5, last=(1, 0)).reason
+
+
+# ---- item 4: a stopped lockstep run ----
+def test_stopped_ticker_returns_at_once_and_the_outcome_says_stopped_at_tick(tmp_path):
+    ticker = FleetTicker(2, episode=5, tick=7)
+    ticker.stop()
+    started = time.monotonic()
+    assert ticker.wait_ready(30.0) == [0, 1]
+    decisions = ticker.collect(30.0)
+    assert time.monotonic() - started < 1.0
+    assert decisions.missing == [0, 1]
+    recorder = RunRecorder(5, 2, [[1, 1], [2, 2]], 50, series=())
+    recorder.start(np.array([[0, 0], [2, 2]]))
+    outcome = recorder.finish(np.array([[0, 0], [2, 2]]), stopped_at=7)
+    assert outcome["success"] is False
+    assert outcome["summary"].startswith("stopped at tick 7: 1/2 robots on goal")
+    recorder.write(tmp_path / "run.json")
+    assert json.loads((tmp_path / "run.json").read_text())["stopped_at_tick"] == 7
+
+
+def test_stop_signals_turn_sigint_and_sigterm_into_a_request_without_traceback():
+    from mapf_fleet.ros.processes import StopSignals
+
+    with StopSignals() as signals:
+        assert not signals.requested and signals.exit_code is None
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(0.05)  # the handler runs in the main thread, between bytecodes
+        assert signals.requested and signals.exit_code == 143 and not signals.forced
+        os.kill(os.getpid(), signal.SIGINT)  # a second signal: no KeyboardInterrupt either
+        time.sleep(0.05)
+        assert signals.forced and signals.exit_code == 143 and signals.name == "SIGTERM"
+    assert signal.getsignal(signal.SIGINT) is not signals._handle
+
+
+# ---- item 3 and 4: supervision of up's children ----
+def _script(tmp_path, name, body):
+    path = tmp_path / name
+    path.write_text(textwrap.dedent(body))
+    return [sys.executable, str(path)]
+
+
+MAIN = """
+    import signal, sys, time
+    def stop(signum, frame):
+        print(f"stopping on {signum}", flush=True)
+        sys.exit(128 + signum)
+    signal.signal(signal.SIGINT, stop)
+    signal.signal(signal.SIGTERM, stop)
+    print("running", flush=True)
+    while True:
+        time.sleep(0.05)
+"""
+
+
+def _wait_for(predicate, timeout=20.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def test_a_dead_policy_process_is_reported_with_its_last_lines_and_stops_the_run(tmp_path):
+    from mapf_fleet.ros.processes import Child, StopSignals, supervise
+
+    lines = []
+    main = Child("simulator", _script(tmp_path, "main.py", MAIN), dict(os.environ),
+                 echo=lines.append)
+    dying = Child("policy process (robots 0-3)", _script(tmp_path, "dying.py", """
+        import sys, time
+        time.sleep(0.5)
+        print("loading the model", flush=True)
+        sys.exit("bad.pt: not a readable checkpoint (truncated)")
+    """), dict(os.environ), log_path=str(tmp_path / "policy.log"))
+    healthy = Child("policy process (robots 4-7)", _script(tmp_path, "healthy.py", MAIN),
+                    dict(os.environ), log_path=str(tmp_path / "healthy.log"))
+    warnings = []
+    started = time.monotonic()
+    code, problem = supervise(main, [dying, healthy], StopSignals(), warn=warnings.append)
+    assert time.monotonic() - started < 20
+    assert problem == "policy process (robots 0-3) exited with code 1"
+    text = "\n".join(warnings)
+    assert "policy process (robots 0-3) exited with code 1; its last output lines:" in text
+    assert "bad.pt: not a readable checkpoint (truncated)" in text
+    assert "loading the model" in text
+    assert code == 128 + signal.SIGINT and "stopping on 2" in lines  # asked to stop, once
+    assert all(c.poll() is not None for c in (main, dying, healthy))  # nothing left running
+
+
+def test_a_stop_signal_is_passed_on_once_and_every_child_is_stopped(tmp_path):
+    from mapf_fleet.ros.processes import Child, StopSignals, supervise
+
+    lines = []
+    main = Child("simulator", _script(tmp_path, "main.py", MAIN), dict(os.environ),
+                 echo=lines.append)
+    policy = Child("policy process (robots 0-7)", _script(tmp_path, "policy.py", MAIN),
+                   dict(os.environ), log_path=str(tmp_path / "policy.log"))
+    assert _wait_for(lambda: "running" in lines)
+    signals = StopSignals()
+    signals._handle(signal.SIGTERM, None)  # as if `up` got SIGTERM
+    code, problem = supervise(main, [policy], signals, warn=lambda text: None)
+    assert (code, problem) == (143, "")
+    assert lines.count("stopping on 15") == 1
+    assert policy.poll() is not None
+
+
+def test_a_simulator_ignoring_the_signal_is_killed_after_the_grace(tmp_path):
+    from mapf_fleet.ros.processes import Child, StopSignals, supervise
+
+    lines = []
+    main = Child("simulator", _script(tmp_path, "stubborn.py", """
+        import signal, time
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        print("running", flush=True)
+        while True:
+            time.sleep(0.05)
+    """), dict(os.environ), echo=lines.append)
+    assert _wait_for(lambda: "running" in lines)
+    signals = StopSignals()
+    signals._handle(signal.SIGINT, None)
+    warnings = []
+    started = time.monotonic()
+    code, _ = supervise(main, [], signals, grace=1.0, warn=warnings.append)
+    assert time.monotonic() - started < 10
+    assert code == -signal.SIGKILL and "did not stop in time: killed" in warnings[0]
+
+
+# ---- item 3 and 12: up's checks and report ----
+def test_up_checks_the_checkpoint_before_anything_starts(tmp_path):
+    from mapf_fleet.ros.launcher import checkpoint_problem, default_checkpoint
+
+    good = default_checkpoint()
+    assert good and checkpoint_problem(good) == ""
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(open(good, "rb").read(1000))  # head -c 1000 models/default.pt > bad.pt
+    problem = checkpoint_problem(str(bad))
+    assert "not a readable checkpoint" in problem and str(bad) in problem
+    assert "\n" not in problem
+
+
+def test_up_refuses_too_many_nodes_in_one_process_with_the_reason():
+    from mapf_fleet.ros.launcher import MAX_NODES_PER_PROCESS, layout_problem
+
+    problem = layout_problem(10000, True, 1)
+    assert "--single-process" in problem and str(MAX_NODES_PER_PROCESS) in problem
+    assert "square" in problem and "--nodes-per-process" in problem
+    assert "--nodes-per-process 2000" in layout_problem(10000, False, 2000)
+    assert layout_problem(10000, False, 8) == ""
+    assert layout_problem(MAX_NODES_PER_PROCESS, True, 1) == ""
+
+
+def test_up_reports_ticks_per_second_from_the_first_tick(tmp_path, capsys):
+    from mapf_fleet.ros.launcher import report
+
+    record = tmp_path / "run.json"
+    record.write_text(json.dumps({"steps": 10, "run_seconds": 2.0, "success": True,
+                                  "summary": "success: 4/4 robots on goal after 10 steps"}))
+    assert report(str(record), 12.0) == 0  # 10 s of start-up before the first tick
+    out = capsys.readouterr().out
+    assert "5.00 ticks/s" in out and "wall time 12.0 s" in out
+
+
+# ---- item 12: the hub notices that the fleet state stopped coming ----
+def test_state_watch_logs_once_when_the_state_stops_coming():
+    from mapf_fleet.ros.hub import StateWatch
+
+    watch = StateWatch(timeout=5.0, now=0.0)
+    assert watch.silence(now=4.0) is None
+    first = watch.silence(now=6.0)
+    assert first and "no fleet state yet" in first
+    assert watch.silence(now=60.0) is None                   # once per silence
+    assert watch.note(3, False, now=61.0) == "fleet state received again (tick 3)"
+    assert watch.silence(now=65.0) is None
+    text = watch.silence(now=67.0)                           # the simulator was killed
+    assert text and "since tick 3" in text and "stopped or is unreachable" in text
+    watch.note(9, True, now=70.0)                            # the run ended: quiet is normal
+    assert watch.silence(now=200.0) is None
