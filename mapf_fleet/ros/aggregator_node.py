@@ -157,8 +157,10 @@ class FleetStateAggregator(Node):
 
     def _run(self):
         startup_timeout = float(self.params["startup_timeout"])
-        unready = self.ticker.wait_ready(startup_timeout,
-                                         also=lambda: bool((self.positions[:, 0] >= 0).all()))
+        subscribers = int(self.params["state_subscribers"])
+        unready = self.ticker.wait_ready(
+            startup_timeout, also=lambda: bool((self.positions[:, 0] >= 0).all())
+            and self.channels.state_heard(subscribers))
         with self._cond:
             unposed = np.flatnonzero(self.positions[:, 0] < 0).tolist()
         if unposed and not self.ticker.stopped:

@@ -69,6 +69,10 @@ class FleetChannels:
         if warning:
             self.node.get_logger().warning(warning)
 
+    def state_heard(self, subscribers: int) -> bool:
+        """Whether the fleet state has at least `subscribers` matched subscribers."""
+        return subscribers <= 0 or self.state_pub.get_subscription_count() >= subscribers
+
     def publish_map_and_goals(self, grid, goals) -> None:
         self.map_pub.publish(common.grid_to_occupancy(np.asarray(grid), self.geometry))
         for i, pub in enumerate(self.goal_pubs):

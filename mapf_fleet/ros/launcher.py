@@ -19,6 +19,7 @@ With no arguments: 8 simulated robots on a generated 16x16 map, checkpoint model
 from __future__ import annotations
 
 import argparse
+import contextlib
 import glob
 import json
 import os
@@ -85,6 +86,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--arrival-timeout", type=float, default=10.0,
                         help="real-robot mode: seconds for robots to reach their waypoints")
     parser.add_argument("--record", default="", help="write trajectory and outcome JSON here")
+    parser.add_argument("--bag", default="", metavar="DIR",
+                        help="also record the fleet's topics into the new rosbag2 DIR (MCAP; "
+                             "`mapf-fleet record DIR` started beside the fleet, closed at the "
+                             "end)")
     parser.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID to use")
     parser.add_argument("--params-file", default="", help="ROS parameters YAML for all nodes")
     parser.add_argument("--namespace", default="",
@@ -225,6 +230,10 @@ def main(argv: list[str] | None = None) -> int:
     if problem:
         print(f"mapf-fleet up: {problem}", file=sys.stderr)
         return 2
+    if args.bag and Path(args.bag).exists():
+        print(f"mapf-fleet up: --bag {args.bag} exists already: a rosbag2 is written into a new "
+              f"directory", file=sys.stderr)
+        return 2
     env = common.prepare_environment(dict(os.environ))
     if args.domain_id is not None:
         env["ROS_DOMAIN_ID"] = str(args.domain_id)
@@ -241,6 +250,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.real_robots:
         sim_params = {k: v for k, v in sim_params.items() if k in _aggregator_parameters()}
         sim_params["arrival_timeout"] = args.arrival_timeout
+    if args.bag:  # tick 0 waits until the hubs and the recorder hear the state: no tick missed
+        hubs = 1 if args.single_process else -(-num_robots // args.nodes_per_process)
+        sim_params["state_subscribers"] = hubs + 1
     policy_params = {"checkpoint": checkpoint, "comm_timeout": args.comm_timeout}
     if args.preference_mode is not None:
         policy_params["preference_mode"] = args.preference_mode
@@ -312,36 +324,99 @@ def run_processes(num_robots, sim_params, policy_params, args, env) -> tuple[int
     process's goes to a log in `args.work_dir`, reported (its last lines) if it dies; SIGINT /
     SIGTERM stop the run (record, "stopped at tick k") and every child. Each child runs in its
     own session (a terminal's Ctrl-C reaches `up` only, which passes it on once) and gets
-    SIGTERM if `up` dies. (exit code: the simulator's, or 128 + the signal; the problem
-    reported, or "")."""
+    SIGTERM if `up` dies. With --bag the recorder runs beside them (`bag_recording`). (exit
+    code: the simulator's, or 128 + the signal; the problem reported, or "")."""
     from mapf_fleet.ros.processes import Child, stop_children, stop_signals, supervise
 
     runner = [sys.executable, "-m", "mapf_fleet.ros.run"]
     signals = stop_signals()
     if signals.requested:
         return signals.exit_code, ""
-    children: list[Child] = []
-    try:
-        k = args.nodes_per_process
-        for first in range(0, num_robots, k):
-            ids = f"{first}-{min(first + k, num_robots) - 1}"
-            children.append(Child(
-                f"policy process (robots {ids})",
-                runner + ["policy", "--robots", ids] + _ros_args(policy_params, args, "policy"),
-                env, log_path=os.path.join(args.work_dir, f"policy_{ids}.log")))
-        name = "aggregator" if args.real_robots else "simulator"
-        echo = None if args.quiet else (lambda line: print(line, flush=True))
-        main = Child(name, runner + [name] + _ros_args(sim_params, args, "sim"), env, echo=echo)
-    except BaseException:
-        stop_children(children)
-        raise
-    code, problem = supervise(main, children, signals, echoed=not args.quiet)
+    with bag_recording(args, env, signals) as recorder:
+        if recorder is False:
+            return (signals.exit_code or 2), ""
+        children: list[Child] = []
+        try:
+            k = args.nodes_per_process
+            for first in range(0, num_robots, k):
+                ids = f"{first}-{min(first + k, num_robots) - 1}"
+                children.append(Child(
+                    f"policy process (robots {ids})",
+                    runner + ["policy", "--robots", ids] + _ros_args(policy_params, args, "policy"),
+                    env, log_path=os.path.join(args.work_dir, f"policy_{ids}.log")))
+            name = "aggregator" if args.real_robots else "simulator"
+            echo = None if args.quiet else (lambda line: print(line, flush=True))
+            main = Child(name, runner + [name] + _ros_args(sim_params, args, "sim"), env,
+                         echo=echo)
+        except BaseException:
+            stop_children(children)
+            raise
+        code, problem = supervise(main, children, signals, echoed=not args.quiet,
+                                  watched=[recorder] if recorder else [])
     if signals.requested:
         return signals.exit_code, problem
     return (1 if problem else code), problem
 
 
+@contextlib.contextmanager
+def bag_recording(args, env, signals, ready_timeout: float = 120.0):
+    """With `--bag DIR`: the rosbag2 recorder (`mapf_fleet.ros.bag`, `mapf-fleet record DIR` in
+    the fleet's namespace) as a child process, started before the fleet and ready (its
+    subscriptions exist) before the fleet starts, so nothing is missed; stopped after the fleet
+    with `bag.stop_recorder` (the last messages in flight, then SIGINT: the bag is closed).
+    Yields the recorder's `processes.Child`, None without --bag, False when it could not start
+    (its output is shown)."""
+    if not getattr(args, "bag", ""):
+        yield None
+        return
+    import threading
+
+    from mapf_fleet.ros import params as rp
+    from mapf_fleet.ros.bag import READY_PREFIX, recorder_command, stop_recorder
+    from mapf_fleet.ros.processes import Child
+
+    namespace = rp.ros_arg_rules(list(getattr(args, "ros_args", [])))[2] or args.namespace
+    ready = threading.Event()
+
+    def echo(line: str) -> None:
+        if line.startswith(READY_PREFIX):
+            ready.set()
+        elif not args.quiet or line.startswith("mapf-fleet record:"):
+            print(line, flush=True)
+
+    recorder = Child("bag recorder", recorder_command(args.bag, namespace=namespace or ""), env,
+                     echo=echo)
+    deadline = time.monotonic() + ready_timeout
+    while not ready.wait(0.1):
+        if recorder.poll() is not None or signals.requested or time.monotonic() > deadline:
+            if recorder.poll() is None:
+                stop_recorder(recorder.proc, grace=0.0)
+            if not signals.requested:
+                print(f"mapf-fleet up: {recorder.report()}", file=sys.stderr)
+            yield False
+            return
+    try:
+        yield recorder
+    finally:
+        code = stop_recorder(recorder.proc)
+        recorder.wait_output()
+        if code != 0:
+            print(f"mapf-fleet up: {recorder.report()}", file=sys.stderr)
+
+
 def run_single_process(num_robots, sim_params, policy_params, args) -> tuple[int, str]:
+    """The simulator and every policy node in this process (with --bag, the recorder beside it
+    as a child process). (exit code, problem) as `run_processes`."""
+    from mapf_fleet.ros.processes import stop_signals
+
+    signals = stop_signals()
+    with bag_recording(args, dict(os.environ), signals) as recorder:
+        if recorder is False:
+            return (signals.exit_code or 2), ""
+        return _run_in_this_process(num_robots, sim_params, policy_params, args)
+
+
+def _run_in_this_process(num_robots, sim_params, policy_params, args) -> tuple[int, str]:
     import rclpy
 
     from mapf_fleet.ros.policy_node import (PolicyNode, host_kwargs, init_process,

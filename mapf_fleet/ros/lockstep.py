@@ -41,6 +41,9 @@ RUN_PARAMETERS = {
     "resolution": (1.0, "metres per cell in poses and the map"),
     "record_file": ("", "write the run's trajectory and outcome to this JSON file"),
     "progress_every": (10, "log progress every this many ticks"),
+    "state_subscribers": (0, "before tick 0, also wait (up to startup_timeout) until the fleet "
+                             "state has this many matched subscribers (`up --bag`: the policy "
+                             "processes and the recorder, so the bag misses no tick); 0: no wait"),
 }
 
 

@@ -226,7 +226,7 @@ def stop_children(children: list[Child], grace: float = 3.0) -> None:
 
 
 def supervise(main: Child, others: list[Child], signals: StopSignals, *, grace: float = 10.0,
-              poll: float = 0.1, echoed: bool = False,
+              poll: float = 0.1, echoed: bool = False, watched: list[Child] = (),
               warn=lambda text: print(text, file=sys.stderr, flush=True)) -> tuple[int, str]:
     """Wait for `main` (the simulator or aggregator: it ends the run) while watching `others`.
 
@@ -238,7 +238,9 @@ def supervise(main: Child, others: list[Child], signals: StopSignals, *, grace: 
       and `main` is asked to stop (SIGINT).
     - `main` ending otherwise than with 0, 1 or the signal it was sent is reported (with its last
       lines unless they were `echoed` already).
-    Every child is stopped before this returns. (main's exit code, the problem reported or "").
+    Every child is stopped before this returns, except the `watched` ones (watched like
+    `others`, stopped by the caller: e.g. a recorder, after the fleet). (main's exit code, the
+    problem reported or "").
     """
     problem = ""
     sent: set[int] = set()
@@ -261,7 +263,7 @@ def supervise(main: Child, others: list[Child], signals: StopSignals, *, grace: 
             if signals.forced and deadline is not None:
                 deadline = min(deadline, now + 1.0)
             if not problem and not signals.requested:
-                dead = [c for c in others if c.poll() is not None]
+                dead = [c for c in list(others) + list(watched) if c.poll() is not None]
                 if dead:
                     problem = "; ".join(f"{c.name} {exit_text(c.poll())}" for c in dead)
                     for child in dead:

@@ -91,7 +91,9 @@ class SimulatorNode(Node):
 
     # ---- the lockstep loop (own thread) ----
     def _run(self):
-        missing = self.ticker.wait_ready(float(self.params["startup_timeout"]))
+        subscribers = int(self.params["state_subscribers"])
+        missing = self.ticker.wait_ready(float(self.params["startup_timeout"]),
+                                         also=lambda: self.channels.state_heard(subscribers))
         if self.ticker.stopped:
             self.get_logger().info(f"stopped while waiting for robots {missing}")
         elif missing:
