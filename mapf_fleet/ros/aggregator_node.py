@@ -62,6 +62,9 @@ PARAMETERS = {
 }
 
 
+REJECT_LOG_PERIOD_S = 10.0
+
+
 class FleetStateAggregator(Node):
     def __init__(self, **node_kwargs):
         super().__init__("mapf_aggregator", **node_kwargs)
@@ -96,6 +99,7 @@ class FleetStateAggregator(Node):
         self._reported: dict[int, tuple[int, int]] = {}  # latest snapped cell per robot
         self._rejected_reason: dict[int, str] = {}
         self._accepted: dict[int, tuple[int, int]] = {}  # last accepted cell per robot
+        self._logged_reject: dict[tuple[int, str], float] = {}  # (robot, reason) -> when logged
         self.channels = fleet_io.FleetChannels(self, self.ticker, self.geometry)
         for i in range(self.num_robots):
             self.create_subscription(PoseStamped, common.rel(common.pose_topic(i)),
@@ -130,7 +134,11 @@ class FleetStateAggregator(Node):
             if cell is None:
                 if checked.raw is not None:
                     self._reported[robot_id] = checked.raw  # it did move there: counts for arrival
-                if self._rejected_reason.get(robot_id) != reason:
+                # one line per robot and reason (again after REJECT_LOG_PERIOD_S: a feed that
+                # alternates good and bad poses does not flood the log)
+                now = time.monotonic()
+                if now - self._logged_reject.get((robot_id, reason), -1e9) > REJECT_LOG_PERIOD_S:
+                    self._logged_reject[(robot_id, reason)] = now
                     self.get_logger().error(
                         f"robot {robot_id}: pose rejected: x={x:.3f} y={y:.3f}: {reason}; "
                         f"the robot holds its last valid cell "

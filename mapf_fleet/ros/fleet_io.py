@@ -179,8 +179,8 @@ def spin_until_finished(make_node, name: str, argv: list[str] | None = None) -> 
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = spinner = None
     try:
-        if signals.requested:  # during start-up (imports, init)
-            return signals.exit_code
+        # a signal during start-up (imports, init, the node's set-up) is acted on in the loop:
+        # the run stops before tick 0, with its outcome and record all the same
         node = make_node()
         executor = SingleThreadedExecutor()
         executor.add_node(node)

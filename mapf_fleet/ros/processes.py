@@ -231,7 +231,7 @@ def supervise(main: Child, others: list[Child], signals: StopSignals, *, grace: 
     """Wait for `main` (the simulator or aggregator: it ends the run) while watching `others`.
 
     - A stop signal is passed on to `main`, which ends its run (record, outcome) and exits with
-      128 + the signal; the signal is sent again every 2 s from 3 s on (a child still starting up
+      128 + the signal; the signal is sent again every 2 s from 5 s on (a child still starting up
       ignores it), and if it has not exited `grace` s later (1 s after a second signal to `up`),
       it is killed.
     - Another child ending while the run goes on is reported with its last output lines (`warn`)
@@ -254,7 +254,7 @@ def supervise(main: Child, others: list[Child], signals: StopSignals, *, grace: 
                 main.send_signal(signals.signum)
                 sent.add(signals.signum)
                 deadline = now + grace if deadline is None else deadline
-                resend = now + 3.0
+                resend = now + 5.0
             elif sent and deadline is not None and now > resend:
                 # not gone yet (still importing, signals ignored until then; or stuck): again
                 # (a second signal received: the child exits within a second)
@@ -271,7 +271,7 @@ def supervise(main: Child, others: list[Child], signals: StopSignals, *, grace: 
                     warn(f"mapf-fleet up: stopping the {main.name}")
                     main.send_signal(signal.SIGINT)
                     sent.add(int(signal.SIGINT))
-                    deadline, resend = now + grace, now + 3.0
+                    deadline, resend = now + grace, now + 5.0
             if deadline is not None and now > deadline:
                 warn(f"mapf-fleet up: the {main.name} did not stop in time: killed")
                 main.proc.kill()

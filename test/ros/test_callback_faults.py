@@ -48,7 +48,8 @@ def test_aggregator_rejects_nan_inf_and_jumping_poses_with_one_line_each(rclpy_c
         node._on_pose(0, _pose(*cell(0, 0)))                 # robot 0 starts at (0, 0)
         node._on_pose(1, _pose(*cell(7, 7)))
         capfd.readouterr()
-        for _ in range(3):                                   # a feed repeats its bad pose
+        for _ in range(3):  # a feed repeats its bad pose, between good ones: no flood
+            node._on_pose(1, _pose(*cell(7, 7)))
             node._on_pose(1, _pose(float("nan"), 7.5))       # used to raise ValueError
             node._on_pose(0, _pose(float("inf"), 0.5))       # used to raise OverflowError
         node._on_pose(0, _pose(*cell(2, 0)))                 # (0, 0) -> (2, 0): a jump
