@@ -29,13 +29,15 @@ import tempfile
 import time
 from pathlib import Path
 
+from mapf_fleet.paths import data_root
 from mapf_fleet.ros import common
 from mapf_fleet.ros.instances import InstanceSource
 
-REPO_ROOT = __import__("mapf_fleet.paths").paths.data_root("models")  # share dir, else checkout
+# where models/ lives: the install's share/mapf_fleet, else the checkout
+DATA_ROOT = data_root("models")
 
 
-DEFAULT_CHECKPOINT = REPO_ROOT / "models" / "default.pt"
+DEFAULT_CHECKPOINT = DATA_ROOT / "models" / "default.pt"
 
 # Robots' nodes one process hosts at most (`--single-process`: all of them; else
 # `--nodes-per-process`). Creating the nodes of one process takes time that grows with the
@@ -49,7 +51,7 @@ def default_checkpoint() -> str:
     """models/default.pt if present, else the first DHC (or any) checkpoint in models/."""
     if DEFAULT_CHECKPOINT.is_file():
         return str(DEFAULT_CHECKPOINT)
-    found = sorted(glob.glob(str(REPO_ROOT / "models" / "*.pt")))
+    found = sorted(glob.glob(str(DATA_ROOT / "models" / "*.pt")))
     preferred = [f for f in found if "dhc" in Path(f).name.lower()] or found
     return preferred[0] if preferred else ""
 
@@ -196,7 +198,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.checkpoint:
             problem = f"checkpoint not found: {args.checkpoint!r}"
         else:
-            problem = f"no checkpoint in {REPO_ROOT / 'models'} (default {DEFAULT_CHECKPOINT.name})"
+            problem = f"no checkpoint in {DATA_ROOT / 'models'} (default {DEFAULT_CHECKPOINT.name})"
         print(f"mapf-fleet up: {problem}. Pass --checkpoint FILE.pt (a file written by "
               f"mapf_fleet.models.save_checkpoint, e.g. by training), or put one at "
               f"{DEFAULT_CHECKPOINT}.", file=sys.stderr)
