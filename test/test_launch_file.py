@@ -9,36 +9,19 @@ from __future__ import annotations
 import ast
 import importlib
 import os
-import runpy
 from pathlib import Path
 
 import pytest
 import yaml
+from setup_info import console_scripts, setup_kwargs
 
 REPO = Path(__file__).resolve().parents[1]
 LAUNCH = REPO / "launch" / "fleet.launch.py"
 
 
-def _setup_kwargs() -> dict:
-    import setuptools
-
-    captured: dict = {}
-    original_setup, original_cwd = setuptools.setup, os.getcwd()
-    setuptools.setup = lambda **kwargs: captured.update(kwargs)
-    try:
-        runpy.run_path(str(REPO / "setup.py"), run_name="__main__")
-    finally:
-        setuptools.setup = original_setup
-        os.chdir(original_cwd)
-    return captured
-
-
 def _console_scripts() -> dict[str, str]:
-    out = {}
-    for spec in _setup_kwargs()["entry_points"]["console_scripts"]:
-        name, target = (part.strip() for part in spec.split("=", 1))
-        out[name] = target.split(":")[0]
-    return out
+    """Console script name -> its module."""
+    return {name: target.split(":")[0] for name, target in console_scripts().items()}
 
 
 def _call_name(node: ast.Call) -> str:
@@ -121,7 +104,7 @@ def test_every_file_named_exists_and_is_installed():
     files = {k: v for k, v in names.items() if isinstance(v, str) and os.sep in v}
     assert set(files) >= {"PARAMS_FILE", "DEFAULT_CHECKPOINT"}, files
     installed = {os.path.join(os.path.relpath(target, "share/mapf_fleet"), os.path.basename(f))
-                 for target, sources in _setup_kwargs()["data_files"] for f in sources
+                 for target, sources in setup_kwargs()["data_files"] for f in sources
                  if target.startswith("share/mapf_fleet")}
     for name, path in files.items():
         assert (REPO / path).exists(), f"{LAUNCH.name}: {name} = {path!r} does not exist in the package"

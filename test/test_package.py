@@ -9,13 +9,13 @@ import importlib
 import importlib.util
 import os
 import re
-import runpy
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 import pytest
+from setup_info import console_scripts, setup_kwargs
 
 REPO = Path(__file__).resolve().parent.parent
 INTERFACES = REPO / "mapf_fleet_interfaces"
@@ -67,8 +67,7 @@ def test_interfaces_package_xml_is_a_valid_rosidl_package():
 
 def test_package_versions_agree():
     package = _parse_package(REPO / "package.xml")
-    setup_kwargs = _setup_kwargs()
-    assert setup_kwargs["version"] == package.version
+    assert setup_kwargs()["version"] == package.version
 
 
 def test_interfaces_cmakelists_globs_msg_and_srv():
@@ -79,34 +78,11 @@ def test_interfaces_cmakelists_globs_msg_and_srv():
 
 
 # ---------------------------------------------------------------------------------------------
-# setup.py
-
-
-def _setup_kwargs() -> dict:
-    """Run setup.py with setuptools.setup replaced, returning the keyword arguments."""
-    import setuptools
-
-    captured: dict = {}
-    original_setup, original_cwd = setuptools.setup, os.getcwd()
-    setuptools.setup = lambda **kwargs: captured.update(kwargs)
-    try:
-        runpy.run_path(str(REPO / "setup.py"), run_name="__main__")
-    finally:
-        setuptools.setup = original_setup
-        os.chdir(original_cwd)
-    return captured
-
-
-def _console_scripts() -> dict[str, str]:
-    scripts = {}
-    for spec in _setup_kwargs()["entry_points"]["console_scripts"]:
-        name, target = (part.strip() for part in spec.split("=", 1))
-        scripts[name] = target
-    return scripts
+# setup.py (test/setup_info.py)
 
 
 def test_setup_declares_cli_and_node_entry_points():
-    assert _console_scripts() == {
+    assert console_scripts() == {
         "mapf-fleet": "mapf_fleet.cli:main",
         "simulator": "mapf_fleet.ros.simulator_node:main",
         "policy": "mapf_fleet.ros.policy_node:main",
@@ -118,7 +94,7 @@ def test_setup_declares_cli_and_node_entry_points():
     "name", ["mapf-fleet", "simulator", "policy", "aggregator"]
 )
 def test_entry_point_resolves_to_a_callable(name):
-    module_name, func_name = _console_scripts()[name].split(":")
+    module_name, func_name = console_scripts()[name].split(":")
     if importlib.util.find_spec(module_name) is None:
         pytest.skip(f"{module_name} is not written yet")
     module = importlib.import_module(module_name)
@@ -126,7 +102,7 @@ def test_entry_point_resolves_to_a_callable(name):
 
 
 def test_setup_installs_ament_index_marker_and_package_xml():
-    data_files = dict(_setup_kwargs()["data_files"])
+    data_files = dict(setup_kwargs()["data_files"])
     assert data_files["share/ament_index/resource_index/packages"] == ["resource/mapf_fleet"]
     assert (REPO / "resource" / "mapf_fleet").is_file()
     assert data_files["share/mapf_fleet"] == ["package.xml"]

@@ -84,7 +84,6 @@ class PIBTShield:
             raise ValueError(f"goals must have shape (N, 2), got {goals.shape}")
         self.goals = goals
         self.num_agents = len(goals)
-        self._goal_flat = goals[:, 0] * self.width + goals[:, 1]
         self._blocked = self.grid.ravel().tolist()
         # _targets[cell, action]: the flat cell an action leads to, -1 off the map / obstacle
         h, w = self.height, self.width
@@ -219,9 +218,15 @@ class PIBTShield:
         new_positions = np.stack(np.divmod(nxt, w), axis=1)
         actions = self._action_of_delta[nxt - current_flat + w]
         overridden = (actions != prefs[:, 0]) & ~fixed
-        on_goal = nxt == self._goal_flat
-        self.priorities = np.where(on_goal, self.base_priority, self.priorities + 1.0)
+        self.advance_priorities(new_positions)
         return ShieldStep(new_positions, actions, overridden)
+
+    def advance_priorities(self, positions) -> None:
+        """PIBT's dynamic priorities after a step that left the agents at `positions` (N, 2):
+        back to the tie-breaker on the goal, one more off it. `step` calls it; a caller that
+        holds every agent for a tick (an arbiter refusing a tick) calls it alone."""
+        on_goal = (np.asarray(positions) == self.goals).all(axis=1)
+        self.priorities = np.where(on_goal, self.base_priority, self.priorities + 1.0)
 
 
 def shield_step(grid, positions, goals, preferences, priorities=None, fixed=None, reserved=()):

@@ -15,3 +15,11 @@ ACTION_NAMES = ("stay", "up", "down", "left", "right")
 # (row, col) displacement of each action; row grows downwards.
 ACTION_DELTAS = np.array([[0, 0], [-1, 0], [1, 0], [0, -1], [0, 1]], dtype=np.int64)
 ACTION_DELTAS.setflags(write=False)
+
+
+def actions_between(positions, targets) -> np.ndarray:
+    """(N,) the action moving each agent from `positions` (N, 2) to `targets` (N, 2); STAY where
+    no single action does (it held, or jumped)."""
+    delta = np.asarray(targets, dtype=np.int64) - np.asarray(positions, dtype=np.int64)
+    match = (delta[:, None, :] == ACTION_DELTAS[None]).all(axis=-1)  # (N, 5)
+    return np.where(match.any(axis=1), match.argmax(axis=1), STAY).astype(np.int64)

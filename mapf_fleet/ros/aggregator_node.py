@@ -41,7 +41,7 @@ from mapf_fleet_interfaces.msg import FleetOutcome
 from rclpy.node import Node
 
 from mapf_fleet.entry import one_line_errors
-from mapf_fleet.grid.actions import ACTION_DELTAS, STAY
+from mapf_fleet.grid.actions import STAY, actions_between
 from mapf_fleet.ros import common, fleet_io
 from mapf_fleet.ros.arbiter import (TickArbiter, check_conflict_rule, check_pose,
                                     plan_robot_commands, ready_to_send)
@@ -231,8 +231,7 @@ class FleetStateAggregator(Node):
             self.get_logger().warning(f"tick {decisions.tick}: robots "
                                       f"{np.flatnonzero(~arrived).tolist()} not at their "
                                       f"waypoints after {arrival_timeout} s")
-        moved = self.positions - previous
-        self.last_actions = np.array([_action_of(d) for d in moved], dtype=np.int64)
+        self.last_actions = actions_between(previous, self.positions)
         _, counts = np.unique(self.positions, axis=0, return_counts=True)
         self.rejected += len(rejected)
         overridden = np.flatnonzero((executed != decisions.actions)
@@ -265,14 +264,6 @@ class FleetStateAggregator(Node):
 
     def _publish_state(self, done: bool):
         self.channels.publish_state(self.positions, self.goals, self.last_actions, done)
-
-
-def _action_of(delta) -> int:
-    """The action whose move is `delta` (0 stay when none is: a robot that jumped or held)."""
-    for action, move in enumerate(ACTION_DELTAS):
-        if int(move[0]) == int(delta[0]) and int(move[1]) == int(delta[1]):
-            return action
-    return 0
 
 
 @one_line_errors("aggregator")

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mapf_fleet.grid.actions import ACTION_DELTAS, NUM_ACTIONS, STAY
+from mapf_fleet.grid.actions import NUM_ACTIONS, STAY, actions_between
 
 CONFLICT_RULES = ("pibt", "revert")
 DEFAULT_CONFLICT_RULE = "pibt"
@@ -55,15 +55,6 @@ def ranking_problem(action: int, preferences) -> str:
     if prefs[0] != int(action):
         return f"action {action} is not its first preference {prefs}"
     return ""
-
-
-def actions_of(positions, targets) -> np.ndarray:
-    """(N,) the action moving each robot from `positions` to `targets` (stay when none does)."""
-    delta = np.asarray(targets, dtype=np.int64) - np.asarray(positions, dtype=np.int64)
-    actions = np.full(len(delta), STAY, dtype=np.int64)
-    for a in range(1, NUM_ACTIONS):
-        actions[(delta == ACTION_DELTAS[a]).all(axis=1)] = a
-    return actions
 
 
 @dataclass(frozen=True)
@@ -136,7 +127,7 @@ class TickArbiter:
         nxt, collided = resolve_moves(grid, positions, actions)
         nxt = np.asarray(nxt, dtype=np.int64)
         collided = np.asarray(collided, dtype=bool)
-        executed = actions_of(positions, nxt)
+        executed = actions_between(positions, nxt)
         overridden = (executed != prefs[:, 0]) & ~held
         self.overridden_total += int(overridden.sum())
         self.collided_total += int(collided.sum())
@@ -178,10 +169,7 @@ class TickArbiter:
     def _all_stay(self, positions, held, problem: str) -> Resolution:
         n = len(positions)
         if self.shield is not None:
-            # the priorities advance as if everyone stayed (on goal: back to the tie-breaker)
-            on_goal = (positions == self.goals).all(axis=1)
-            self.shield.priorities = np.where(on_goal, self.shield.base_priority,
-                                              self.shield.priorities + 1.0)
+            self.shield.advance_priorities(positions)  # as if everyone stayed
         return Resolution(positions.copy(), np.full(n, STAY, dtype=np.int64),
                           np.zeros(n, dtype=bool), np.zeros(n, dtype=bool), held, problem)
 
@@ -356,5 +344,5 @@ def plan_robot_commands(arbiter: TickArbiter, positions, waypoints, preferences,
     if problems:
         commanded, stopped = positions.copy(), []
     commanded[late] = waypoints[late]  # still driving there: keep its waypoint
-    executed = np.where(result.held, STAY, actions_of(positions, commanded))
+    executed = np.where(result.held, STAY, actions_between(positions, commanded))
     return RobotCommands(commanded, executed, result, late, reserved, stopped, problems)

@@ -11,9 +11,10 @@ import pytest
 
 from mapf_fleet.coordination.pibt import PIBTShield
 from mapf_fleet.grid.actions import ACTION_DELTAS
+from mapf_fleet.grid.actions import actions_between
 from mapf_fleet.grid.env import resolve_moves
 from mapf_fleet.grid.instance import generate_instance
-from mapf_fleet.ros.arbiter import (TickArbiter, actions_of, break_rotations, check_conflict_rule,
+from mapf_fleet.ros.arbiter import (TickArbiter, break_rotations, check_conflict_rule,
                                     plan_robot_commands, ranking_problem, ready_to_send,
                                     single_choice_ranking, unsafe_commands)
 from mapf_fleet.ros.lockstep import FleetTicker
@@ -67,7 +68,7 @@ def test_revert_rule_is_resolve_moves_on_first_choices():
         nxt, collided = resolve_moves(instance.grid, positions, prefs[:, 0])
         np.testing.assert_array_equal(result.positions, nxt)
         np.testing.assert_array_equal(result.collided, collided)
-        np.testing.assert_array_equal(result.actions, actions_of(positions, nxt))
+        np.testing.assert_array_equal(result.actions, actions_between(positions, nxt))
         # a reverted move is an overridden first choice
         np.testing.assert_array_equal(result.overridden, result.actions != prefs[:, 0])
         collided_any |= collided.any()
