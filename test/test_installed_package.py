@@ -52,7 +52,9 @@ def installed(tmp_path_factory):
     assert done.returncode == 0, done.stderr[-3000:]
     site = glob.glob(str(prefix / "lib" / "python*" / "site-packages"))
     assert len(site) == 1, site
-    env = dict(os.environ, PYTHONPATH=site[0], XDG_CACHE_HOME=str(tmp / "cache"))
+    # `up` and `evaluate` run from the install: on loopback, as every process the project starts
+    env = dict(os.environ, PYTHONPATH=site[0], XDG_CACHE_HOME=str(tmp / "cache"),
+               ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     shutil.rmtree(source)  # nothing may be read from the copy the package was built from
     work = tmp / "elsewhere"
     work.mkdir()

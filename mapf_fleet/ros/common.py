@@ -18,7 +18,7 @@ import numpy as np
 
 # Environment every process of the fleet runs with (DESIGN.md section 2): nothing leaves loopback,
 # and the venv is the ROS prefix so ament lookups work.
-FLEET_ENV_DEFAULTS = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+FLEET_ENV = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
 
 # The fleet's names in the default namespace (what viewers, echo and bag see there). The nodes
 # create their topics and services under the RELATIVE names (`rel(...)`), resolved in the node's
@@ -79,10 +79,11 @@ def dcc_reply_service(robot_id: int) -> str:
 
 
 def prepare_environment(env: dict | None = None) -> dict:
-    """Return (and apply to os.environ when env is None) the variables every fleet process needs."""
+    """Return (and apply to os.environ when env is None) the variables every fleet process needs.
+    The discovery range is always LOCALHOST, whatever the caller's environment says: no process
+    of the project sends DDS traffic off this machine."""
     target = os.environ if env is None else env
-    for key, value in FLEET_ENV_DEFAULTS.items():
-        target.setdefault(key, value)
+    target.update(FLEET_ENV)
     if "AMENT_PREFIX_PATH" not in target:
         import sys
 

@@ -22,6 +22,8 @@ import sys
 import threading
 import time
 
+from mapf_fleet.ros.common import prepare_environment
+
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
@@ -146,6 +148,8 @@ class Child:
     def __init__(self, name: str, argv: list[str], env: dict, log_path: str | None = None,
                  echo=None, keep_lines: int = 40):
         self.name = name
+        # every child stays on loopback (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST), whoever built env
+        env = prepare_environment(dict(env))
         self._lines: collections.deque[str] = collections.deque(maxlen=keep_lines)
         self.log_path = log_path
         self._reader = None

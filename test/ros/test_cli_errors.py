@@ -69,7 +69,8 @@ CASES = [
 @pytest.mark.parametrize("command,expected", [c[1:] for c in CASES], ids=[c[0] for c in CASES])
 def test_bad_input_is_one_line_and_exit_2(command, expected, bad_files, checkpoints, ros_env):
     command = [arg.format(d=bad_files, dhc=checkpoints["dhc"]) for arg in command]
-    env = dict(ros_env)
+    env = dict(ros_env)  # test/conftest.py: ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, own domain
+    assert env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
     env.pop("MAPF_FLEET_TRACEBACK", None)
     done = subprocess.run(command, env=env, capture_output=True, text=True, timeout=180)
     lines = [line for line in done.stderr.splitlines() if line.strip()]

@@ -113,6 +113,21 @@ def _wait_for(predicate, timeout=20.0):
     return False
 
 
+def test_every_child_runs_on_loopback_whatever_its_env_says(tmp_path):
+    """Child forces ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, even over a caller's SUBNET."""
+    from mapf_fleet.ros.common import prepare_environment
+    from mapf_fleet.ros.processes import Child
+
+    assert prepare_environment({"ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"})[
+        "ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
+    for env in ({**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"},
+                {k: v for k, v in os.environ.items() if k != "ROS_AUTOMATIC_DISCOVERY_RANGE"}):
+        child = Child("probe", [sys.executable, "-c", "import os; "
+                                "print(os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE'))"], env)
+        assert child.proc.wait(30) == 0
+        assert child.tail() == ["LOCALHOST"]
+
+
 def test_a_dead_policy_process_is_reported_with_its_last_lines_and_stops_the_run(tmp_path):
     from mapf_fleet.ros.processes import Child, StopSignals, supervise
 

@@ -4,6 +4,7 @@ runtime either takes effect or is refused with a reason (item 11)."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import threading
@@ -16,7 +17,11 @@ RUN = [sys.executable, "-m", "mapf_fleet.ros.run"]
 
 @pytest.fixture
 def rclpy_node(ros_env):
-    """An rclpy context and a spun client node in this process (the test's own domain)."""
+    """An rclpy context and a spun client node in this process (the test's own domain; ros_env
+    (test/conftest.py) puts ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST in os.environ and the env
+    of the subprocesses)."""
+    assert os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
+    assert ros_env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
 

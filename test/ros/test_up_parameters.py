@@ -69,6 +69,8 @@ def test_precedence_command_line_over_file_over_defaults(tmp_path):
 
 
 def _up(tmp_path, env, *args):
+    # env is ros_env (test/conftest.py): ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, own domain
+    assert env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
     record = tmp_path / "run.json"
     done = subprocess.run(CLI + ["up", "--record", str(record), *args], env=env,
                           capture_output=True, text=True, timeout=300)
