@@ -97,9 +97,11 @@ class Learner:
         every other's FOV, and DCC ran its causal check on every pair of them."""
         return d["agent_mask"] & (d["positions"][:, w, :, 0] != FAR_AWAY)
 
-    def _unroll(self, net, d: dict, w_from: int, w_to: int, h: torch.Tensor):
+    def _unroll(self, net, d: dict, w_from: int, w_to: int, h: torch.Tensor,
+                comm_masks_out: list | None = None):
         """Run `net` over window steps [w_from, w_to); the stored hidden state replaces the
-        carried one until each sample's own start index."""
+        carried one until each sample's own start index. `comm_masks_out`: a list that gets each
+        step's communication mask (B, N, N)."""
         qs = []
         for w in range(w_from, w_to):
             mask = None if d["comm_masks"] is None else d["comm_masks"][:, w]
@@ -108,6 +110,8 @@ class Learner:
             before_start = (d["start"] > w)[:, None, None]  # input of step w+1 still stored
             h = torch.where(before_start, d["hidden"], out.hidden)
             qs.append(out.q)
+            if comm_masks_out is not None:
+                comm_masks_out.append(out.comm_mask)
         return torch.stack(qs, 1), h
 
     @torch.no_grad()
@@ -120,16 +124,12 @@ class Learner:
         if self.cfg.algo != "dcc":
             raise ValueError("causal_masks: only DCC has decision-causal masks")
         d = self._tensors(batch)
-        net = self.target if net is None else net
-        h = d["hidden"]
-        n_slots = batch.positions.shape[2]
-        n = d["obs"].shape[2]
+        steps: list[torch.Tensor] = []
+        self._unroll(self.target if net is None else net, d, 0, d["obs"].shape[1], d["hidden"],
+                     comm_masks_out=steps)
+        n_slots, n = batch.positions.shape[2], d["obs"].shape[2]
         masks = np.zeros(batch.positions.shape[:2] + (n_slots, n_slots), bool)
-        for w in range(d["obs"].shape[1]):
-            out = model_step(net, "dcc", d["obs"][:, w], d["positions"][:, w], h,
-                             d["last"][:, w], self._step_agents(d, w))
-            h = torch.where((d["start"] > w)[:, None, None], d["hidden"], out.hidden)
-            masks[:, w, :n, :n] = out.comm_mask.cpu().numpy()
+        masks[:, :, :n, :n] = torch.stack(steps, 1).cpu().numpy()
         return masks
 
     def q_and_targets(self, batch: SequenceBatch, d: dict | None = None, comm_masks=None):
