@@ -45,10 +45,6 @@ class ShieldStep:
     actions: np.ndarray
     overridden: np.ndarray
 
-    @property
-    def num_overridden(self) -> int:
-        return int(self.overridden.sum())
-
 
 def validate_preferences(preferences, num_agents: int) -> np.ndarray:
     """(N, 5) int64 where each row is a ranking (permutation) of the actions 0..4."""
@@ -228,12 +224,3 @@ class PIBTShield:
         on_goal = (np.asarray(positions) == self.goals).all(axis=1)
         self.priorities = np.where(on_goal, self.base_priority, self.priorities + 1.0)
 
-
-def shield_step(grid, positions, goals, preferences, priorities=None, fixed=None, reserved=()):
-    """One stateless PIBT step (priorities given or the tie-breakers); returns
-    (ShieldStep, next priorities). For callers that keep the priorities themselves."""
-    shield = PIBTShield(grid, goals)
-    if priorities is not None:
-        shield.priorities = np.asarray(priorities, dtype=np.float64).copy()
-    result = shield.step(positions, preferences, fixed=fixed, reserved=reserved)
-    return result, shield.priorities

@@ -109,9 +109,5 @@ def rank_actions(obs, q=None, mode: str = DEFAULT_Q_MODE, ties=None) -> np.ndarr
     q = q.copy()
     q[..., STAY] = np.where(demoted, np.nextafter(lowest_closer, -np.inf), stay_q)
     # a tie with the lowest closer move is won by the move (it comes first in the key order)
-    order = _rank([-q, (np.arange(NUM_ACTIONS) == STAY), *tail])
-    return order
+    return _rank([-q, (np.arange(NUM_ACTIONS) == STAY), *tail])
 
-
-def first_choices(preferences) -> np.ndarray:
-    return np.asarray(preferences)[..., 0]
