@@ -162,8 +162,7 @@ class FleetTicker:
         self.episode = int(episode)
         self.tick = int(tick)
         self.cond = threading.Condition()
-        self._moves: dict[int, int] = {}
-        self._prefs: dict[int, list[int]] = {}
+        self._prefs: dict[int, list[int]] = {}  # robot -> its ranking (first = its action)
         self._comm: dict[int, tuple[list[int], int]] = {}  # robot -> (requested, received)
         self._ready_peers: dict[int, int] = {}
         self.stopped = False  # stop(): the run ends (signal, failed callback), waits return
@@ -187,7 +186,6 @@ class FleetTicker:
             if problem:
                 return f"ignored bad move of robot {msg.robot_id}: {problem}"
             robot = int(msg.robot_id)
-            self._moves[robot] = int(msg.action)
             self._prefs[robot] = ([int(a) for a in preferences] if preferences
                                   else single_choice_ranking(msg.action))
             self._comm[robot] = ([int(j) for j in msg.requested], int(msg.messages_received))
@@ -226,21 +224,20 @@ class FleetTicker:
         """The moves of the current tick, waiting up to `timeout` seconds for all of them."""
         deadline = time.monotonic() + timeout
         with self.cond:
-            while len(self._moves) < self.num_robots and not self.stopped:
+            while len(self._prefs) < self.num_robots and not self.stopped:
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     break
                 self.cond.wait(remaining)
-            moves, prefs, comm = dict(self._moves), dict(self._prefs), dict(self._comm)
-            self._moves, self._prefs, self._comm = {}, {}, {}
+            prefs, comm = dict(self._prefs), dict(self._comm)
+            self._prefs, self._comm = {}, {}
             tick = self.tick
         n = self.num_robots
         stay_first = list(range(5))
-        return Decisions(tick=tick,
-                         actions=np.array([moves.get(i, 0) for i in range(n)], dtype=np.int64),
-                         preferences=np.array([prefs.get(i, stay_first) for i in range(n)],
-                                              dtype=np.int64).reshape(n, 5),
-                         missing=sorted(set(range(n)) - set(moves)),
+        preferences = np.array([prefs.get(i, stay_first) for i in range(n)],
+                               dtype=np.int64).reshape(n, 5)
+        return Decisions(tick=tick, actions=preferences[:, 0].copy(), preferences=preferences,
+                         missing=sorted(set(range(n)) - set(prefs)),
                          requested=[comm.get(i, ([], 0))[0] for i in range(n)],
                          messages=[comm.get(i, ([], 0))[1] for i in range(n)])
 
@@ -248,7 +245,7 @@ class FleetTicker:
         """Go on to the next tick; moves that came late for the old one are dropped."""
         with self.cond:
             self.tick += 1
-            self._moves, self._prefs, self._comm = {}, {}, {}
+            self._prefs, self._comm = {}, {}
             return self.tick
 
 
