@@ -91,6 +91,20 @@ def prepare_environment(env: dict | None = None) -> dict:
     return target
 
 
+def init_process(args: list[str]):
+    """`rclpy.init(args)` for a fleet process, with SIGINT / SIGTERM caught by the returned
+    `processes.StopSignals` instead of rclpy's handlers (which would invalidate the context under
+    a running publisher): the process ends its work and exits 130 / 143."""
+    import rclpy
+    from rclpy.signals import SignalHandlerOptions
+
+    from mapf_fleet.ros.processes import stop_signals
+
+    signals = stop_signals()
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    return signals
+
+
 def latched_qos(depth: int = 1):
     """Reliable, transient local: late subscribers (viewers, restarted nodes) get the last value."""
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy

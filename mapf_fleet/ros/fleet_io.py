@@ -169,14 +169,8 @@ def spin_until_finished(make_node, name: str, argv: list[str] | None = None) -> 
     k" is published and the record written, then the process exits 130 / 143; a second signal
     exits within a second. A callback that raises (logged by `SpinThread` with its traceback) stops the
     run the same way and the process exits 1."""
-    from rclpy.signals import SignalHandlerOptions
-
-    from mapf_fleet.ros.processes import stop_signals
-
     common.prepare_environment()
-    args = sys.argv if argv is None else [name] + list(argv)
-    signals = stop_signals()  # rclpy's own handlers stay out (processes.py)
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    signals = common.init_process(sys.argv if argv is None else [name] + list(argv))
     node = spinner = None
     try:
         # a signal during start-up (imports, init, the node's set-up) is acted on in the loop:

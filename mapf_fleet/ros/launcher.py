@@ -421,8 +421,8 @@ def run_single_process(num_robots, sim_params, policy_params, args) -> tuple[int
 def _run_in_this_process(num_robots, sim_params, policy_params, args) -> tuple[int, str]:
     import rclpy
 
-    from mapf_fleet.ros.policy_node import (PolicyNode, host_kwargs, init_process,
-                                            spin_policy_nodes)
+    from mapf_fleet.ros.common import init_process
+    from mapf_fleet.ros.policy_node import PolicyNode, host_kwargs, spin_policy_nodes
     from mapf_fleet.ros.simulator_node import SimulatorNode
 
     # the same ROS arguments (and precedence) as the processes get, for every node of this one

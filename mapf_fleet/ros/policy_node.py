@@ -175,19 +175,6 @@ def host_kwargs(count: int) -> dict:
     return {}
 
 
-def init_process(args: list[str]):
-    """`rclpy.init(args)` for a fleet process, with SIGINT / SIGTERM caught by the returned
-    `processes.StopSignals` instead of rclpy's handlers (which would invalidate the context under
-    a running publisher): the process ends its work and exits 130 / 143."""
-    from rclpy.signals import SignalHandlerOptions
-
-    from mapf_fleet.ros.processes import stop_signals
-
-    signals = stop_signals()
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    return signals
-
-
 def spin_policy_nodes(nodes: list[PolicyNode], until=None, extra_nodes=(), on_started=None,
                       signals=None, on_stop=None) -> int:
     """Spin policy nodes hosted in this process (one PolicyHub for all of them) plus
@@ -247,7 +234,7 @@ def spin_policy_nodes(nodes: list[PolicyNode], until=None, extra_nodes=(), on_st
 def main(argv: list[str] | None = None) -> int:
     common.prepare_environment()
     args = sys.argv if argv is None else ["policy"] + list(argv)
-    signals = init_process(args)
+    signals = common.init_process(args)
     try:
         node = PolicyNode()
         return spin_policy_nodes([node], signals=signals)

@@ -50,8 +50,8 @@ def params_files(ros_args: list[str]) -> list[str]:
 def host_policy_nodes(robot_ids: list[int], ros_args: list[str]) -> int:
     import rclpy
 
-    from mapf_fleet.ros.policy_node import (PolicyNode, host_kwargs, init_process,
-                                            spin_policy_nodes)
+    from mapf_fleet.ros.common import init_process
+    from mapf_fleet.ros.policy_node import PolicyNode, host_kwargs, spin_policy_nodes
 
     signals = init_process(["policy"] + ros_args)  # SIGINT / SIGTERM: exit 130 / 143
     try:
