@@ -165,16 +165,21 @@ def _graph(node):
 
 def settled_topics(node, stop: StopSignals, settle: float, timeout: float,
                    poll: float = 0.1) -> tuple[list[tuple[str, list[str]]], bool]:
-    """The graph's topics once discovery has settled: neither the topics (names and types) nor
-    the nodes have changed for `settle` seconds, or `timeout` seconds have passed. Returns
-    (topics, settled). Fast DDS sometimes discovers a participant only at its next periodic
-    announcement, about 2.5 s later than the others, so `settle` should stay above that."""
+    """The graph's topics once discovery has settled: another node has been discovered and
+    neither the topics (names and types) nor the nodes have changed for `settle` seconds since,
+    or `timeout` seconds have passed. Returns (topics, settled). Fast DDS sometimes discovers a
+    participant only at its next periodic announcement, about 2.5 s later than the others, so
+    `settle` should stay above that. A graph showing only this node is not settled: on a loaded
+    machine the first participant can take longer than `settle` to show up (an empty list was
+    printed under CI load), and a graph with no other node is never what the user asked about."""
     start = time.monotonic()
+    own = (node.get_name(), node.get_namespace())
     last = _graph(node)
     changed = start
     while True:
         now = time.monotonic()
-        if now - changed >= settle:
+        others = any(entry != own for entry in last[1])
+        if others and now - changed >= settle:
             return last[0], True
         if now - start >= timeout or stop.wait(poll):
             return last[0], False
@@ -207,8 +212,11 @@ def topics_main(argv: list[str] | None = None) -> int:
                 continue
             print(f"{name} [{', '.join(types)}]")
         if not settled:
-            print(f"mapf-fleet topics: discovery still changing after {args.wait:g} s; the list "
-                  "may be incomplete (raise --wait)", file=sys.stderr)
+            alone = all(entry == (node.get_name(), node.get_namespace())
+                        for entry in node.get_node_names_and_namespaces())
+            why = "no other node discovered" if alone else "discovery still changing"
+            print(f"mapf-fleet topics: {why} after {args.wait:g} s; the list may be incomplete "
+                  "(raise --wait; is the fleet on this ROS_DOMAIN_ID?)", file=sys.stderr)
     return 0
 
 

@@ -222,3 +222,15 @@ def test_topics_is_bounded_by_wait_and_settles_early_on_a_quiet_graph(procs):
     assert proc.returncode == 0, err
     assert time.monotonic() - started < 8.0
     assert "discovery still changing after 3 s" in err
+
+
+@pytest.mark.ros
+def test_topics_does_not_call_a_graph_without_other_nodes_settled(procs):
+    """Under CI load the first participant arrived after the settle window and `topics` printed an
+    empty list as if settled: a graph of only our own node waits for --wait and says so."""
+    started = time.monotonic()
+    proc = procs.cli("topics", "--wait", "5", "--settle", "1")
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    assert time.monotonic() - started >= 5.0
+    assert "no other node discovered after 5 s" in err
