@@ -6,7 +6,8 @@ import pytest
 import torch
 
 from mapf_fleet.training.config import TrainConfig, TrainConfigError
-from mapf_fleet.training.demos import demo_episode, margin_loss, pretrain, stage1_settings
+from mapf_fleet.training.demos import (cross_entropy_loss, demo_episode, margin_loss, pretrain,
+                                       stage1_settings)
 from mapf_fleet.training.learner import Learner
 from mapf_fleet.training.modelio import model_step
 from mapf_fleet.training.replay import unpack_obs
@@ -27,6 +28,37 @@ def test_margin_loss_on_a_hand_made_batch():
     q.requires_grad_(True)
     margin_loss(q, demo, mask, 0.8).backward()
     assert q.grad[0, 1, 0] < 0 and q.grad[0, 1, 1] > 0 and q.grad[1, 1].abs().sum() == 0
+
+
+def test_cross_entropy_loss_on_a_hand_made_batch():
+    q = torch.tensor([[[0.0, 0.0, 0.0, 0.0, 0.0], [2.0, 0.0, 0.0, 0.0, 0.0]],
+                      [[0.0, 5.0, 0.0, 0.0, 0.0], [9.0, 9.0, 9.0, 9.0, 9.0]]])
+    demo = torch.tensor([[3, 0], [1, 2]])
+    mask = torch.tensor([[1.0, 1.0], [1.0, 0.0]])
+    expected = torch.nn.functional.cross_entropy(q.reshape(-1, 5)[:3], torch.tensor([3, 0, 1]))
+    assert cross_entropy_loss(q, demo, mask).item() == pytest.approx(expected.item())
+    q.requires_grad_(True)
+    cross_entropy_loss(q, demo, mask).backward()
+    assert q.grad[0, 0, 3] < 0 and q.grad[0, 0, 1] > 0 and q.grad[1, 1].abs().sum() == 0
+
+
+def test_behaviour_cloning_update_has_no_td_term():
+    """demo_loss cross_entropy: the loss is demo_weight x the cross-entropy alone (the TD loss is
+    reported, not trained); margin: TD + demo_weight x J_E."""
+    from mapf_fleet.training.demos import demo_replay
+
+    torch.manual_seed(0)
+    cfg = _cfg(demo_loss="cross_entropy", demo_weight=0.5)
+    learner = Learner(cfg, device="cpu")
+    replay, _ = demo_replay(cfg, learner.model, 4, seed=1)
+    batch = replay.sample(4, cfg.priority_beta)
+    loss, _, stats = learner.compute_loss(batch, demo_weight=0.5, demo_loss="cross_entropy")
+    assert loss.item() == pytest.approx(0.5 * stats["cross_entropy"], rel=1e-5)
+    assert stats["td_loss"] > 0 and "margin_loss" not in stats
+    loss, _, stats = learner.compute_loss(batch, demo_weight=0.5, demo_loss="margin")
+    assert loss.item() == pytest.approx(stats["td_loss"] + 0.5 * stats["margin_loss"], rel=1e-5)
+    with pytest.raises(TrainConfigError, match="demo_loss"):
+        _cfg(demo_loss="kl")
 
 
 def _cfg(**kw):
@@ -63,10 +95,11 @@ def test_demo_episode_records_demonstrator_actions_and_rewards():
 
 
 @pytest.mark.slow
-def test_short_pretrain_agrees_with_the_demonstrator_on_held_out_episodes():
+@pytest.mark.parametrize("demo_loss", ["margin", "cross_entropy"])
+def test_short_pretrain_agrees_with_the_demonstrator_on_held_out_episodes(demo_loss):
     torch.manual_seed(0)
     torch.set_num_threads(1)
-    cfg = _cfg()
+    cfg = _cfg(demo_loss=demo_loss)
     learner = Learner(cfg, device="cpu")
 
     def agreement(model, seed):

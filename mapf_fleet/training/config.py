@@ -101,6 +101,11 @@ class TrainConfig:
     demo_pretrain_updates: int = 1000  # learner updates on demonstrations before stage 1
     demo_margin: float = 0.8  # large margin of J_E (DQfD)
     demo_weight: float = 1.0  # lambda: loss = n-step TD + demo_weight * J_E
+    # The warm start's loss (issue 18 asks to measure both): "margin" = DQfD, n-step TD plus
+    # demo_weight x the large-margin loss J_E; "cross_entropy" = behaviour cloning, demo_weight
+    # x the cross-entropy of the demonstrator's action under softmax(Q) and no TD term (the
+    # outputs become action logits; their order is what the PIBT shield's ranking reads).
+    demo_loss: str = "margin"
     # Explicit [agents, map size] pairs to draw demonstrations from (cycled), e.g. the
     # evaluation's 40x40 maps; empty = the stage-1 ladder up to demo_max_agents. Agents must be
     # <= final_agents (the replay's width).
@@ -112,8 +117,16 @@ class TrainConfig:
     # --- training mix over map kinds (issue 18; mapf_fleet.grid.maps.TaskMix) ----------------
     # {} = unused (the curriculum's random maps). Otherwise {kinds: {random|maze|rooms|warehouse:
     # weight}, sizes: [map sides], agents: [agent counts]}, every count fitting every kind and
-    # size; `mapf_fleet.grid.maps.sample_task_instance(mix, rng)` draws tasks from it. Checked
-    # here only: the actors do not read it yet.
+    # size and at most final_agents (the replay's width). Every actor episode, in both stages,
+    # is then drawn with `mapf_fleet.grid.maps.sample_task_instance(mix, rng)` (kind by weight,
+    # side and agent count uniformly; "random" maps at the training triangular density, whatever
+    # obstacle_density says), with the step limit `episode_step_limit` of the drawn side. The
+    # gates are unchanged but measured on mix tasks: stage 1 has no ladder (the mix defines the
+    # tasks), it is one pass of the success gate at alpha 0, after which the run moves to the
+    # final setting and stage 2 (the alpha curriculum) runs on mix tasks too. As without a mix,
+    # start_agents = final_agents and start_map_size = final_map_size skip stage 1; the other
+    # stage-1 fields (map_size_step, final_map_size) choose nothing then. Demonstrations
+    # (demo_source) still use their own settings (demo_settings or the stage-1 ladder).
     task_mix: dict = field(default_factory=dict)
 
     # --- stage 1: scale expansion -----------------------------------------------------------
@@ -166,6 +179,8 @@ class TrainConfig:
             raise bad("alpha_mode", "must be 'curriculum', 'fixed' or 'none'")
         if self.demo_source not in ("none", "heuristic", "planner"):
             raise bad("demo_source", "must be 'none', 'heuristic' or 'planner'")
+        if self.demo_loss not in ("margin", "cross_entropy"):
+            raise bad("demo_loss", "must be 'margin' (DQfD) or 'cross_entropy' (behaviour cloning)")
         for name in ("demo_margin", "demo_weight"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 0:
@@ -255,9 +270,12 @@ class TrainConfig:
             from mapf_fleet.grid.maps import TaskMix
 
             try:
-                TaskMix.from_dict(self.task_mix)
+                mix = TaskMix.from_dict(self.task_mix)
             except ValueError as exc:
                 raise bad("task_mix", str(exc)) from None
+            if max(mix.agents) > self.final_agents:
+                raise bad("task_mix", f"agents: {max(mix.agents)} agents exceed final_agents "
+                          f"({self.final_agents}), the replay's width; raise final_agents")
 
     # ------------------------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:

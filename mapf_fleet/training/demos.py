@@ -6,7 +6,9 @@ only, with the n-step TD loss of normal training plus `demo_weight` x the large-
     J_E = mean over (step, agent) of  max_a [Q(s, a) + m * (a != a_E)] - Q(s, a_E)
 
 which pushes the demonstrator's action a_E above every other action by the margin m
-(`demo_margin`). Demonstrators (`demo_source`):
+(`demo_margin`). With `demo_loss: cross_entropy` the warm start is behaviour cloning instead:
+`demo_weight` x the cross-entropy of a_E under softmax(Q), no TD term (issue 18 asks which of the
+two serves the shield's rankings better). Demonstrators (`demo_source`):
   - "heuristic": the non-learned reference `mapf_fleet.grid.policies.heuristic_policy`;
   - "planner":   LaCAM (`mapf_fleet.coordination.planners.ClassicalPlanner`, pymapf), whose joint
     plan is replayed through `MAPFEnv` (agents of unsolved regions stay; plans longer than the
@@ -39,6 +41,14 @@ def margin_loss(q: torch.Tensor, demo_actions: torch.Tensor, mask: torch.Tensor,
     q_demo = q.gather(-1, demo_actions[..., None]).squeeze(-1)
     per_item = (q + penalty).max(-1).values - q_demo
     return (per_item * mask).sum() / mask.sum().clamp(min=1.0)
+
+
+def cross_entropy_loss(q: torch.Tensor, demo_actions: torch.Tensor,
+                       mask: torch.Tensor) -> torch.Tensor:
+    """Behaviour cloning. q (..., A) read as logits, demo_actions (...) int, mask (...) float ->
+    scalar: the masked mean of -log softmax(q)[a_E]."""
+    log_p = torch.log_softmax(q, -1).gather(-1, demo_actions[..., None]).squeeze(-1)
+    return -(log_p * mask).sum() / mask.sum().clamp(min=1.0)
 
 
 def stage1_settings(cfg: TrainConfig) -> list[tuple[int, int]]:
@@ -135,11 +145,13 @@ def demo_update(learner, replay, cfg: TrainConfig, writer=None) -> dict:
     """One learner update on a batch of demonstrations (TD + margin loss); logs under demo/."""
     batch = replay.sample(cfg.batch_size, cfg.priority_beta)
     priorities, stats = learner.update(batch, demo_weight=cfg.demo_weight,
-                                       demo_margin=cfg.demo_margin)
+                                       demo_margin=cfg.demo_margin, demo_loss=cfg.demo_loss)
     replay.update_priorities(batch.indices, priorities)
     if writer is not None and learner.updates % 10 == 0:
-        for key in ("loss", "td_loss", "margin_loss", "demo_agreement", "mean_q"):
-            writer.add_scalar(f"demo/{key}", stats[key], learner.updates)
+        for key in ("loss", "td_loss", "margin_loss", "cross_entropy", "demo_agreement",
+                    "mean_q"):
+            if key in stats:
+                writer.add_scalar(f"demo/{key}", stats[key], learner.updates)
     return stats
 
 
@@ -164,6 +176,7 @@ def pretrain(learner, cfg: TrainConfig, writer=None, log=None, replay=None) -> d
     learner.sync_target()
     summary = {**info, "updates": cfg.demo_pretrain_updates,
                "final_agreement": stats.get("demo_agreement"),
-               "final_margin_loss": stats.get("margin_loss")}
+               "final_margin_loss": stats.get("margin_loss"),
+               "final_cross_entropy": stats.get("cross_entropy")}
     summary.pop("settings", None)
     return summary

@@ -158,9 +158,11 @@ class Learner:
         return q_taken, target, mask
 
     def compute_loss(self, batch: SequenceBatch, demo_weight: float = 0.0,
-                     demo_margin: float = 0.8, comm_masks=None):
+                     demo_margin: float = 0.8, comm_masks=None, demo_loss: str = "margin"):
         """Return (loss, per-sequence priorities (B,) numpy, stats dict). With demo_weight > 0
-        the batch holds demonstrations and the DQfD margin loss on its actions is added.
+        the batch holds demonstrations and a supervised loss on its actions is used:
+        `demo_loss` "margin" adds the DQfD margin loss to the TD loss, "cross_entropy"
+        (behaviour cloning) replaces the TD loss by the cross-entropy of softmax(Q).
         `comm_masks`: see `q_and_targets` (None, the default, recomputes the DCC masks)."""
         cfg, d = self.cfg, self._tensors(batch, comm_masks)
         q_taken, target, mask = self.q_and_targets(batch, d)
@@ -180,22 +182,32 @@ class Learner:
             from .demos import margin_loss
 
             q_online = self._last_q_online
-            supervised = margin_loss(q_online, d["actions"], mask, demo_margin)
             stats["td_loss"] = stats["loss"]
-            stats["margin_loss"] = float(supervised.detach())
+            if demo_loss == "cross_entropy":
+                from .demos import cross_entropy_loss
+
+                supervised = cross_entropy_loss(q_online, d["actions"], mask)
+                stats["cross_entropy"] = float(supervised.detach())
+                loss = demo_weight * supervised
+            elif demo_loss == "margin":
+                supervised = margin_loss(q_online, d["actions"], mask, demo_margin)
+                stats["margin_loss"] = float(supervised.detach())
+                loss = loss + demo_weight * supervised
+            else:
+                raise ValueError(f"demo_loss must be 'margin' or 'cross_entropy', got {demo_loss!r}")
             with torch.no_grad():
                 agree = (q_online.argmax(-1) == d["actions"]).float()
                 stats["demo_agreement"] = float((agree * mask).sum() / count)
-            loss = loss + demo_weight * supervised
             stats["loss"] = float(loss.detach())
         self._last_q_online = None
         return loss, priorities.cpu().numpy(), stats
 
     def update(self, batch: SequenceBatch, demo_weight: float = 0.0, demo_margin: float = 0.8,
-               comm_masks=None):
+               comm_masks=None, demo_loss: str = "margin"):
         """One gradient step; returns (priorities, stats). `comm_masks`: see `q_and_targets`."""
         self.model.train()
-        loss, priorities, stats = self.compute_loss(batch, demo_weight, demo_margin, comm_masks)
+        loss, priorities, stats = self.compute_loss(batch, demo_weight, demo_margin, comm_masks,
+                                                    demo_loss)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         stats["grad_norm"] = float(torch.nn.utils.clip_grad_norm_(self.model.parameters(),
