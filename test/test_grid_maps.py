@@ -162,7 +162,7 @@ def test_bad_mix_in_train_config_names_field_and_value(mix, words):
 
 def test_train_config_mix_default_and_valid():
     assert TrainConfig().task_mix == {}
-    cfg = config_from_dict({"task_mix": MIX})
+    cfg = config_from_dict({"task_mix": MIX, "final_agents": 64})
     assert TaskMix.from_dict(cfg.task_mix).sizes == (20, 40)
     with pytest.raises(TrainConfigError, match="field 'task_mix' = 3"):
         config_from_dict({"task_mix": 3})

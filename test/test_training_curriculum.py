@@ -148,6 +148,7 @@ def test_empty_success_windows_are_not_logged_as_zero():
         full.add(flag)
     trainer = SimpleNamespace(
         learner=SimpleNamespace(updates=10), bar=Bar(), bar_actor_rate=None, stage=STAGE_ALPHA,
+        cfg=SimpleNamespace(task_mix={}),
         task=SimpleNamespace(num_agents=4, map_size=25, alpha=0.3),
         scale=SimpleNamespace(window=full), alpha=SimpleNamespace(window=empty),
         setting_windows={"4x25": full, "5x30": empty}, replay=[0] * 3)

@@ -5,6 +5,15 @@ as replay sequences.
 wraps it with `ray.remote` to run one per Ray worker. Rewards are the grid environment's
 individual rewards combined by Eq. 2 (`CooperativeReward(alpha)`, neighbours in the 9x9 FOV at
 the positions after the step) with the alpha of the current task.
+
+Where the episode's instance comes from: without a training mix, a random map of the task's
+setting (`Task.num_agents` agents on `Task.map_size`, density from `obstacle_density`). With a
+mix (`TrainConfig.task_mix` non-empty) every episode draws its own map kind, size and agent
+count with `mapf_fleet.grid.maps.sample_task_instance(mix, rng)` from the worker's seeded rng,
+whatever the stage; the task then only carries alpha and its version (its setting is not used).
+The step limit is `episode_step_limit` of the drawn map's side. Environments of one actor may
+then hold different agent counts: the batched forward runs once per agent count, and the episode
+stats carry the drawn `map_kind`, `map_size` and `num_agents`.
 """
 
 from __future__ import annotations
@@ -74,6 +83,11 @@ class EpisodeWorker:
         self.envs: list = []
         self.keep_records = False  # tests: keep finished EpisodeRecords in `records`
         self.records: list[EpisodeRecord] = []
+        self.mix = None  # the training mix (grid.maps.TaskMix) when cfg.task_mix is set
+        if cfg.task_mix:
+            from mapf_fleet.grid.maps import TaskMix
+
+            self.mix = TaskMix.from_dict(cfg.task_mix)
 
     # -- control ------------------------------------------------------------------------
     def set_weights(self, state_dict: dict, version: int) -> None:
@@ -91,10 +105,18 @@ class EpisodeWorker:
         from mapf_fleet.grid.instance import generate_instance, sample_training_density
 
         task = self.task
-        density = (sample_training_density(self.rng) if self.cfg.obstacle_density == "triangular"
-                   else float(self.cfg.obstacle_density))
-        instance = generate_instance(task.map_size, task.num_agents, density, self.rng)
-        env_cfg = EnvConfig(max_steps=self.cfg.episode_step_limit(task.map_size),
+        if self.mix is not None:
+            from mapf_fleet.grid.maps import sample_task_instance
+
+            drawn = sample_task_instance(self.mix, self.rng)
+            instance, kind, size = drawn.instance, drawn.kind, drawn.size
+        else:
+            density = (sample_training_density(self.rng)
+                       if self.cfg.obstacle_density == "triangular"
+                       else float(self.cfg.obstacle_density))
+            instance = generate_instance(task.map_size, task.num_agents, density, self.rng)
+            kind, size = "random", task.map_size
+        env_cfg = EnvConfig(max_steps=self.cfg.episode_step_limit(size),
                             finish_reward=self.cfg.finish_reward)
         if slot < len(self.envs) and self.envs[slot] is not None \
                 and self.envs[slot]["env"].config == env_cfg:
@@ -103,13 +125,14 @@ class EpisodeWorker:
         else:
             env = MAPFEnv(instance, env_cfg)
             obs = env.observe()
-        hidden = np.zeros((task.num_agents, self.hidden_dim), np.float32)
+        hidden = np.zeros((instance.num_agents, self.hidden_dim), np.float32)
         shield = None
         if self.cfg.shield == "pibt":
             from mapf_fleet.coordination.pibt import PIBTShield
 
             shield = PIBTShield(instance.grid, instance.goals)
         state = {"env": env, "obs": obs, "hidden": hidden, "shield": shield,
+                 "map_kind": kind, "map_size": int(size),
                  "rec": _Recorder(pack_obs(obs), env.positions.astype(np.int16),
                                   hidden.astype(np.float16))}
         if slot < len(self.envs):
@@ -117,22 +140,48 @@ class EpisodeWorker:
         else:
             self.envs.append(state)
 
-    def _shield(self, envs, obs: np.ndarray, q: np.ndarray, chosen: np.ndarray) -> np.ndarray:
-        """The executed actions (B, N) under PIBT: each agent's ranking by its Q-values
+    def _forward(self, envs) -> tuple[np.ndarray, list, list]:
+        """Greedy actions (B, N_max) (entries past an environment's agent count are 0) and each
+        environment's Q-values (N, 5) and next hidden state (N, H). One batched network step per
+        agent count: all environments at once unless a training mix gave them different counts."""
+        groups: dict[int, list[int]] = {}
+        for slot, e in enumerate(envs):
+            groups.setdefault(e["env"].num_agents, []).append(slot)
+        greedy = np.zeros((len(envs), max(groups)), np.int64)
+        q, hidden = [None] * len(envs), [None] * len(envs)
+        for count, slots in groups.items():
+            part = [envs[s] for s in slots]
+            obs = torch.from_numpy(np.stack([e["obs"] for e in part]))
+            pos = torch.from_numpy(np.stack([e["env"].positions for e in part]).astype(np.int64))
+            hid = torch.from_numpy(np.stack([e["hidden"] for e in part]))
+            last = torch.from_numpy(
+                np.stack([e["env"].last_actions for e in part]).astype(np.int64))
+            with torch.no_grad():
+                out = model_step(self.model, self.cfg.algo, obs, pos, hid, last)
+            actions, out_q = out.q.argmax(-1).numpy(), out.q.numpy()
+            out_hidden = out.hidden.numpy()
+            for i, slot in enumerate(slots):
+                greedy[slot, :count] = actions[i]
+                q[slot], hidden[slot] = out_q[i], out_hidden[i]
+        return greedy, q, hidden
+
+    def _shield(self, envs, chosen: np.ndarray, q: list) -> np.ndarray:
+        """The executed actions (B, N_max) under PIBT: each agent's ranking by its Q-values
         (`shield_preferences`), its chosen action (greedy, or the exploring agent's random one)
         moved to the front, arbitrated per environment."""
         from mapf_fleet.coordination.preferences import rank_actions, tie_breakers
 
-        executed = np.empty_like(chosen)
+        executed = chosen.copy()
         for slot, e in enumerate(envs):
             env = e["env"]
-            ties = tie_breakers(np.arange(env.num_agents), env.steps)
-            ranking = rank_actions(obs[slot], q[slot], self.cfg.shield_preferences, ties=ties)
-            first = ranking == chosen[slot][:, None]
+            n = env.num_agents
+            ties = tie_breakers(np.arange(n), env.steps)
+            ranking = rank_actions(e["obs"], q[slot], self.cfg.shield_preferences, ties=ties)
+            first = ranking == chosen[slot, :n][:, None]
             # stable: the chosen action first, the others keep their order
             order = np.argsort(~first, axis=1, kind="stable")
             ranking = np.take_along_axis(ranking, order, axis=1)
-            executed[slot] = e["shield"].step(env.positions, ranking).actions
+            executed[slot, :n] = e["shield"].step(env.positions, ranking).actions
         return executed
 
     def run(self, num_steps: int) -> dict:
@@ -151,28 +200,24 @@ class EpisodeWorker:
         agent_steps, t0 = 0, time.perf_counter()
         for _ in range(num_steps):
             envs = self.envs
-            obs = torch.from_numpy(np.stack([e["obs"] for e in envs]))
-            pos = torch.from_numpy(np.stack([e["env"].positions for e in envs]).astype(np.int64))
-            hid = torch.from_numpy(np.stack([e["hidden"] for e in envs]))
-            last = torch.from_numpy(np.stack([e["env"].last_actions for e in envs]).astype(np.int64))
-            with torch.no_grad():
-                out = model_step(self.model, cfg.algo, obs, pos, hid, last)
-            actions = out.q.argmax(-1).numpy()
-            new_hidden = out.hidden.numpy()
+            actions, q, new_hidden = self._forward(envs)
+            # drawn over (B, N_max) whatever the agent counts, so the rng stream is the same
             explore = self.rng.random(actions.shape) < self.epsilons[:len(envs), None]
             if not cfg.explore_all_agents:
                 explore[:, 1:] = False
             actions = np.where(explore, self.rng.integers(0, 5, actions.shape), actions)
             if cfg.shield == "pibt":
-                actions = self._shield(envs, obs.numpy(), out.q.numpy(), actions)
+                actions = self._shield(envs, actions, q)
             for slot, e in enumerate(envs):
                 env = e["env"]
-                obs_next, rewards, done, info = env.step(actions[slot])
+                n = env.num_agents
+                obs_next, rewards, done, info = env.step(actions[slot, :n])
                 shaped = coop(rewards, env.positions)
                 e["obs"], e["hidden"] = obs_next, new_hidden[slot]
-                e["rec"].add(actions[slot].astype(np.uint8), shaped, rewards, pack_obs(obs_next),
-                             env.positions.astype(np.int16), new_hidden[slot].astype(np.float16))
-                agent_steps += task.num_agents
+                e["rec"].add(actions[slot, :n].astype(np.uint8), shaped, rewards,
+                             pack_obs(obs_next), env.positions.astype(np.int16),
+                             new_hidden[slot].astype(np.float16))
+                agent_steps += n
                 if done:
                     record = e["rec"].finish(terminal=bool(info["success"]))
                     if self.keep_records:
@@ -180,7 +225,8 @@ class EpisodeWorker:
                     sequences.extend(episode_to_sequences(record, cfg.seq_len, cfg.burn_in,
                                                           cfg.n_step, cfg.gamma))
                     stats.append({"success": bool(info["success"]), "steps": int(info["steps"]),
-                                  "num_agents": task.num_agents, "map_size": task.map_size,
+                                  "num_agents": n, "map_size": e["map_size"],
+                                  "map_kind": e["map_kind"],
                                   "alpha": task.alpha, "task_version": task.version,
                                   "actor": self.index, "epsilon": float(self.epsilons[slot]),
                                   "gate": bool(self.gate_slots[slot])})

@@ -2,7 +2,10 @@
 
 Stage 1 `ScaleCurriculum`: start small; whenever the success rate over the last `window`
 episodes exceeds `threshold`, add one agent and grow the map by `map_step` (capped at the final
-size); the stage is over once the final setting is reached (Algorithm 1, line 3).
+size); the stage is over once the final setting is reached (Algorithm 1, line 3). With
+`single_gate` (the trainer's choice under a training mix, `TrainConfig.task_mix`, where the mix
+and not a ladder defines the tasks) one pass of the same gate jumps to the final setting, so the
+stage is one gate at alpha 0 on the mix's tasks.
 
 Stage 2 `AlphaCurriculum`: at the final setting, alpha from 0 up by `alpha_step`. Passing the gate
 (same rule) records alpha as passed and raises it. An alpha *fails* ("converged without reaching
@@ -52,9 +55,10 @@ class SuccessWindow:
 class ScaleCurriculum:
     def __init__(self, start_agents: int = 1, start_map_size: int = 10, final_agents: int = 12,
                  final_map_size: int = 40, map_step: int = 5, window: int = 200,
-                 threshold: float = 0.9):
+                 threshold: float = 0.9, single_gate: bool = False):
         self.final_agents, self.final_map_size = final_agents, final_map_size
         self.map_step, self.threshold = map_step, threshold
+        self.single_gate = single_gate
         self.num_agents, self.map_size = start_agents, min(start_map_size, final_map_size)
         self.window = SuccessWindow(window)
         self.transitions = 0
@@ -73,8 +77,11 @@ class ScaleCurriculum:
             return False
         self.window.add(success)
         if self.window.full and self.window.rate > self.threshold:
-            self.num_agents = min(self.num_agents + 1, self.final_agents)
-            self.map_size = min(self.map_size + self.map_step, self.final_map_size)
+            if self.single_gate:
+                self.num_agents, self.map_size = self.final_agents, self.final_map_size
+            else:
+                self.num_agents = min(self.num_agents + 1, self.final_agents)
+                self.map_size = min(self.map_size + self.map_step, self.final_map_size)
             self.window.clear()
             self.transitions += 1
             return True

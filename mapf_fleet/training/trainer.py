@@ -7,6 +7,12 @@ The driver process holds the replay and the learner; actors are Ray actors that 
 the lowest-epsilon explorers (environment slots, see `TrainConfig.epsilon_per_env`) played
 under the current task drive the curricula.
 
+Training mix (`TrainConfig.task_mix` non-empty): the actors draw every episode's map kind, size
+and agent count from the mix, in both stages (see `actor.py`); the trainer's task then carries
+only alpha and its version. Stage 1 has no ladder: one pass of the success gate (same window and
+threshold, measured on mix tasks at alpha 0) ends it (`ScaleCurriculum(single_gate=True)`), then
+stage 2 runs the alpha curriculum on mix tasks. Success per setting is logged per map kind too.
+
 Saved for a resume: weights, target, optimizer, curricula, counters, elapsed time
 (train_state.pt, every few minutes) and the replay's sequences and priorities (replay.npz, when
 the run stops and every `replay_interval_seconds`: a run resumed on a near-empty replay overfits
@@ -174,7 +180,7 @@ class Trainer:
             hidden_dim(self.learner.model), cfg.priority_alpha, cfg.priority_epsilon, cfg.seed)
         self.scale = ScaleCurriculum(cfg.start_agents, cfg.start_map_size, cfg.final_agents,
                                      cfg.final_map_size, cfg.map_size_step, cfg.success_window,
-                                     cfg.success_threshold)
+                                     cfg.success_threshold, single_gate=bool(cfg.task_mix))
         self.alpha = AlphaCurriculum(cfg.alpha_mode, cfg.alpha_step, cfg.alpha_max,
                                      cfg.fixed_alpha, cfg.success_window, cfg.success_threshold,
                                      cfg.alpha_max_updates, cfg.plateau_windows,
@@ -277,10 +283,12 @@ class Trainer:
                     self.task_version)
 
     def _metadata(self) -> dict:
+        curriculum = {"stage": self.stage, "setting": list(self.scale.setting),
+                      "alpha_passed": list(self.alpha.passed), "alpha_star": self.alpha.alpha_star}
+        if self.cfg.task_mix:  # the tasks came from the mix, not from `setting`
+            curriculum["task_mix"] = dict(self.cfg.task_mix)
         return {"alpha": float(self.task.alpha),
-                "curriculum": {"stage": self.stage, "setting": list(self.scale.setting),
-                               "alpha_passed": list(self.alpha.passed),
-                               "alpha_star": self.alpha.alpha_star},
+                "curriculum": curriculum,
                 "learner_steps": int(self.learner.updates),
                 "training_config": self.cfg.to_dict(),
                 "extra": {"trained_with_code": list(self.code_versions),
@@ -310,6 +318,8 @@ class Trainer:
     def _record_episode(self, ep: dict) -> None:
         self.counters["episodes"] += 1
         key = f"{ep['num_agents']}agents_{ep['map_size']}x{ep['map_size']}_alpha{ep['alpha']:.1f}"
+        if self.cfg.task_mix:
+            key = f"{ep.get('map_kind', 'random')}_{key}"
         self.setting_windows.setdefault(key, SuccessWindow(self.cfg.success_window)).add(
             ep["success"])
         gate = ep["gate"] if "gate" in ep else ep["actor"] in self.gate_actors
@@ -319,7 +329,8 @@ class Trainer:
         if self.stage == STAGE_SCALE:
             if self.scale.record(ep["success"]):
                 self.task_version += 1
-                self._log_event(f"stage 1: setting -> {self.scale.setting}")
+                self._log_event("stage 1: the training mix passed the gate" if self.cfg.task_mix
+                                else f"stage 1: setting -> {self.scale.setting}")
                 if self.scale.done:
                     self._enter_stage_alpha()
         elif self.stage == STAGE_ALPHA:
@@ -519,11 +530,12 @@ class Trainer:
         gate = self.scale.window if self.stage == STAGE_SCALE else self.alpha.window
         if self.bar is not None:
             agents, size = self.task.num_agents, self.task.map_size
+            tasks = "task mix" if self.cfg.task_mix else f"{agents} agents {size}x{size}"
             success = f"{gate.rate:.2f}" if gate.flags else "–"
             self.bar_actor_rate = rates.get("actor_agent_steps_per_s", self.bar_actor_rate)
             steps = "–" if self.bar_actor_rate is None else f"{self.bar_actor_rate:.0f}"
             self.bar.set_postfix_str(
-                f"stage {self.stage} | {agents} agents {size}x{size} | alpha {self.task.alpha:.1f}"
+                f"stage {self.stage} | {tasks} | alpha {self.task.alpha:.1f}"
                 f" | success {success} | {steps} agent-steps/s"
                 f" | {rates['learner_updates_per_s']:.2f} upd/s")
         if writer is None:
@@ -535,8 +547,9 @@ class Trainer:
             writer.add_scalar(f"rate/{key}", value, step)
         writer.add_scalar("curriculum/stage", {STAGE_SCALE: 1, STAGE_ALPHA: 2}.get(self.stage, 3),
                           step)
-        writer.add_scalar("curriculum/num_agents", self.task.num_agents, step)
-        writer.add_scalar("curriculum/map_size", self.task.map_size, step)
+        if not self.cfg.task_mix:  # under a mix the setting chooses no task
+            writer.add_scalar("curriculum/num_agents", self.task.num_agents, step)
+            writer.add_scalar("curriculum/map_size", self.task.map_size, step)
         writer.add_scalar("curriculum/alpha", self.task.alpha, step)
         # An empty window (just cleared at a new setting or alpha, or waiting out alpha_min_updates)
         # has no rate: logging 0 would draw a collapse of success that did not happen.
