@@ -133,6 +133,40 @@ def test_shielded_actor_records_the_executed_actions(algo):
     assert sum(int((r.individual_rewards <= -0.5).sum()) for r in unshielded) > 0
 
 
+@pytest.mark.parametrize("algo", ["dhc", "dcc"])
+def test_shield_replay_preferred_trains_first_choices_and_feeds_executed_last_actions(algo):
+    """shield_replay: preferred: the replay's action is each agent's own first choice (greedy,
+    agent 0 possibly exploring), the executed one moved it, and the sequences' last-action
+    input is the executed action. Overridden first choices exist (random weights, 10 agents)."""
+    from mapf_fleet.grid.actions import ACTION_DELTAS
+    from mapf_fleet.training.episodes import episode_to_sequences
+
+    torch.manual_seed(0)
+    cfg = _cfg(algo=algo, shield="pibt", shield_replay="preferred", final_agents=10)
+    worker = EpisodeWorker(cfg, actor_index=0, seed=5)
+    worker.keep_records = True
+    worker.set_task(Task(num_agents=10, map_size=10, alpha=0.0))
+    worker.run(36)
+    assert worker.records
+    overridden = 0
+    for rec in worker.records:
+        assert rec.executed_actions is not None
+        moved = rec.positions[1:].astype(np.int64) - rec.positions[:-1].astype(np.int64)
+        np.testing.assert_array_equal(moved,
+                                      ACTION_DELTAS[rec.executed_actions.astype(np.int64)])
+        overridden += int((rec.actions != rec.executed_actions).sum())
+        assert int((rec.individual_rewards <= -0.5).sum()) == 0
+        seq = episode_to_sequences(rec, cfg.seq_len, cfg.burn_in, cfg.n_step, cfg.gamma)[0]
+        steps = min(rec.length, cfg.seq_len + cfg.n_step) - 1
+        np.testing.assert_array_equal(seq["last_actions"][cfg.burn_in + 1:cfg.burn_in + 1 + steps],
+                                      rec.executed_actions[:steps])
+        np.testing.assert_array_equal(seq["actions"][:min(rec.length, cfg.seq_len)],
+                                      rec.actions[:cfg.seq_len])
+    assert overridden > 0
+    with pytest.raises(Exception, match="shield_replay"):
+        _cfg(shield_replay="both")
+
+
 def test_shield_config_is_validated():
     from mapf_fleet.training.config import TrainConfigError
 

@@ -48,9 +48,12 @@ class _Recorder:
     def __init__(self, obs_bits, positions, hidden):
         self.obs, self.positions, self.hidden = [obs_bits], [positions], [hidden]
         self.actions, self.rewards, self.individual = [], [], []
+        self.executed: list = []  # only when the trained action is not the executed one
 
-    def add(self, action, reward, individual, obs_bits, positions, hidden):
+    def add(self, action, reward, individual, obs_bits, positions, hidden, executed=None):
         self.actions.append(action)
+        if executed is not None:
+            self.executed.append(executed)
         self.rewards.append(reward)
         self.individual.append(individual)
         self.obs.append(obs_bits)
@@ -61,7 +64,9 @@ class _Recorder:
         return EpisodeRecord(obs=np.stack(self.obs), positions=np.stack(self.positions),
                              actions=np.stack(self.actions), rewards=np.stack(self.rewards),
                              hidden=np.stack(self.hidden), terminal=terminal,
-                             individual_rewards=np.stack(self.individual))
+                             individual_rewards=np.stack(self.individual),
+                             executed_actions=(np.stack(self.executed) if self.executed
+                                               else None))
 
 
 class EpisodeWorker:
@@ -206,17 +211,23 @@ class EpisodeWorker:
             if not cfg.explore_all_agents:
                 explore[:, 1:] = False
             actions = np.where(explore, self.rng.integers(0, 5, actions.shape), actions)
+            # trained: the action the replay stores; actions: what the environment executes
+            trained, preferred = actions, cfg.shield_replay == "preferred"
             if cfg.shield == "pibt":
                 actions = self._shield(envs, actions, q)
+                if not preferred:
+                    trained = actions
             for slot, e in enumerate(envs):
                 env = e["env"]
                 n = env.num_agents
                 obs_next, rewards, done, info = env.step(actions[slot, :n])
                 shaped = coop(rewards, env.positions)
                 e["obs"], e["hidden"] = obs_next, new_hidden[slot]
-                e["rec"].add(actions[slot, :n].astype(np.uint8), shaped, rewards,
+                executed = (actions[slot, :n].astype(np.uint8)
+                            if preferred and cfg.shield == "pibt" else None)
+                e["rec"].add(trained[slot, :n].astype(np.uint8), shaped, rewards,
                              pack_obs(obs_next), env.positions.astype(np.int16),
-                             new_hidden[slot].astype(np.float16))
+                             new_hidden[slot].astype(np.float16), executed=executed)
                 agent_steps += n
                 if done:
                     record = e["rec"].finish(terminal=bool(info["success"]))

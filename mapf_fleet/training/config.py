@@ -53,6 +53,14 @@ class TrainConfig:
     # last-action input is the executed action, as at test time). "none": the paper's recipe.
     shield: str = "none"
     shield_preferences: str = "q"
+    # With shield "pibt", which action the replay trains Q on. "executed" (above): Q of the move
+    # PIBT let happen; a first choice PIBT overrode is never trained, so a policy that keeps
+    # asking for blocked moves is never told (measured, issue 18: no gain over no shield).
+    # "preferred": each agent's own first choice (its greedy or exploring action), with the
+    # reward and next observation of what the shield made of it: the shield is part of the
+    # environment, as it is at deployment, and Q(s, a) learns what asking for `a` under PIBT
+    # returns. DCC's last-action input stays the executed action in both.
+    shield_replay: str = "executed"
     actor_update_interval: int = 400  # learner updates between weight broadcasts
     gate_actor_fraction: float = 0.5  # success gate uses the lowest-epsilon fraction of explorers
 
@@ -189,6 +197,8 @@ class TrainConfig:
             raise bad("finish_reward", "must be 'team' or 'per_agent'")
         if self.shield not in ("none", "pibt"):
             raise bad("shield", "must be 'none' or 'pibt'")
+        if self.shield_replay not in ("executed", "preferred"):
+            raise bad("shield_replay", "must be 'executed' or 'preferred'")
         from mapf_fleet.coordination.preferences import Q_MODES
 
         if self.shield_preferences not in Q_MODES:

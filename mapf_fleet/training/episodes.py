@@ -27,6 +27,11 @@ class EpisodeRecord:
     hidden: np.ndarray  # (T+1, N, H) hidden state fed into step t
     terminal: bool  # the episode ended by success (no bootstrap past the end)
     individual_rewards: np.ndarray | None = None  # (T, N) env rewards before Eq. 2 (for checks)
+    # (T, N) the actions the environment executed, when they differ from the trained `actions`:
+    # an actor behind the PIBT shield that trains each agent's own first choice
+    # (`shield_replay: preferred`). None = `actions` were executed. The last-action input of
+    # every step (DCC's) is always the executed action, as at test time.
+    executed_actions: np.ndarray | None = None
 
     @property
     def length(self) -> int:
@@ -67,7 +72,11 @@ def episode_to_sequences(ep: EpisodeRecord, seq_len: int, burn_in: int, n_step: 
     packed = ep.obs.dtype == np.uint8 and ep.obs.shape[-1] == OBS_BYTES and ep.obs.ndim == 3
     obs_bits = ep.obs if packed else pack_obs(ep.obs)  # (T+1, N, 61)
     # last action fed at each step; -1 = none yet (the env's and DCC's convention)
-    last_actions = np.concatenate([np.full((1, num_agents), -1, np.int64), ep.actions], axis=0)
+    executed = ep.actions if ep.executed_actions is None else ep.executed_actions
+    if np.shape(executed) != np.shape(ep.actions):
+        raise ValueError(f"executed_actions: shape {np.shape(executed)} differs from actions "
+                         f"{np.shape(ep.actions)}")
+    last_actions = np.concatenate([np.full((1, num_agents), -1, np.int64), executed], axis=0)
     sequences = []
     for t0 in range(0, length, seq_len):
         origin = t0 - burn_in  # episode index of window index 0
