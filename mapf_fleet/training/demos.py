@@ -164,15 +164,19 @@ def make_demo_replay(learner, cfg: TrainConfig, log=None):
     return replay, info
 
 
-def pretrain(learner, cfg: TrainConfig, writer=None, log=None, replay=None) -> dict:
-    """Run the DQfD pretraining on demonstrations (fresh ones unless `replay` is given);
-    returns a summary (also logged). The replay stays usable for `demo_interleave`."""
+def pretrain(learner, cfg: TrainConfig, writer=None, log=None, replay=None,
+             on_update=None) -> dict:
+    """Run the warm start on demonstrations (fresh ones unless `replay` is given); returns a
+    summary (also logged). The replay stays usable for `demo_interleave`. `on_update(stats)`
+    is called after every update (the trainer's progress bar)."""
     info: dict = {}
     if replay is None:
         replay, info = make_demo_replay(learner, cfg, log)
     stats: dict = {}
     for _ in range(cfg.demo_pretrain_updates):
         stats = demo_update(learner, replay, cfg, writer)
+        if on_update is not None:
+            on_update(stats)
     learner.sync_target()
     summary = {**info, "updates": cfg.demo_pretrain_updates,
                "final_agreement": stats.get("demo_agreement"),

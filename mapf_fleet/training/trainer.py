@@ -371,6 +371,14 @@ class Trainer:
                 signal.signal(sig, handler)
         return restore
 
+    def _warm_start_progress(self, stats: dict) -> None:
+        """The bar during the demo warm start (its updates count towards max_updates)."""
+        if self.bar is not None:
+            self.bar.update(1)
+            if self.learner.updates % 10 == 0:
+                self.bar.set_postfix_str(f"demo warm start | agreement "
+                                         f"{stats.get('demo_agreement', 0.0):.2f}")
+
     def run(self) -> dict:
         cfg = self.cfg
         writer = None
@@ -408,7 +416,8 @@ class Trainer:
             self.demo_replay, info = demos.make_demo_replay(self.learner, cfg, log=self._log_event)
             summary = None
             if not pretrained:
-                summary = demos.pretrain(self.learner, cfg, writer, replay=self.demo_replay)
+                summary = demos.pretrain(self.learner, cfg, writer, replay=self.demo_replay,
+                                         on_update=self._warm_start_progress)
                 summary.update({k: v for k, v in info.items() if k != "settings"})
                 self.counters["demo_pretrained"] = 1
             # demonstrations (and the warm start) are part of the run's compute (cards' CPU-hours)
