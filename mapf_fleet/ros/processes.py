@@ -229,17 +229,93 @@ def stop_children(children: list[Child], grace: float = 3.0) -> None:
         child.wait_output(1.0)
 
 
+def signal_disposition(pid: int, signum: int) -> str | None:
+    """What process `pid` does with `signum`: "caught" (a handler), "ignored" or "default",
+    read from /proc/<pid>/status (Linux); None when that cannot be read."""
+    try:
+        with open(f"/proc/{pid}/status") as status:
+            masks = dict(line.split(":", 1) for line in status if line.startswith("Sig"))
+        bit = 1 << (int(signum) - 1)
+        if int(masks["SigCgt"], 16) & bit:
+            return "caught"
+        return "ignored" if int(masks["SigIgn"], 16) & bit else "default"
+    except (OSError, KeyError, ValueError):
+        return None
+
+
+class StopRequest:
+    """Asks a child to stop with a signal and says when it is overdue (then it is killed).
+
+    A child of `up` ignores SIGINT and SIGTERM until its entry point installs its handlers
+    (`child_setup`): a signal sent before is lost, and on a loaded machine the imports before
+    that can take many seconds. So, where the child's dispositions can be read
+    (`signal_disposition`), the signal is sent once the child catches it (or would die of it)
+    and the child has `grace` s from then; it has `startup_grace` s from the request to get
+    there (stuck while starting up: killed). Where they cannot be read, the signal is sent at
+    once, again every 2 s from 5 s on, and `grace` counts from the first. A child that caught
+    it but is still there 2 s before its grace ends gets it again (its second signal: it stops
+    waiting for a clean end, and exits without being killed). A request with another signal
+    after the first was sent is sent too; `force()` leaves the child 1 s."""
+
+    def __init__(self, child: "Child", grace: float, startup_grace: float):
+        self.child = child
+        self.grace = float(grace)
+        self.startup_grace = float(startup_grace)
+        self.signum: int | None = None
+        self.sent: set[int] = set()
+        self._deadline = float("inf")
+        self._forced_deadline = float("inf")
+        self._resend = float("inf")
+        self._unknown = False
+
+    def request(self, signum: int, now: float) -> None:
+        if self.signum is None:
+            self._deadline = now + self.startup_grace
+        self.signum = int(signum)
+        self.step(now)
+
+    def force(self, now: float) -> None:
+        if self.signum is not None:
+            self._forced_deadline = min(self._forced_deadline, now + 1.0)
+
+    def step(self, now: float) -> None:
+        """Send what is due: the requested signal once the child catches it; again where its
+        dispositions are unknown, or to a child still there near the end of its grace."""
+        if self.signum is None:
+            return
+        if self.signum in self.sent:
+            if now > self._resend:  # lost (dispositions unknown), or stuck: again
+                self.child.send_signal(self.signum)
+                self._resend = now + 2.0 if self._unknown else float("inf")
+            return
+        state = signal_disposition(self.child.proc.pid, self.signum)
+        if state == "ignored" and self.child.poll() is None:
+            return  # still starting up: the signal would be lost
+        if not self.sent:
+            self._deadline = now + self.grace
+        self.child.send_signal(self.signum)
+        self.sent.add(self.signum)
+        self._unknown = state is None
+        self._resend = (now + 5.0 if self._unknown
+                        else max(now + 0.5 * self.grace, self._deadline - 2.0))
+
+    def overdue(self, now: float) -> bool:
+        return now > min(self._deadline, self._forced_deadline)
+
+
 def supervise(main: Child, others: list[Child], signals: StopSignals, *, grace: float = 10.0,
-              poll: float = 0.1, echoed: bool = False, watched: list[Child] = (),
+              startup_grace: float = 120.0, poll: float = 0.1, echoed: bool = False,
+              watched: list[Child] = (),
               warn=lambda text: print(text, file=sys.stderr, flush=True)) -> tuple[int, str]:
     """Wait for `main` (the simulator or aggregator: it ends the run) while watching `others`.
 
-    - A stop signal is passed on to `main`, which ends its run (record, outcome) and exits with
-      128 + the signal; the signal is sent again every 2 s from 5 s on (a child still starting up
-      ignores it), and if it has not exited `grace` s later (1 s after a second signal to `up`),
+    - A stop signal is passed on to `main` (`StopRequest`: once `main` catches it, i.e. has
+      installed its handlers, up to `startup_grace` s after the request), which ends its run
+      (record, outcome) and exits with 128 + the signal; if it has not exited `grace` s after
+      receiving it (it gets the signal again 2 s before; 1 s after a second signal to `up`),
       it is killed.
     - Another child ending while the run goes on is reported with its last output lines (`warn`)
-      and `main` is asked to stop (SIGINT).
+      and `main` is asked to stop (SIGINT) the same way.
     - `main` ending otherwise than with 0, 1 or the signal it was sent is reported (with its last
       lines unless they were `echoed` already).
     Every child is stopped before this returns, except the `watched` ones (watched like
@@ -247,25 +323,15 @@ def supervise(main: Child, others: list[Child], signals: StopSignals, *, grace: 
     problem reported or "").
     """
     problem = ""
-    sent: set[int] = set()
-    deadline = None
-    resend = float("inf")
+    sent: set[int] = set()  # signals asked of main: it may exit with 128 + one of them
+    stop = StopRequest(main, grace, startup_grace)
     killed = False
     try:
         while main.poll() is None:
             now = time.monotonic()
             if signals.requested and signals.signum not in sent:
-                main.send_signal(signals.signum)
                 sent.add(signals.signum)
-                deadline = now + grace if deadline is None else deadline
-                resend = now + 5.0
-            elif sent and deadline is not None and now > resend:
-                # not gone yet (still importing, signals ignored until then; or stuck): again
-                # (a second signal received: the child exits within a second)
-                main.send_signal(max(sent))
-                resend = now + 2.0
-            if signals.forced and deadline is not None:
-                deadline = min(deadline, now + 1.0)
+                stop.request(signals.signum, now)
             if not problem and not signals.requested:
                 dead = [c for c in list(others) + list(watched) if c.poll() is not None]
                 if dead:
@@ -273,10 +339,12 @@ def supervise(main: Child, others: list[Child], signals: StopSignals, *, grace: 
                     for child in dead:
                         warn(f"mapf-fleet up: {child.report()}")
                     warn(f"mapf-fleet up: stopping the {main.name}")
-                    main.send_signal(signal.SIGINT)
                     sent.add(int(signal.SIGINT))
-                    deadline, resend = now + grace, now + 5.0
-            if deadline is not None and now > deadline:
+                    stop.request(signal.SIGINT, now)
+            stop.step(now)
+            if signals.forced:
+                stop.force(now)
+            if stop.overdue(now) and main.poll() is None:
                 warn(f"mapf-fleet up: the {main.name} did not stop in time: killed")
                 main.proc.kill()
                 killed = True

@@ -84,6 +84,12 @@ def test_aggregator_follows_stand_in_robots_and_rejects_off_grid(tmp_path, ros_e
     assert f"robot {off_grid}: pose rejected" in log and "off the 8x8 grid" in log, log
 
 
+def _start(command, env, log_path) -> subprocess.Popen:
+    """`command` with its output (stdout and stderr) in `log_path`."""
+    with open(log_path, "w") as out:
+        return subprocess.Popen(command, env=env, stdout=out, stderr=subprocess.STDOUT)
+
+
 @pytest.mark.ros
 @pytest.mark.slow
 @pytest.mark.parametrize("rule, num_robots", [("pibt", 24), ("revert", 16)])
@@ -100,16 +106,19 @@ def test_dense_map_slow_robots_never_collide(tmp_path, ros_env, checkpoints, rul
     dump_instance_yaml(instance, path)
     record = tmp_path / "dense.json"
     steps = 25
-    procs = [subprocess.Popen(
-        [sys.executable, "-m", "mapf_fleet.ros.stand_in_robot", "--instance", str(path),
-         "--max-delay", "0.6", "--seed", "3"],
-        env=ros_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    # the robots' and policy processes' output is kept: a failure shows it with the aggregator's
+    logs = {"stand-in robots": tmp_path / "robots.log"}
+    logs.update({f"policy {first}": tmp_path / f"policy_{first}.log"
+                 for first in range(0, num_robots, 8)})
+    procs = [_start([sys.executable, "-m", "mapf_fleet.ros.stand_in_robot", "--instance",
+                     str(path), "--max-delay", "0.6", "--seed", "3"],
+                    ros_env, logs["stand-in robots"])]
     for first in range(0, num_robots, 8):
-        procs.append(subprocess.Popen(
-            RUN + ["policy", "--robots", f"{first}-{min(first + 8, num_robots) - 1}",
-                   "--ros-args", "-p", f"checkpoint:={checkpoints['dhc']}",
-                   "-p", "comm_timeout:=3.0"],
-            env=ros_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        ids = f"{first}-{min(first + 8, num_robots) - 1}"
+        procs.append(_start(RUN + ["policy", "--robots", ids, "--ros-args",
+                                   "-p", f"checkpoint:={checkpoints['dhc']}",
+                                   "-p", "comm_timeout:=3.0"],
+                            ros_env, logs[f"policy {first}"]))
     try:
         aggregator = subprocess.run(
             RUN + ["aggregator", "--ros-args", "-p", f"instance_file:={path}",
@@ -121,7 +130,9 @@ def test_dense_map_slow_robots_never_collide(tmp_path, ros_env, checkpoints, rul
         for proc in procs:
             proc.kill()
             proc.wait()
-    log = aggregator.stdout + aggregator.stderr
+    log = aggregator.stdout + aggregator.stderr + "".join(
+        f"\n--- {name} (last lines) ---\n" + "\n".join(file.read_text().splitlines()[-20:])
+        for name, file in logs.items())
     assert record.exists(), log
     run = json.loads(record.read_text())
     assert run["success"] or run["steps"] == steps, log   # an outcome
@@ -141,4 +152,5 @@ def test_dense_map_slow_robots_never_collide(tmp_path, ros_env, checkpoints, rul
         assert unsafe_commands(grid, positions[t], commanded) == [], f"tick {t}"
     # the slow robots were really still driving at some ticks, and the fleet did move
     assert sum(map(len, run["late"])) > 0, log
-    assert (positions[-1] != positions[0]).any(axis=1).sum() >= num_robots // 4
+    moved = int((positions[-1] != positions[0]).any(axis=1).sum())
+    assert moved >= num_robots // 4, f"{moved} robots moved: {run['summary']}\n{log}"

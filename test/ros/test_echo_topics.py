@@ -63,6 +63,20 @@ def wait_line(proc: subprocess.Popen, text: str, timeout: float) -> None:
     raise AssertionError(f"no {text!r} from the helper within {timeout} s")
 
 
+def wait_handlers(proc: subprocess.Popen, timeout: float) -> bool:
+    """Wait until `proc` has installed its stop handlers (or has ended): SIGTERM is caught
+    (Python has a SIGINT handler from the start, not a SIGTERM one; the commands install both
+    together)."""
+    from mapf_fleet.ros.processes import signal_disposition
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if proc.poll() is not None or signal_disposition(proc.pid, signal.SIGTERM) == "caught":
+            return True
+        time.sleep(0.05)
+    return False
+
+
 @pytest.fixture
 def procs(ros_env):
     group = Processes(ros_env)
@@ -143,16 +157,19 @@ def test_echo_ends_cleanly_on_signal(procs, signum, codes, state):
     if state == "receiving":
         wait_line(proc, "---", 40.0)  # it prints messages: it is in its receive loop
     else:
-        time.sleep(3.0)  # rclpy is up and discovery is running
+        # echo's handlers are installed (before that, while it still imports on a loaded
+        # machine, a signal meets Python's defaults), then rclpy comes up and discovery runs
+        assert wait_handlers(proc, 60.0), "echo never installed its signal handlers"
+        time.sleep(2.0)
     sent = time.monotonic()
     proc.send_signal(signum)
     try:
-        _, err = proc.communicate(timeout=10)
+        _, err = proc.communicate(timeout=30)
     except subprocess.TimeoutExpired:
         proc.kill()
         proc.communicate()
-        pytest.fail(f"echo still running 10 s after {signal.Signals(signum).name}")
-    assert time.monotonic() - sent < 5.0
+        pytest.fail(f"echo still running 30 s after {signal.Signals(signum).name}")
+    assert time.monotonic() - sent < 15.0  # not its --timeout of 60 s
     assert proc.returncode in codes, err
     assert "Traceback" not in err, err
 

@@ -172,26 +172,103 @@ def test_a_stop_signal_is_passed_on_once_and_every_child_is_stopped(tmp_path):
     assert policy.poll() is not None
 
 
-def test_a_simulator_ignoring_the_signal_is_killed_after_the_grace(tmp_path):
-    from mapf_fleet.ros.processes import Child, StopSignals, supervise
+STUBBORN = {
+    # caught, then nothing: stuck after the signal reached it
+    "stuck": "signal.signal(signal.SIGINT, lambda *a: None)",
+    # ignored for good (child_setup's state): stuck while starting up
+    "starting": "signal.signal(signal.SIGINT, signal.SIG_IGN)",
+}
+
+
+@pytest.mark.parametrize("state", sorted(STUBBORN))
+def test_a_simulator_that_does_not_stop_is_killed_after_its_grace(tmp_path, state):
+    from mapf_fleet.ros.processes import Child, StopSignals, signal_disposition, supervise
 
     lines = []
-    main = Child("simulator", _script(tmp_path, "stubborn.py", """
+    main = Child("simulator", _script(tmp_path, "stubborn.py", f"""
         import signal, time
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        {STUBBORN[state]}
         print("running", flush=True)
         while True:
             time.sleep(0.05)
     """), dict(os.environ), echo=lines.append)
-    assert _wait_for(lambda: "running" in lines)
+    assert _wait_for(lambda: "running" in lines, timeout=60.0)
+    assert signal_disposition(main.proc.pid, signal.SIGINT) == (
+        "caught" if state == "stuck" else "ignored")
     signals = StopSignals()
     signals._handle(signal.SIGINT, None)
     warnings = []
     started = time.monotonic()
-    code, _ = supervise(main, [], signals, grace=1.0, warn=warnings.append)
-    assert time.monotonic() - started < 10
+    # the grace that applies is 1 s, the other one would fail the test
+    graces = {"grace": 1.0, "startup_grace": 600.0} if state == "stuck" else \
+        {"grace": 600.0, "startup_grace": 1.0}
+    code, _ = supervise(main, [], signals, warn=warnings.append, **graces)
+    assert time.monotonic() - started < 60
     assert code == -signal.SIGKILL and "did not stop in time: killed" in warnings[0]
+
+
+def test_a_stop_waits_for_a_simulator_still_starting_up_and_reaches_it_once(tmp_path):
+    """A child of `up` ignores SIGINT / SIGTERM until its entry point installs its handlers (a
+    signal sent before is lost); on a loaded machine that can take longer than the grace. The
+    stop is sent once the child catches it, and the grace counts from then."""
+    from mapf_fleet.ros.processes import Child, StopSignals, supervise
+
+    lines = []
+    slow_start = """
+    import time
+    print("importing", flush=True)
+    time.sleep(3.0)  # a slow start: SIGINT / SIGTERM still ignored (child_setup)
+"""
+    main = Child("simulator", _script(tmp_path, "late.py", slow_start + MAIN), dict(os.environ),
+                 echo=lines.append)
+    assert _wait_for(lambda: "importing" in lines, timeout=60.0)
+    signals = StopSignals()
+    signals._handle(signal.SIGINT, None)  # as if `up` got Ctrl-C while the child starts
+    warnings = []
+    code, problem = supervise(main, [], signals, grace=1.0, warn=warnings.append)
+    assert (code, problem) == (130, ""), warnings
+    assert lines.count("stopping on 2") == 1 and not warnings
+
+
+def test_stop_request_sends_once_the_child_catches_it_and_counts_the_grace_from_then(
+        monkeypatch):
+    """StopRequest's clock (no processes): a child still ignoring the signal gets nothing and
+    `startup_grace`; once it catches it, one signal and `grace`. Where the dispositions cannot
+    be read, the signal goes at once, again from 5 s on, and `grace` counts from the first."""
+    from types import SimpleNamespace
+
+    from mapf_fleet.ros import processes
+
+    sent = []
+    child = SimpleNamespace(proc=SimpleNamespace(pid=12345), poll=lambda: None,
+                            send_signal=sent.append)
+    state = {"now": "ignored"}
+    monkeypatch.setattr(processes, "signal_disposition", lambda pid, signum: state["now"])
+    stop = processes.StopRequest(child, grace=10.0, startup_grace=100.0)
+    stop.request(signal.SIGINT, now=0.0)
+    stop.step(50.0)
+    assert sent == [] and not stop.overdue(99.0) and stop.overdue(100.5)
+    state["now"] = "caught"
+    stop.step(60.0)
+    stop.step(65.5)  # no resend to a child known to have it
+    assert sent == [signal.SIGINT] and not stop.overdue(69.9) and stop.overdue(70.1)
+    stop.step(68.1)  # still there 2 s before its grace ends: a second signal, once
+    stop.step(69.5)
+    assert sent == [signal.SIGINT] * 2
+    stop.force(61.0)
+    assert stop.overdue(62.1)
+    stop.request(signal.SIGTERM, now=62.0)  # another signal after the first: sent as well
+    assert sent == [signal.SIGINT] * 2 + [signal.SIGTERM]
+
+    sent.clear()
+    state["now"] = None  # not Linux: no dispositions
+    stop = processes.StopRequest(child, grace=10.0, startup_grace=100.0)
+    stop.request(signal.SIGTERM, now=0.0)
+    assert sent == [signal.SIGTERM]
+    stop.step(4.0)
+    stop.step(5.1)
+    assert sent == [signal.SIGTERM] * 2
+    assert not stop.overdue(9.9) and stop.overdue(10.1)
 
 
 # ---- item 3 and 12: up's checks and report ----

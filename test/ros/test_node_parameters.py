@@ -112,7 +112,11 @@ def test_simulator_applies_runtime_parameters_and_refuses_the_rest(ros_env):
             assert result.results[0].successful, result.results[0].reason
             values = _wait(client.get_parameters(["tick_period"])).values
             assert values[0].double_value == 1.0
-            time.sleep(1.2)  # the tick running when it was set ends
+            # the tick running when it was set ends (its period was read at its start), then
+            # the next one, the first of period 1.0, plays: from here on the ticks are slow
+            set_at, deadline = simulator.tick, time.monotonic() + 30
+            while simulator.tick < set_at + 2 and time.monotonic() < deadline:
+                time.sleep(0.01)
             first, started = simulator.tick, time.monotonic()
             time.sleep(3.0)
             rate = (simulator.tick - first) / (time.monotonic() - started)
