@@ -45,6 +45,10 @@ DEFAULT_CHECKPOINT = DATA_ROOT / "models" / "default.pt"
 # shared topics): 200 robots ~1 s, 500 ~10 s, 2000 ~3 min on a 2-core machine, 10000 would take
 # about an hour before the first tick.
 MAX_NODES_PER_PROCESS = 512
+# ROS processes of one fleet on one domain that Fast DDS discovery on loopback was measured to
+# handle (../shared/DESIGN.md, "Scale limits": about 32 are discovered; with 64 half never see
+# each other and the shared-memory transport can deadlock). Above it `up` warns, not refuses.
+MAX_DISCOVERED_PROCESSES = 32
 
 
 def default_checkpoint() -> str:
@@ -232,6 +236,10 @@ def main(argv: list[str] | None = None) -> int:
     if problem:
         print(f"mapf-fleet up: {problem}", file=sys.stderr)
         return 2
+    warning = layout_warning(num_robots, args.single_process, args.nodes_per_process,
+                             recorder=bool(args.bag))
+    if warning:
+        print(f"mapf-fleet up: {warning}", file=sys.stderr)
     if args.bag and Path(args.bag).exists():
         print(f"mapf-fleet up: --bag {args.bag} exists already: a rosbag2 is written into a new "
               f"directory", file=sys.stderr)
@@ -295,6 +303,21 @@ def layout_problem(num_robots: int, single_process: bool, nodes_per_process: int
             f"{MAX_NODES_PER_PROCESS}, because creating them takes time growing with the square "
             f"of their number (500 ~10 s, 2000 ~3 min, 10000 about an hour before the first "
             f"tick). Use --nodes-per-process K with K <= {MAX_NODES_PER_PROCESS} (e.g. 8).")
+
+
+def layout_warning(num_robots: int, single_process: bool, nodes_per_process: int,
+                   recorder: bool = False) -> str:
+    """A warning ("" when none) when the layout needs more ROS processes (the simulator or
+    aggregator, one per group of robots' nodes, the recorder) than MAX_DISCOVERED_PROCESSES."""
+    hubs = 1 if single_process else -(-num_robots // max(1, nodes_per_process))
+    processes = 1 + hubs + int(recorder)
+    if processes <= MAX_DISCOVERED_PROCESSES:
+        return ""
+    suggest = -(-num_robots // max(1, MAX_DISCOVERED_PROCESSES - 1 - int(recorder)))
+    return (f"warning: this layout starts {processes} ROS processes on one domain; Fast DDS "
+            f"discovery on loopback was measured reliable up to about "
+            f"{MAX_DISCOVERED_PROCESSES} (above it processes may never see each other and robots "
+            f"miss decisions). Use --nodes-per-process {suggest} or more.")
 
 
 def finish(code: int, problem: str, record: str, elapsed: float, keep_record: bool) -> int:

@@ -295,6 +295,18 @@ def test_up_refuses_too_many_nodes_in_one_process_with_the_reason():
     assert layout_problem(MAX_NODES_PER_PROCESS, True, 1) == ""
 
 
+def test_up_warns_above_the_measured_discovery_limit_of_processes():
+    from mapf_fleet.ros.launcher import MAX_DISCOVERED_PROCESSES, layout_warning
+
+    assert MAX_DISCOVERED_PROCESSES == 32
+    assert layout_warning(31, False, 1) == ""  # 31 policy processes + the simulator
+    warning = layout_warning(32, False, 1)
+    assert "33 ROS processes" in warning and "--nodes-per-process 2" in warning
+    assert "34 ROS processes" in layout_warning(32, False, 1, recorder=True)
+    assert "--nodes-per-process 5" in layout_warning(128, False, 4)  # 32 hubs + simulator
+    assert layout_warning(128, False, 5) == "" and layout_warning(10000, True, 1) == ""
+
+
 def test_up_reports_ticks_per_second_from_the_first_tick(tmp_path, capsys):
     from mapf_fleet.ros.launcher import report
 
