@@ -20,6 +20,8 @@ MCAP_MAGIC = b"\x89MCAP0\r\n"
 
 
 def start_recorder(bag_dir, env, topics=None) -> subprocess.Popen:
+    # env is ros_env (test/conftest.py): ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, own domain
+    assert env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
     proc = subprocess.Popen(recorder_command(bag_dir, topics), env=env, text=True,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     line = proc.stdout.readline()
@@ -69,6 +71,7 @@ def test_recorder_command_runs_the_record_subcommand(tmp_path):
 
 @pytest.mark.ros
 def test_record_refuses_an_existing_directory(tmp_path, ros_env):
+    assert ros_env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"  # test/conftest.py
     done = subprocess.run([*CLI, "record", str(tmp_path)], env=ros_env, capture_output=True,
                           text=True, timeout=60)
     assert done.returncode == 2

@@ -21,6 +21,8 @@ class Processes:
     """Helper processes of one test, ended (SIGINT, then SIGKILL) when the test ends."""
 
     def __init__(self, env):
+        # env is ros_env (test/conftest.py): ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, own domain
+        assert env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
         self.env = env
         self.procs: list[subprocess.Popen] = []
 

@@ -51,6 +51,8 @@ def test_two_fleets_in_two_namespaces_on_one_domain_both_succeed(tmp_path, ros_e
     """Two `up` fleets (4 robots each, the shipped checkpoint) at once on the same domain, in
     /fleet_a and /fleet_b: each run succeeds with its own robots (no missed decision, each
     robot's move came from its own fleet), and its topics live under its namespace."""
+    # ros_env (test/conftest.py): ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, one domain for both
+    assert ros_env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
     fleets = {}
     for name, seed in (("fleet_a", 0), ("fleet_b", 1)):
         record = tmp_path / f"{name}.json"

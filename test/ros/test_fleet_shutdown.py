@@ -43,7 +43,8 @@ def _alive(pid: int) -> bool:
 
 
 def _env(ros_env, tmp_path) -> dict:
-    env = dict(ros_env)
+    env = dict(ros_env)  # test/conftest.py: ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, own domain
+    assert env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
     (tmp_path / "tmp").mkdir(exist_ok=True)
     env["TMPDIR"] = str(tmp_path / "tmp")  # to see that up leaves no temporary directory
     return env

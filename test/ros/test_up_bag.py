@@ -28,6 +28,8 @@ def test_up_bag_records_the_fleet_and_closes_the_bag_on_ctrl_c(tmp_path, ros_env
     from mapf_fleet.ros.bag import fleet_typestore
 
     bag, record = tmp_path / "bag", tmp_path / "run.json"
+    # ros_env (test/conftest.py): ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, own domain
+    assert ros_env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
     proc = subprocess.Popen(
         UP + ["--checkpoint", checkpoints["dhc"], "--num-robots", "4", "--size", "10",
               "--max-steps", "500", "--nodes-per-process", "2", "--record", str(record),
