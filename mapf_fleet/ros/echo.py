@@ -163,6 +163,12 @@ def _graph(node):
     return topics, sorted(node.get_node_names_and_namespaces())
 
 
+def _only_self(node, nodes) -> bool:
+    """Whether the discovered (name, namespace) pairs `nodes` show no node but `node`."""
+    own = (node.get_name(), node.get_namespace())
+    return all(entry == own for entry in nodes)
+
+
 def settled_topics(node, stop: StopSignals, settle: float, timeout: float,
                    poll: float = 0.1) -> tuple[list[tuple[str, list[str]]], bool]:
     """The graph's topics once discovery has settled: another node has been discovered and
@@ -173,13 +179,11 @@ def settled_topics(node, stop: StopSignals, settle: float, timeout: float,
     machine the first participant can take longer than `settle` to show up (an empty list was
     printed under CI load), and a graph with no other node is never what the user asked about."""
     start = time.monotonic()
-    own = (node.get_name(), node.get_namespace())
     last = _graph(node)
     changed = start
     while True:
         now = time.monotonic()
-        others = any(entry != own for entry in last[1])
-        if others and now - changed >= settle:
+        if not _only_self(node, last[1]) and now - changed >= settle:
             return last[0], True
         if now - start >= timeout or stop.wait(poll):
             return last[0], False
@@ -212,9 +216,9 @@ def topics_main(argv: list[str] | None = None) -> int:
                 continue
             print(f"{name} [{', '.join(types)}]")
         if not settled:
-            alone = all(entry == (node.get_name(), node.get_namespace())
-                        for entry in node.get_node_names_and_namespaces())
-            why = "no other node discovered" if alone else "discovery still changing"
+            why = ("no other node discovered"
+                   if _only_self(node, node.get_node_names_and_namespaces())
+                   else "discovery still changing")
             print(f"mapf-fleet topics: {why} after {args.wait:g} s; the list may be incomplete "
                   "(raise --wait; is the fleet on this ROS_DOMAIN_ID?)", file=sys.stderr)
     return 0

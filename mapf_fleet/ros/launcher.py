@@ -261,8 +261,8 @@ def main(argv: list[str] | None = None) -> int:
         sim_params = {k: v for k, v in sim_params.items() if k in _aggregator_parameters()}
         sim_params["arrival_timeout"] = args.arrival_timeout
     if args.bag:  # tick 0 waits until the hubs and the recorder hear the state: no tick missed
-        hubs = 1 if args.single_process else -(-num_robots // args.nodes_per_process)
-        sim_params["state_subscribers"] = hubs + 1
+        sim_params["state_subscribers"] = (
+            policy_processes(num_robots, args.single_process, args.nodes_per_process) + 1)
     policy_params = {"checkpoint": checkpoint, "comm_timeout": args.comm_timeout}
     if args.preference_mode is not None:
         policy_params["preference_mode"] = args.preference_mode
@@ -305,12 +305,16 @@ def layout_problem(num_robots: int, single_process: bool, nodes_per_process: int
             f"tick). Use --nodes-per-process K with K <= {MAX_NODES_PER_PROCESS} (e.g. 8).")
 
 
+def policy_processes(num_robots: int, single_process: bool, nodes_per_process: int) -> int:
+    """Processes hosting the robots' policy nodes (hubs): one with --single-process."""
+    return 1 if single_process else -(-num_robots // max(1, nodes_per_process))
+
+
 def layout_warning(num_robots: int, single_process: bool, nodes_per_process: int,
                    recorder: bool = False) -> str:
     """A warning ("" when none) when the layout needs more ROS processes (the simulator or
     aggregator, one per group of robots' nodes, the recorder) than MAX_DISCOVERED_PROCESSES."""
-    hubs = 1 if single_process else -(-num_robots // max(1, nodes_per_process))
-    processes = 1 + hubs + int(recorder)
+    processes = 1 + policy_processes(num_robots, single_process, nodes_per_process) + int(recorder)
     if processes <= MAX_DISCOVERED_PROCESSES:
         return ""
     suggest = -(-num_robots // max(1, MAX_DISCOVERED_PROCESSES - 1 - int(recorder)))

@@ -203,6 +203,8 @@ class EpisodeWorker:
             self._new_episode(len(self.envs))
         sequences, stats = [], []
         agent_steps, t0 = 0, time.perf_counter()
+        # behind the shield, training first choices: the executed actions are recorded beside
+        record_executed = cfg.shield == "pibt" and cfg.shield_replay == "preferred"
         for _ in range(num_steps):
             envs = self.envs
             actions, q, new_hidden = self._forward(envs)
@@ -212,19 +214,18 @@ class EpisodeWorker:
                 explore[:, 1:] = False
             actions = np.where(explore, self.rng.integers(0, 5, actions.shape), actions)
             # trained: the action the replay stores; actions: what the environment executes
-            trained, preferred = actions, cfg.shield_replay == "preferred"
+            trained = actions
             if cfg.shield == "pibt":
                 actions = self._shield(envs, actions, q)
-                if not preferred:
-                    trained = actions
+            if not record_executed:
+                trained = actions
             for slot, e in enumerate(envs):
                 env = e["env"]
                 n = env.num_agents
                 obs_next, rewards, done, info = env.step(actions[slot, :n])
                 shaped = coop(rewards, env.positions)
                 e["obs"], e["hidden"] = obs_next, new_hidden[slot]
-                executed = (actions[slot, :n].astype(np.uint8)
-                            if preferred and cfg.shield == "pibt" else None)
+                executed = actions[slot, :n].astype(np.uint8) if record_executed else None
                 e["rec"].add(trained[slot, :n].astype(np.uint8), shaped, rewards,
                              pack_obs(obs_next), env.positions.astype(np.int16),
                              new_hidden[slot].astype(np.float16), executed=executed)
