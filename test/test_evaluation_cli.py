@@ -128,3 +128,38 @@ def test_render_writes_a_gif(tmp_path):
     frames = imageio.mimread(out)
     assert 2 <= len(frames) <= 13
     assert len({f.tobytes() for f in frames}) > 1  # the agents move
+
+
+def test_structured_families_one_table_per_kind(tmp_path, capsys):
+    """--kinds: generated maze / rooms / warehouse maps (seeded, validated), one table per kind
+    and side, the protocol's step limit of that side; the same seed gives the same instances."""
+    path = tmp_path / "families.json"
+    args = ["evaluate", "--checkpoint", "heuristic", "--no-references", "--shield", "pibt",
+            "--kinds", "maze", "rooms", "warehouse", "--sizes", "24", "--agents", "6",
+            "--instances", "2", "--quiet", "--json", str(path)]
+    assert mapf_fleet(args) == 0
+    printed = capsys.readouterr().out
+    for kind in ("maze", "rooms", "warehouse"):
+        assert f"### {kind} 24x24" in printed
+    rows = json.loads(path.read_text())["results"]
+    assert [r["map"] for r in rows] == ["maze 24x24", "rooms 24x24", "warehouse 24x24"]
+    assert all(r["max_steps"] == 256 and len(r["episodes"]) == 2 for r in rows)
+    assert all(r["collisions"] == 0 for r in rows)  # plain PIBT under the shield
+    again = tmp_path / "again.json"
+    assert mapf_fleet(args[:-1] + [str(again)]) == 0
+    assert _figures(path) == _figures(again)
+    from mapf_fleet.evaluation.protocol import family_instances
+
+    maze = family_instances("maze", 24, 6, 2, seed=0)
+    assert maze.maps.shape == (2, 24, 24) and not (maze.maps[0] == maze.maps[1]).all()
+
+
+def test_structured_families_refuse_what_does_not_fit(capsys):
+    args = ["evaluate", "--checkpoint", "heuristic", "--no-references", "--kinds", "maze",
+            "--sizes", "10", "--agents", "60", "--instances", "1", "--quiet"]
+    assert mapf_fleet(args) == 2
+    err = capsys.readouterr().err
+    assert "maze" in err and "60 agents" in err
+    assert mapf_fleet(["evaluate", "--checkpoint", "heuristic", "--kinds", "maze", "--map", "x.map",
+                       "--agents", "4"]) == 2
+    assert "--kinds and --map" in capsys.readouterr().err

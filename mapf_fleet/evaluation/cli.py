@@ -33,6 +33,10 @@ from .protocol import (
     DEFAULT_TESTSETS,
     ProtocolConfig,
     ProtocolError,
+    FAMILY_AGENTS,
+    FAMILY_KINDS,
+    FAMILY_SIZES,
+    family_scenarios,
     movingai_pairs,
     movingai_scenarios,
     protocol_scenarios,
@@ -69,6 +73,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="MovingAI .scen files or folders, one instance each: with one map, all "
                         "of them; with several, in --map order (as many as maps), else each "
                         "with the map its lines name")
+    p.add_argument("--kinds", nargs="+", choices=list(FAMILY_KINDS), metavar="KIND",
+                   help=f"structured map families instead of the protocol's random maps: "
+                        f"{', '.join(FAMILY_KINDS)}; generated from --seed, sides from --sizes "
+                        f"(default {' '.join(map(str, FAMILY_SIZES))}), counts from --agents "
+                        f"(default {' '.join(map(str, FAMILY_AGENTS))}), the protocol's step limit "
+                        f"of that side")
     p.add_argument("--max-steps", type=int, help=f"step limit for --map (default {SMALL_MAP_LIMIT} up to 40x40, else {LARGE_MAP_LIMIT})")
     p.add_argument("--workers", type=int, default=1, help="parallel processes")
     p.add_argument("--batch-size", type=int, default=200, help="episodes stepped together per job")
@@ -84,6 +94,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _scenarios(args, config: ProtocolConfig):
     """[(Scenario, InstanceSet)] from the protocol or from MovingAI files."""
+    if args.map and args.kinds:
+        raise ProtocolError("--kinds and --map are two different sources of maps: give one")
     if args.map:
         if not args.agents or len(args.agents) != 1:
             raise ProtocolError("--map needs exactly one --agents N")
@@ -102,6 +114,9 @@ def _scenarios(args, config: ProtocolConfig):
         raise ProtocolError("--scen needs --map")
     count = args.instances or config.instances
     seed = config.seed if args.seed is None else args.seed
+    if args.kinds:
+        return family_scenarios(config, args.kinds, count, seed, args.sizes, args.agents,
+                                args.max_steps)
     out = []
     for scenario in protocol_scenarios(config, args.sizes, args.agents):
         if args.max_steps:

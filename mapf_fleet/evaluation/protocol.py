@@ -314,6 +314,51 @@ def movingai_pairs(maps: list[str | Path], scens: list[str | Path]) -> list[tupl
     return list(groups.items())
 
 
+# Structured map families of the training mix (`mapf_fleet.grid.maps`), evaluated beside the
+# paper's random maps: where a fleet operates (corridors, rooms, aisles) rather than where the
+# paper measured.
+FAMILY_KINDS = ("maze", "rooms", "warehouse")
+FAMILY_AGENTS = (16, 32, 64)
+FAMILY_SIZES = (40,)
+
+
+def family_scenarios(config: "ProtocolConfig", kinds: list[str], count: int, seed: int,
+                     sizes: list[int] | None = None, agents: list[int] | None = None,
+                     max_steps: int | None = None) -> list[tuple[Scenario, InstanceSet]]:
+    """One scenario per (kind, side, agent count) with its `count` instances; the step limit of
+    the protocol map of the same side (256 on 40x40, 386 on 80x80; the nearest for other sides)
+    unless `max_steps`."""
+    from mapf_fleet.grid.maps import capacity
+
+    unknown = [k for k in kinds if k not in FAMILY_KINDS]
+    if unknown:
+        raise ProtocolError(f"--kinds: unknown map kind(s) {unknown} (known: {', '.join(FAMILY_KINDS)})")
+    limits = {m.size: m.max_steps for m in config.maps}
+    scenarios = []
+    for kind in dict.fromkeys(kinds):
+        for size in sizes or FAMILY_SIZES:
+            limit = max_steps or limits[min(limits, key=lambda s: (abs(s - size), s))]
+            for n in agents or FAMILY_AGENTS:
+                if n > capacity(kind, size):
+                    raise ProtocolError(f"--kinds {kind}: {n} agents do not fit every {size}x{size} "
+                                        f"{kind} map (at most {capacity(kind, size)})")
+                scenarios.append((Scenario(f"{kind} {size}x{size}", n, limit),
+                                  family_instances(kind, size, n, count, seed)))
+    return scenarios
+
+
+def family_instances(kind: str, size: int, num_agents: int, count: int, seed: int) -> InstanceSet:
+    """`count` instances of a structured family; instance i is drawn from the seed sequence
+    (seed, kind, size, num_agents, i), so any prefix is the same whatever `count` is."""
+    from mapf_fleet.grid.maps import MAP_KINDS, generate_kind_instance
+
+    code = MAP_KINDS.index(kind)
+    made = [generate_kind_instance(kind, size, num_agents,
+                                   np.random.default_rng([seed, code, size, num_agents, i]))
+            for i in range(count)]
+    return InstanceSet.from_instances(made, f"generated {kind} maps (seed {seed})")
+
+
 def movingai_scenarios(
     map_path: str | Path, scen_paths: list[str | Path], num_agents: int, max_steps: int
 ) -> tuple[Scenario, InstanceSet]:

@@ -188,7 +188,7 @@ class Trainer:
         self.stage = STAGE_SCALE
         self.task_version = 0
         self.counters = {"episodes": 0, "gate_episodes": 0, "agent_steps": 0, "env_steps": 0,
-                         "elapsed_seconds": 0.0}
+                         "elapsed_seconds": 0.0, "added_sequences": 0, "sampled_sequences": 0}
         self.checkpoints: list[str] = []
         self.gate_actors = set(cfg.gate_actor_indices())
         # success of every setting / alpha seen, for the logs (not used for gating)
@@ -344,6 +344,15 @@ class Trainer:
                 self.stage = STAGE_DONE
                 self._log_event(f"stage 2 done: {self.alpha.stop_reason}")
 
+    def _replay_ratio_allows(self) -> bool:
+        """One more batch keeps sampled / added sequences within `max_replay_ratio` (0: no
+        limit). Counted from this run's replay only (warm-start demo updates do not count)."""
+        ratio = self.cfg.max_replay_ratio
+        if ratio <= 0:
+            return True
+        sampled = self.counters["sampled_sequences"] + self.cfg.batch_size
+        return sampled <= ratio * self.counters["added_sequences"]
+
     def _log_event(self, text: str) -> None:
         self.events.append(f"[update {self.learner.updates}] {text}")
         if self.bar is not None:
@@ -456,11 +465,12 @@ class Trainer:
                     stop_reason = f"max_wall_seconds {cfg.max_wall_seconds:g} reached"
                     break
                 can_learn = (self.replay.added_steps >= cfg.learning_starts
-                             and len(self.replay) > 0)
+                             and len(self.replay) > 0 and self._replay_ratio_allows())
                 for result in actors.poll(self.task, block=not can_learn):
                     cpu.actor_report(result)
                     for seq in result["sequences"]:
                         self.replay.add(seq)
+                    self.counters["added_sequences"] += len(result["sequences"])
                     self.counters["agent_steps"] += result["agent_steps"]
                     rate_steps += result["agent_steps"]
                     for ep in result["episodes"]:
@@ -477,10 +487,13 @@ class Trainer:
                         if (self.demo_replay is not None
                                 and (self.learner.updates + 1) % cfg.demo_interleave == 0):
                             demos.demo_update(self.learner, self.demo_replay, cfg, writer)
+                        elif not self._replay_ratio_allows():
+                            break  # the actors first: poll again (blocking) for new sequences
                         else:
                             batch = self.replay.sample(cfg.batch_size, cfg.priority_beta)
                             priorities, last_stats = self.learner.update(batch)
                             self.replay.update_priorities(batch.indices, priorities)
+                            self.counters["sampled_sequences"] += cfg.batch_size
                         rate_updates += 1
                         if self.bar is not None:
                             self.bar.update(1)
@@ -495,6 +508,9 @@ class Trainer:
                 if now - last_log >= cfg.log_interval_seconds:
                     span = max(now - rate_t, 1e-9)
                     rates = {"learner_updates_per_s": rate_updates / span}
+                    if self.counters["added_sequences"]:
+                        rates["replay_ratio"] = (self.counters["sampled_sequences"]
+                                                 / self.counters["added_sequences"])
                     if rate_steps:  # no result since the last log: no new actor rate, not 0
                         rates["actor_agent_steps_per_s"] = rate_steps / max(now - steps_t, 1e-9)
                         rate_steps, steps_t = 0, now
