@@ -1,6 +1,7 @@
 """What `models/` ships: every checkpoint loads with this code, stays under the issue's 10 MB, has
 its model card naming its exact bytes (SHA-256) and the evaluation files the card was built from,
-and `models/default.pt` (the main job's policy) points at one of them."""
+and `models/default.pt` (the main job's policy) points at one of them. Superseded checkpoints live
+in `models/archive/` under the same rules, so the evidence behind the README's tables still loads."""
 
 from __future__ import annotations
 
@@ -12,13 +13,15 @@ import pytest
 
 MODELS = Path(__file__).resolve().parents[1] / "models"
 SHIPPED = sorted(p for p in MODELS.glob("*.pt") if not p.is_symlink())
+ARCHIVED = sorted((MODELS / "archive").glob("*.pt"))
 
 
 def test_models_ships_checkpoints():
     assert SHIPPED, f"no checkpoint in {MODELS}"
 
 
-@pytest.mark.parametrize("path", SHIPPED, ids=[p.stem for p in SHIPPED])
+@pytest.mark.parametrize("path", SHIPPED + ARCHIVED,
+                         ids=[p.stem for p in SHIPPED] + [f"archive/{p.stem}" for p in ARCHIVED])
 def test_shipped_checkpoint_loads_and_has_its_card(path):
     from mapf_fleet.models import load_checkpoint
 
@@ -44,3 +47,10 @@ def test_default_checkpoint_is_a_shipped_one():
     default = MODELS / "default.pt"
     assert default.is_symlink() and default.resolve().parent == MODELS
     assert default.resolve() in SHIPPED
+
+
+def test_archived_cards_say_so_and_point_into_the_archive():
+    for path in ARCHIVED:
+        text = path.with_suffix(".md").read_text()
+        assert "**Archived**" in text, path.name
+        assert f"--checkpoint models/archive/{path.name}" in text, path.name
