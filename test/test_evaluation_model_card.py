@@ -493,3 +493,20 @@ def test_append_adds_the_shielded_rows_to_an_existing_card(tmp_path):
     other = save_random_checkpoint(tmp_path / "other.pt", "dcc", "small", seed=5)
     assert card_main(["--checkpoint", str(other), "--eval", str(shielded), "--out", str(card),
                       "--append", "x"]) == 2
+
+
+def test_shielded_rows_are_compared_with_plain_pibt_in_success_and_steps():
+    from mapf_fleet.evaluation.model_card import PLAIN_PIBT, _against_plain_pibt
+
+    def row(policy, agents, success, steps):
+        return {"policy": policy, "agents": agents, "success_rate": success, "average_steps": steps}
+
+    rows = [row("m +PIBT", 16, 0.97, 70.0), row(PLAIN_PIBT, 16, 0.95, 72.0),
+            row("m +PIBT", 32, 0.93, 90.0), row(PLAIN_PIBT, 32, 0.93, 83.0),
+            row("m +PIBT", 64, 0.40, 200.0), row(PLAIN_PIBT, 64, 0.70, 130.0)]
+    (text, _) = _against_plain_pibt(rows, "m +PIBT", [16, 32, 64])
+    assert "success rate at least PIBT's at 16, 32 agents only" in text
+    assert "average steps at most PIBT's at 16 agents only" in text
+    better = [row("m +PIBT", 16, 1.0, 60.0), row(PLAIN_PIBT, 16, 0.9, 70.0)]
+    assert "at every agent count" in _against_plain_pibt(better, "m +PIBT", [16])[0]
+    assert _against_plain_pibt(rows[:1], "m +PIBT", [16]) == []  # no PIBT row: nothing said

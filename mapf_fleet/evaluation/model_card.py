@@ -522,6 +522,8 @@ def evaluation_section(evaluation: dict, policy: str, metadata: dict, eval_path:
                              + " | ".join(_fmt(values.get(n), pattern) for n in agents) + " |")
             lines.append("")
         lines += _against_heuristic(mine, policy, agents)
+        for name in shielded:
+            lines += _against_plain_pibt(mine, name, agents)
     return lines
 
 
@@ -592,6 +594,31 @@ def _against_heuristic(rows: list[dict], policy: str, agents: list[int]) -> list
     verdict = "at every agent count" if len(above) == len(shared) else (
         "at " + ", ".join(map(str, above)) + " agents only" if above else "at no agent count")
     return [f"Success rate above the non-learned heuristic: {verdict} "
+            f"(of {', '.join(map(str, shared))}).", ""]
+
+
+PLAIN_PIBT = "heuristic +PIBT"  # the evaluator's row of the heuristic's ranking under the shield
+
+
+def _against_plain_pibt(rows: list[dict], name: str, agents: list[int]) -> list[str]:
+    """Where this checkpoint under the shield is at least plain PIBT (the non-learned ranking
+    under the same shield; issue 18's first target), in success rate and in average steps, from
+    the measured rows only."""
+    mine = {int(r["agents"]): r for r in rows if r["policy"] == name}
+    pibt = {int(r["agents"]): r for r in rows if r["policy"] == PLAIN_PIBT}
+    shared = [n for n in agents if n in mine and n in pibt]
+    if not shared:
+        return []
+
+    def verdict(ok: list[int]) -> str:
+        if len(ok) == len(shared):
+            return "at every agent count"
+        return ("at " + ", ".join(map(str, ok)) + " agents only") if ok else "at no agent count"
+
+    success = [n for n in shared if mine[n]["success_rate"] >= pibt[n]["success_rate"]]
+    steps = [n for n in shared if mine[n]["average_steps"] <= pibt[n]["average_steps"]]
+    return [f"{name} against plain PIBT ({PLAIN_PIBT}, same shield): success rate at least "
+            f"PIBT's {verdict(success)}, average steps at most PIBT's {verdict(steps)} "
             f"(of {', '.join(map(str, shared))}).", ""]
 
 
