@@ -53,12 +53,13 @@ def crowded_tick(draw):
 
 
 @settings(max_examples=300, deadline=None)
-@given(crowded_tick(), st.integers(1, 4))
-def test_no_conflict_ever(tick, steps):
-    """Random maps up to completely full, random rankings, some fixed agents, several steps:
-    never a vertex conflict, a swap, an obstacle, the map's edge or a jump; fixed agents stay."""
+@given(crowded_tick(), st.integers(1, 4), st.booleans())
+def test_no_conflict_ever(tick, steps, anchor):
+    """Random maps up to completely full, random rankings, some fixed agents, several steps,
+    with and without the anchor: never a vertex conflict, a swap, an obstacle, the map's edge or
+    a jump; fixed agents stay."""
     grid, positions, goals, prefs, fixed = tick
-    shield = PIBTShield(grid, goals)
+    shield = PIBTShield(grid, goals, anchor=anchor)
     rng = np.random.default_rng(len(positions))
     for _ in range(steps):
         result = shield.step(positions, prefs, fixed=fixed)
@@ -236,3 +237,35 @@ def test_plain_pibt_solves_crowded_instances():
     assert with_ties >= 7, with_ties
     assert with_ties > fixed_order
     assert heuristic <= 2
+
+
+def test_anchor_puts_the_top_priority_agent_on_its_distance_order():
+    """The highest-priority agent asks to stay (a learned ranking can); with the anchor it takes
+    the move towards its goal, the others keep what they asked for, and the step counts as an
+    override of its own choice."""
+    grid = np.zeros((5, 5), dtype=bool)
+    positions = np.array([[4, 0], [0, 0]])
+    goals = np.array([[4, 4], [0, 4]])
+    stay_first = np.array([[STAY, RIGHT, UP, DOWN, LEFT], [STAY, RIGHT, UP, DOWN, LEFT]])
+    plain = PIBTShield(grid, goals).step(positions, stay_first)
+    assert plain.positions.tolist() == positions.tolist()  # CS-PIBT keeps both first choices
+    anchored = PIBTShield(grid, goals, anchor=True)
+    result = anchored.step(positions, stay_first)
+    # agent 1 has the higher tie-breaker, so the top priority at the first tick
+    assert result.positions.tolist() == [[4, 0], [0, 1]]
+    assert result.overridden.tolist() == [False, True]
+    assert anchored.distance_map(1)[0 * 5 + 0] == 4 and anchored.distance_map(1)[4 * 5 + 0] == 8
+
+
+def test_anchored_ranking_is_plain_pibts_distance_ranking():
+    """The anchor ranks like the evaluator's plain PIBT (distance classes from the observation,
+    the same per-tick hash), so the heuristic under either shield plays the same moves."""
+    from mapf_fleet.evaluation.protocol import InstanceSet
+    from mapf_fleet.evaluation.policies import HeuristicBatchPolicy
+    from mapf_fleet.evaluation.runner import run_decentralized
+
+    instances = InstanceSet.from_instances([generate_instance(12, 20, 0.2, s) for s in range(4)], "t")
+    plain = run_decentralized(HeuristicBatchPolicy(), instances, 64, shield="pibt")
+    anchor = run_decentralized(HeuristicBatchPolicy(), instances, 64, shield="pibt_anchor")
+    assert [r.steps for r in plain] == [r.steps for r in anchor]
+    assert [r.sum_of_costs for r in plain] == [r.sum_of_costs for r in anchor]

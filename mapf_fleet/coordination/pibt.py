@@ -17,6 +17,13 @@ Dynamic priorities (PIBT's, as pymapf 0.9.0 uses them): agent i starts at i / (N
 distinct tie-breaker below 1; after each step its priority rises by 1 while it is off its goal
 and falls back to i / (N + 1) on its goal. Everything is deterministic for the same inputs.
 
+Anchor (`anchor=True`, off by default): the agent of highest priority ranks its moves by the
+distance to its goal (BFS on the map; ties by `preferences.tie_breakers`, as plain PIBT's
+rankings), whatever it asked for. PIBT's reachability argument (the top agent takes a shortest-path
+step, its priority only rises until it arrives, so every agent in turn reaches its goal) needs
+the top agent's ranking to be a distance order; a learned ranking (CS-PIBT) can stall it, which is
+where learned rankings lose to plain PIBT in crowds. Measured in the README ("Coordination layer").
+
 numpy only (no torch, no rclpy): the evaluator, the trainer's actors, the simulator and the
 real-robot aggregator all call this one implementation.
 """
@@ -29,6 +36,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from mapf_fleet.grid.actions import ACTION_DELTAS, NUM_ACTIONS
+
+from .preferences import tie_breakers
 
 # One recursion level per agent of a push chain; a chain can hold every agent.
 _MIN_RECURSION = 10_000
@@ -67,9 +76,10 @@ class PIBTShield:
     """PIBT for one fleet on one map. `step` resolves one tick and advances the priorities.
 
     grid: (H, W) bool/uint8, nonzero = obstacle. goals: (N, 2) (row, col) cells.
+    anchor: the highest-priority agent follows its distance order (module docstring).
     """
 
-    def __init__(self, grid, goals):
+    def __init__(self, grid, goals, anchor: bool = False):
         grid = np.asarray(grid)
         if grid.ndim != 2:
             raise ValueError(f"grid must be 2-D, got shape {grid.shape}")
@@ -95,10 +105,44 @@ class PIBTShield:
             self._action_of_delta[ACTION_DELTAS[a, 0] * w + ACTION_DELTAS[a, 1] + w] = a
         self.base_priority = np.arange(self.num_agents, dtype=np.float64) / (self.num_agents + 1)
         self.priorities = self.base_priority.copy()
+        self.anchor = bool(anchor)
+        self.tick = 0  # steps since reset: the anchor's tie-breakers
+        self._distance_maps: dict[int, np.ndarray] = {}
 
     def reset(self) -> None:
         """Start a new episode: every priority back to its tie-breaker."""
         self.priorities = self.base_priority.copy()
+        self.tick = 0
+
+    def distance_map(self, agent: int) -> np.ndarray:
+        """(H * W,) BFS distances to `agent`'s goal (-1 where unreachable), computed once."""
+        cached = self._distance_maps.get(agent)
+        if cached is not None:
+            return cached
+        dist = np.full(self.height * self.width, -1, dtype=np.int64)
+        goal = int(self.goals[agent, 0]) * self.width + int(self.goals[agent, 1])
+        frontier = np.array([goal])
+        dist[goal] = 0
+        step = 0
+        while frontier.size:
+            step += 1
+            nxt = self._targets[frontier].ravel()
+            nxt = np.unique(nxt[nxt >= 0])
+            nxt = nxt[dist[nxt] < 0]
+            dist[nxt] = step
+            frontier = nxt
+        self._distance_maps[agent] = dist
+        return dist
+
+    def anchored_ranking(self, agent: int, cell: int) -> np.ndarray:
+        """`agent`'s five actions at flat `cell` by distance to its goal (closer first, blocked
+        moves last), equal distances by this tick's hash: plain PIBT's ranking."""
+        dist = self.distance_map(agent)
+        targets = self._targets[cell]
+        reach = np.where(targets >= 0, dist[np.maximum(targets, 0)], -1)
+        key = np.where(reach >= 0, reach, np.iinfo(np.int64).max)
+        ties = tie_breakers(np.array([agent]), self.tick)[0]
+        return np.lexsort((ties, key)).astype(np.int64)
 
     # ------------------------------------------------------------------------------------------
     def _check_positions(self, positions) -> np.ndarray:
@@ -145,6 +189,12 @@ class PIBTShield:
         w = self.width
         current_flat = positions[:, 0] * w + positions[:, 1]
         current = current_flat.tolist()
+        asked = prefs
+        if self.anchor and n:
+            top = int(np.argsort(-self.priorities, kind="stable")[0])
+            if not fixed[top]:
+                prefs = prefs.copy()
+                prefs[top] = self.anchored_ranking(top, current[top])
         candidates = self._candidates(current_flat, prefs)
         occupied_now = {cell: i for i, cell in enumerate(current)}
         if len(occupied_now) != n:
@@ -213,8 +263,9 @@ class PIBTShield:
             raise RuntimeError(f"PIBT left agents {np.flatnonzero(nxt < 0).tolist()} undecided")
         new_positions = np.stack(np.divmod(nxt, w), axis=1)
         actions = self._action_of_delta[nxt - current_flat + w]
-        overridden = (actions != prefs[:, 0]) & ~fixed
+        overridden = (actions != asked[:, 0]) & ~fixed
         self.advance_priorities(new_positions)
+        self.tick += 1
         return ShieldStep(new_positions, actions, overridden)
 
     def advance_priorities(self, positions) -> None:

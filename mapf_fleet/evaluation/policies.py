@@ -20,7 +20,11 @@ from mapf_fleet.coordination.preferences import DEFAULT_Q_MODE, PREFERENCE_MODES
 
 HEURISTIC = "heuristic"
 REFERENCE_NAMES = (HEURISTIC, *PLANNER_NAMES)
-SHIELDS = ("none", "pibt")  # none: the paper's environment (conflicting moves are reverted)
+# none: the paper's environment (conflicting moves are reverted); pibt: CS-PIBT over the
+# rankings; pibt_anchor: the same with the top-priority agent on its distance order
+# (`PIBTShield(anchor=True)`)
+SHIELDS = ("none", "pibt", "pibt_anchor")
+SHIELD_LABELS = {"pibt": "+PIBT", "pibt_anchor": "+PIBT-anchor"}
 
 
 @dataclass(frozen=True)
@@ -34,7 +38,7 @@ class PolicySpec:
     planner_time_limit: float = 10.0
     planner_seed: int = 0
     device: str = "cpu"
-    shield: str = "none"  # "none" | "pibt" (decentralized policies only)
+    shield: str = "none"  # one of SHIELDS (decentralized policies only)
     preferences: str | None = None  # preference mode under the shield (None: the default)
 
     @property
@@ -63,7 +67,7 @@ def with_shield(spec: PolicySpec, shield: str, preferences: str | None = None) -
     if spec.kind == "heuristic" and preferences not in (None, "distance"):
         raise ValueError(f"--preferences {preferences}: the heuristic has no Q-values "
                          f"(its ranking is 'distance'); the Q modes are {Q_MODES}")
-    label = "+PIBT" if preferences is None else f"+PIBT({preferences})"
+    label = SHIELD_LABELS[shield] + ("" if preferences is None else f"({preferences})")
     return replace(spec, name=f"{spec.name} {label}", shield=shield, preferences=preferences)
 
 

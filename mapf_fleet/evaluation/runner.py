@@ -69,7 +69,7 @@ def run_decentralized(policy, instances: InstanceSet, max_steps: int, shield: st
     Only live episodes are passed to `act`; when some end, `policy.keep(rows)` (if the policy
     has it) drops their recurrent state so the batch shrinks with them.
 
-    shield "pibt": each step the policy ranks its five actions per agent (`policy.rank`), one
+    shield "pibt" / "pibt_anchor": each step the policy ranks its five actions per agent (`policy.rank`), one
     `PIBTShield` per episode turns the rankings into conflict-free moves, those are executed
     (and reported back with `policy.executed`), and the overridden agent-steps are counted."""
     bounds = lower_bounds(instances)
@@ -78,12 +78,13 @@ def run_decentralized(policy, instances: InstanceSet, max_steps: int, shield: st
     positions = np.stack([np.asarray(env.positions) for env in envs])
     trackers = [EpisodeTracker(positions[k], instances.goals[k], max_steps, bounds[k]) for k in range(len(envs))]
     shields = None
-    if shield == "pibt":
+    if shield in ("pibt", "pibt_anchor"):
         from mapf_fleet.coordination.pibt import PIBTShield
 
-        shields = [PIBTShield(instances.maps[k], instances.goals[k]) for k in range(len(envs))]
+        shields = [PIBTShield(instances.maps[k], instances.goals[k], anchor=shield == "pibt_anchor")
+                   for k in range(len(envs))]
     elif shield != "none":
-        raise ValueError(f"shield must be 'none' or 'pibt', got {shield!r}")
+        raise ValueError(f"shield must be 'none', 'pibt' or 'pibt_anchor', got {shield!r}")
     policy.reset(len(envs), instances.starts.shape[1])
     live = list(range(len(envs)))
     keep = getattr(policy, "keep", None)
