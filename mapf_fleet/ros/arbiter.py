@@ -6,6 +6,8 @@ Rules (`CONFLICT_RULES`):
   pibt    `coordination.pibt.PIBTShield` over the robots' preference orders (CS-PIBT): nobody's
           move is reverted, a robot in the way may be pushed to another of its ranked moves.
           The batched evaluator's `--shield pibt` (`evaluation.runner.run_decentralized`).
+  pibt_anchor  the same, with the highest-priority robot on its distance order whatever it
+          ranked (`PIBTShield(anchor=True)`; measured in the README, "Coordination layer").
   revert  the paper's environment: `grid.env.resolve_moves` on the first choices (a conflicting
           move is reverted to "stay").
 
@@ -25,7 +27,8 @@ import numpy as np
 
 from mapf_fleet.grid.actions import NUM_ACTIONS, STAY, actions_between
 
-CONFLICT_RULES = ("pibt", "revert")
+CONFLICT_RULES = ("pibt", "pibt_anchor", "revert")
+SHIELD_RULES = ("pibt", "pibt_anchor")
 DEFAULT_CONFLICT_RULE = "pibt"
 
 
@@ -98,10 +101,10 @@ class TickArbiter:
         self.grid = np.asarray(self.grid) != 0
         self.goals = np.asarray(self.goals, dtype=np.int64)
         self.shield = None
-        if self.rule == "pibt":
+        if self.rule in SHIELD_RULES:
             from mapf_fleet.coordination.pibt import PIBTShield
 
-            self.shield = PIBTShield(self.grid, self.goals)
+            self.shield = PIBTShield(self.grid, self.goals, anchor=self.rule == "pibt_anchor")
 
     def resolve(self, positions, preferences, held=None, reserved=()) -> Resolution:
         """Arbitrate one tick. positions (N, 2) the robots' cells; preferences (N, 5) each row a
@@ -115,7 +118,7 @@ class TickArbiter:
         problem = self._position_problem(positions)
         if problem:
             return self._all_stay(positions, held, problem)
-        if self.rule == "pibt":
+        if self.shield is not None:
             step = self.shield.step(positions, prefs, fixed=held, reserved=reserved)
             actions = step.actions
             grid = self.grid

@@ -10,8 +10,9 @@ one process share one hub (one subscription per shared topic, batched inference)
 ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST.
 
 The simulator (or the aggregator) arbitrates each tick with `--conflict-rule`: `pibt` (default:
-PIBT over the robots' ranked actions, CS-PIBT; nothing is reverted) or `revert` (the paper's
-environment: conflicting first choices are reverted).
+PIBT over the robots' ranked actions, CS-PIBT; nothing is reverted), `pibt_anchor` (the same with
+the top-priority robot on its distance order) or `revert` (the paper's environment: conflicting
+first choices are reverted).
 
 With no arguments: 8 simulated robots on a generated 16x16 map, checkpoint models/default.pt.
 """
@@ -31,6 +32,7 @@ from pathlib import Path
 
 from mapf_fleet.paths import data_root
 from mapf_fleet.ros import common
+from mapf_fleet.ros.arbiter import CONFLICT_RULES, DEFAULT_CONFLICT_RULE
 from mapf_fleet.ros.instances import InstanceSource
 
 # where models/ lives: the install's share/mapf_fleet, else the checkout
@@ -77,9 +79,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--decision-timeout", type=float, default=10.0)
     parser.add_argument("--comm-timeout", type=float, default=5.0)
     parser.add_argument("--startup-timeout", type=float, default=120.0)
-    parser.add_argument("--conflict-rule", choices=("pibt", "revert"), default="pibt",
+    parser.add_argument("--conflict-rule", choices=CONFLICT_RULES, default=DEFAULT_CONFLICT_RULE,
                         help="how the arbiter resolves a tick: pibt (PIBT over the robots' "
-                             "ranked actions) or revert (the paper's rules on first choices)")
+                             "ranked actions), pibt_anchor (the same, the top-priority robot on "
+                             "its distance order) or revert (the paper's rules on first choices)")
     parser.add_argument("--preference-mode", default=None,
                         help="how policy nodes rank their actions from Q-values (default: "
                              "the policy node's preference_mode, i.e. the evaluator's default)")

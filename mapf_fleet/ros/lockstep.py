@@ -33,8 +33,9 @@ INSTANCE_PARAMETERS = {
 }
 RUN_PARAMETERS = {
     "conflict_rule": ("pibt", "how the tick's decisions become moves: pibt (PIBT over the "
-                              "robots' ranked actions, nothing reverted) or revert (the paper's "
-                              "rules on the first choices)"),
+                              "robots' ranked actions, nothing reverted), pibt_anchor (the same, "
+                              "the top-priority robot on its distance order) or revert (the "
+                              "paper's rules on the first choices)"),
     "max_steps": (256, "tick limit: the run fails when robots are not all on goal by then"),
     "decision_timeout": (5.0, "seconds to wait for a robot's move before it counts as stay"),
     "startup_timeout": (60.0, "seconds to wait for every policy node to report ready"),

@@ -121,7 +121,7 @@ class SimulatorNode(Node):
         self.positions = result.positions
         # DCC's last action: what was executed under the shield (as the evaluator's
         # policy.executed); the robot's own choice under the paper's rule (as MAPFEnv)
-        self.last_actions = result.actions if self.conflict_rule == "pibt" else decisions.actions
+        self.last_actions = result.actions if self.arbiter.shield is not None else decisions.actions
         return self.positions, int(result.collided.sum()), {
             "collided": result.collided_ids, "requested": decisions.requested,
             "messages": decisions.messages, "executed": result.actions.tolist(),

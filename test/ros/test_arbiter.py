@@ -26,6 +26,7 @@ def _random_preferences(rng, n):
 
 def test_rule_names_and_rankings():
     assert check_conflict_rule("pibt") == "pibt" and check_conflict_rule("revert") == "revert"
+    assert check_conflict_rule("pibt_anchor") == "pibt_anchor"
     with pytest.raises(ValueError, match="conflict_rule"):
         check_conflict_rule("swap")
     assert single_choice_ranking(3) == [3, 0, 1, 2, 4]
@@ -35,12 +36,14 @@ def test_rule_names_and_rankings():
     assert "first preference" in ranking_problem(1, [2, 0, 1, 3, 4])
 
 
-def test_pibt_rule_is_the_evaluators_shield_tick_after_tick():
-    """Same positions, rankings and priorities as one PIBTShield per episode (the runner)."""
+@pytest.mark.parametrize("rule", ["pibt", "pibt_anchor"])
+def test_pibt_rule_is_the_evaluators_shield_tick_after_tick(rule):
+    """Same positions, rankings and priorities as one PIBTShield per episode (the runner's
+    `--shield pibt` / `pibt_anchor`)."""
     rng = np.random.default_rng(0)
     instance = generate_instance(10, 16, 0.25, 3)
-    arbiter = TickArbiter(instance.grid, instance.goals, "pibt")
-    shield = PIBTShield(instance.grid, instance.goals)
+    arbiter = TickArbiter(instance.grid, instance.goals, rule)
+    shield = PIBTShield(instance.grid, instance.goals, anchor=rule == "pibt_anchor")
     positions = np.asarray(instance.starts)
     overridden = 0
     for _ in range(30):
@@ -76,9 +79,9 @@ def test_revert_rule_is_resolve_moves_on_first_choices():
     assert collided_any
 
 
-@pytest.mark.parametrize("rule", ["pibt", "revert"])
+@pytest.mark.parametrize("rule", ["pibt", "pibt_anchor", "revert"])
 def test_held_robots_stay_reserved_cells_stay_free_and_commands_are_safe(rule):
-    rng = np.random.default_rng(2 if rule == "pibt" else 3)
+    rng = np.random.default_rng(2 if rule != "revert" else 3)
     for seed in range(25):
         instance = generate_instance(8, 20, 0.25, seed)
         grid, positions = np.asarray(instance.grid), np.asarray(instance.starts)

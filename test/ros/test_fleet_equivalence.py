@@ -41,7 +41,7 @@ def batched_rollout(checkpoint: str, instance, max_steps: int, comm=None):
     return actions, positions
 
 
-def batched_shielded_rollout(checkpoint: str, instance, max_steps: int, comm=None):
+def batched_shielded_rollout(checkpoint: str, instance, max_steps: int, comm=None, anchor=False):
     """The batched evaluator's shielded path (`evaluation.runner.run_decentralized(...,
     shield="pibt")` with `CheckpointBatchPolicy`): each step the policy's Q-values ranked by
     `rank_actions` (default mode, ties `tie_breakers(agent ids, step)`), one `PIBTShield` for
@@ -57,7 +57,7 @@ def batched_shielded_rollout(checkpoint: str, instance, max_steps: int, comm=Non
     obs = env.reset().astype(np.float32)[None]
     n = env.num_agents
     policy.reset(1, n)
-    shield = PIBTShield(instance.grid, instance.goals)
+    shield = PIBTShield(instance.grid, instance.goals, anchor=anchor)
     choices, executed, overridden = [], [], []
     positions = [env.positions.tolist()]
     for tick in range(max_steps):
@@ -166,3 +166,25 @@ def test_shielded_fleet_matches_batched_shielded_rollout(tmp_path, ros_env, chec
         overridden += sum(map(len, expected_overridden))
     # the shield really changed moves, so the test compares PIBT's decisions, not just argmax
     assert overridden > 0
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_anchored_fleet_matches_batched_anchored_rollout(tmp_path, ros_env, checkpoints):
+    """`--conflict-rule pibt_anchor`: the simulator's arbiter anchors the top-priority robot
+    exactly as the evaluator's `--shield pibt_anchor` (one dense instance, 4 robots per process)."""
+    instance = generate_instance(9, 12, 0.2, 7)
+    choices, executed, positions, expected_overridden = batched_shielded_rollout(
+        checkpoints["dcc_sensitive"], instance, 20, anchor=True)
+    plain = batched_shielded_rollout(checkpoints["dcc_sensitive"], instance, 20)
+    assert plain[1] != executed  # the anchor changed moves: the comparison is not vacuous
+    record, proc = run_fleet(tmp_path, ros_env, checkpoints["dcc_sensitive"], 7, 12, 9, 20,
+                             extra=["--density", "0.2", "--nodes-per-process", "4",
+                                    "--conflict-rule", "pibt_anchor"])
+    where = f"seed 7: {record.get('summary')}"
+    assert record["conflict_rule"] == "pibt_anchor" and record["missed_decisions"] == 0, proc.stdout
+    assert record["positions"] == positions, where
+    assert record["executed"] == executed, where
+    assert record["actions"] == choices, where
+    assert record["overridden"] == expected_overridden, where
+    assert record["collisions"] == 0 and not any(record["collided"]), where
