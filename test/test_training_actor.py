@@ -110,8 +110,9 @@ def test_step_limit_grows_with_the_curriculum_map():
 
 @pytest.mark.parametrize("algo", ["dhc", "dcc"])
 def test_shielded_actor_records_the_executed_actions(algo):
-    """shield: pibt: every recorded step is the action that moved the agent (the learner trains
-    on what was executed), and no move collides; without the shield random weights collide."""
+    """shield: pibt (and pibt_anchor): every recorded step is the action that moved the agent (the
+    learner trains on what was executed), and no move collides; without the shield random
+    weights collide."""
     from mapf_fleet.grid.actions import ACTION_DELTAS
 
     def play(shield):
@@ -123,7 +124,7 @@ def test_shielded_actor_records_the_executed_actions(algo):
         return worker.records
 
     collisions = 0
-    for rec in play("pibt"):
+    for rec in play("pibt") + play("pibt_anchor"):
         moved = rec.positions[1:].astype(np.int64) - rec.positions[:-1].astype(np.int64)
         np.testing.assert_array_equal(moved, ACTION_DELTAS[rec.actions.astype(np.int64)])
         # the collision penalty (-0.5) never appears in the individual rewards

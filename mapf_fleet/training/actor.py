@@ -132,10 +132,10 @@ class EpisodeWorker:
             obs = env.observe()
         hidden = np.zeros((instance.num_agents, self.hidden_dim), np.float32)
         shield = None
-        if self.cfg.shield == "pibt":
+        if self.cfg.shield != "none":
             from mapf_fleet.coordination.pibt import PIBTShield
 
-            shield = PIBTShield(instance.grid, instance.goals)
+            shield = PIBTShield(instance.grid, instance.goals, anchor=self.cfg.shield == "pibt_anchor")
         state = {"env": env, "obs": obs, "hidden": hidden, "shield": shield,
                  "map_kind": kind, "map_size": int(size),
                  "rec": _Recorder(pack_obs(obs), env.positions.astype(np.int16),
@@ -204,7 +204,7 @@ class EpisodeWorker:
         sequences, stats = [], []
         agent_steps, t0 = 0, time.perf_counter()
         # behind the shield, training first choices: the executed actions are recorded beside
-        record_executed = cfg.shield == "pibt" and cfg.shield_replay == "preferred"
+        record_executed = cfg.shield != "none" and cfg.shield_replay == "preferred"
         for _ in range(num_steps):
             envs = self.envs
             actions, q, new_hidden = self._forward(envs)
@@ -215,7 +215,7 @@ class EpisodeWorker:
             actions = np.where(explore, self.rng.integers(0, 5, actions.shape), actions)
             # trained: the action the replay stores; actions: what the environment executes
             trained = actions
-            if cfg.shield == "pibt":
+            if cfg.shield != "none":
                 actions = self._shield(envs, actions, q)
             if not record_executed:
                 trained = actions

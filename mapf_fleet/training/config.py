@@ -51,6 +51,8 @@ class TrainConfig:
     # ranked first) is arbitrated by PIBT, the environment executes the result, and the replay
     # stores the EXECUTED action, so the learner trains Q on what really happened (and DCC's
     # last-action input is the executed action, as at test time). "none": the paper's recipe.
+    # "pibt_anchor": the same with the top-priority agent on its distance order
+    # (`PIBTShield(anchor=True)`, the fleet's `--conflict-rule pibt_anchor`).
     shield: str = "none"
     shield_preferences: str = "q"
     # With shield "pibt", which action the replay trains Q on. "executed" (above): Q of the move
@@ -200,8 +202,8 @@ class TrainConfig:
                 raise bad(name, "must be a number >= 0")
         if self.finish_reward not in ("team", "per_agent"):
             raise bad("finish_reward", "must be 'team' or 'per_agent'")
-        if self.shield not in ("none", "pibt"):
-            raise bad("shield", "must be 'none' or 'pibt'")
+        if self.shield not in ("none", "pibt", "pibt_anchor"):
+            raise bad("shield", "must be 'none', 'pibt' or 'pibt_anchor'")
         if self.shield_replay not in ("executed", "preferred"):
             raise bad("shield_replay", "must be 'executed' or 'preferred'")
         from mapf_fleet.coordination.preferences import Q_MODES
