@@ -29,7 +29,9 @@ from mapf_fleet.grid.actions import NUM_ACTIONS, STAY, actions_between
 
 CONFLICT_RULES = ("pibt", "pibt_anchor", "revert")
 SHIELD_RULES = ("pibt", "pibt_anchor")
-DEFAULT_CONFLICT_RULE = "pibt"
+# The fleet's default: measured above plain "pibt" with the shipped policy (README, "Coordination
+# layer": 40x40 at 64 agents 0.700 vs 0.490, fewer steps at every count; structured maps at 64)
+DEFAULT_CONFLICT_RULE = "pibt_anchor"
 
 
 def check_conflict_rule(rule: str) -> str:

@@ -9,9 +9,9 @@ one process share one hub (one subscription per shared topic, batched inference)
 /robot_<i>/pose and follow /robot_<i>/waypoint. Every process gets
 ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST.
 
-The simulator (or the aggregator) arbitrates each tick with `--conflict-rule`: `pibt` (default:
-PIBT over the robots' ranked actions, CS-PIBT; nothing is reverted), `pibt_anchor` (the same with
-the top-priority robot on its distance order) or `revert` (the paper's environment: conflicting
+The simulator (or the aggregator) arbitrates each tick with `--conflict-rule`: `pibt_anchor`
+(default: PIBT over the robots' ranked actions with the top-priority robot on its distance order;
+nothing is reverted), `pibt` (CS-PIBT as published) or `revert` (the paper's environment: conflicting
 first choices are reverted).
 
 With no arguments: 8 simulated robots on a generated 16x16 map, checkpoint models/default.pt.

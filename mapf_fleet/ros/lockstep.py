@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mapf_fleet.ros.arbiter import ranking_problem, single_choice_ranking
+from mapf_fleet.ros.arbiter import DEFAULT_CONFLICT_RULE, ranking_problem, single_choice_ranking
 from mapf_fleet.ros.instances import InstanceSource
 
 # name: (default, description); both nodes take their instance and their tick from these
@@ -32,7 +32,7 @@ INSTANCE_PARAMETERS = {
     "seed": (0, "seed of a generated instance"),
 }
 RUN_PARAMETERS = {
-    "conflict_rule": ("pibt", "how the tick's decisions become moves: pibt (PIBT over the "
+    "conflict_rule": (DEFAULT_CONFLICT_RULE, "how the tick's decisions become moves: pibt (PIBT over the "
                               "robots' ranked actions, nothing reverted), pibt_anchor (the same, "
                               "the top-priority robot on its distance order) or revert (the "
                               "paper's rules on the first choices)"),
