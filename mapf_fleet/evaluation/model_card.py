@@ -522,7 +522,8 @@ def evaluation_section(evaluation: dict, policy: str, metadata: dict, eval_path:
                              + " | ".join(_fmt(values.get(n), pattern) for n in agents) + " |")
             lines.append("")
         lines += _against_heuristic(mine, policy, agents)
-        for name in shielded:
+        # the rows under a shield (the checkpoint's own row too when the JSON ran it shielded)
+        for name in [*([policy] if "+PIBT" in policy else []), *shielded]:
             lines += _against_plain_pibt(mine, name, agents)
     return lines
 
