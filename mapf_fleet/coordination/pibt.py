@@ -39,6 +39,10 @@ from mapf_fleet.grid.actions import ACTION_DELTAS, NUM_ACTIONS
 
 from .preferences import tie_breakers
 
+# The shield rules every caller (evaluator `--shield`, trainer `shield`, fleet `conflict_rule`)
+# offers besides its unshielded rule: `make_shield` builds the one named.
+SHIELD_RULES = ("pibt", "pibt_anchor")
+
 # One recursion level per agent of a push chain; a chain can hold every agent.
 _MIN_RECURSION = 10_000
 if sys.getrecursionlimit() < _MIN_RECURSION:
@@ -116,23 +120,13 @@ class PIBTShield:
 
     def distance_map(self, agent: int) -> np.ndarray:
         """(H * W,) BFS distances to `agent`'s goal (-1 where unreachable), computed once."""
-        cached = self._distance_maps.get(agent)
-        if cached is not None:
-            return cached
-        dist = np.full(self.height * self.width, -1, dtype=np.int64)
-        goal = int(self.goals[agent, 0]) * self.width + int(self.goals[agent, 1])
-        frontier = np.array([goal])
-        dist[goal] = 0
-        step = 0
-        while frontier.size:
-            step += 1
-            nxt = self._targets[frontier].ravel()
-            nxt = np.unique(nxt[nxt >= 0])
-            nxt = nxt[dist[nxt] < 0]
-            dist[nxt] = step
-            frontier = nxt
-        self._distance_maps[agent] = dist
-        return dist
+        if agent not in self._distance_maps:
+            # scipy's graph search, imported here: the plain shield (and `up`'s launcher, which
+            # reads SHIELD_RULES) never needs it
+            from mapf_fleet.grid.heuristic import bfs_distances
+
+            self._distance_maps[agent] = bfs_distances(self.grid, self.goals[agent]).ravel()
+        return self._distance_maps[agent]
 
     def anchored_ranking(self, agent: int, cell: int) -> np.ndarray:
         """`agent`'s five actions at flat `cell` by distance to its goal (closer first, blocked
@@ -191,7 +185,7 @@ class PIBTShield:
         current = current_flat.tolist()
         asked = prefs
         if self.anchor and n:
-            top = int(np.argsort(-self.priorities, kind="stable")[0])
+            top = int(np.argmax(self.priorities))  # the first taken by the loop below
             if not fixed[top]:
                 prefs = prefs.copy()
                 prefs[top] = self.anchored_ranking(top, current[top])
@@ -275,3 +269,12 @@ class PIBTShield:
         on_goal = (np.asarray(positions) == self.goals).all(axis=1)
         self.priorities = np.where(on_goal, self.base_priority, self.priorities + 1.0)
 
+
+def make_shield(rule: str, grid, goals) -> PIBTShield | None:
+    """The shield of a rule: None for "none" / "revert" (no shield), else `PIBTShield` (with the
+    anchor for "pibt_anchor")."""
+    if rule in ("none", "revert"):
+        return None
+    if rule not in SHIELD_RULES:
+        raise ValueError(f"shield rule must be 'none' or one of {SHIELD_RULES}, got {rule!r}")
+    return PIBTShield(grid, goals, anchor=rule == "pibt_anchor")

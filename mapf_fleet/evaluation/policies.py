@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from mapf_fleet.coordination.planners import PLANNER_NAMES
+from mapf_fleet.coordination.pibt import SHIELD_RULES
 from mapf_fleet.coordination.preferences import DEFAULT_Q_MODE, PREFERENCE_MODES, Q_MODES
 
 HEURISTIC = "heuristic"
@@ -23,7 +24,7 @@ REFERENCE_NAMES = (HEURISTIC, *PLANNER_NAMES)
 # none: the paper's environment (conflicting moves are reverted); pibt: CS-PIBT over the
 # rankings; pibt_anchor: the same with the top-priority agent on its distance order
 # (`PIBTShield(anchor=True)`)
-SHIELDS = ("none", "pibt", "pibt_anchor")
+SHIELDS = ("none", *SHIELD_RULES)
 SHIELD_LABELS = {"pibt": "+PIBT", "pibt_anchor": "+PIBT-anchor"}
 
 

@@ -69,22 +69,21 @@ def run_decentralized(policy, instances: InstanceSet, max_steps: int, shield: st
     Only live episodes are passed to `act`; when some end, `policy.keep(rows)` (if the policy
     has it) drops their recurrent state so the batch shrinks with them.
 
-    shield "pibt" / "pibt_anchor": each step the policy ranks its five actions per agent (`policy.rank`), one
-    `PIBTShield` per episode turns the rankings into conflict-free moves, those are executed
-    (and reported back with `policy.executed`), and the overridden agent-steps are counted."""
+    shield "pibt" / "pibt_anchor": each step the policy ranks its five actions per agent
+    (`policy.rank`), one `PIBTShield` per episode turns the rankings into conflict-free moves,
+    those are executed (and reported back with `policy.executed`), and the overridden
+    agent-steps are counted."""
     bounds = lower_bounds(instances)
     envs = [_make_env(instances, k, max_steps) for k in range(len(instances))]
     obs = np.stack([env.reset() for env in envs]).astype(np.float32)
     positions = np.stack([np.asarray(env.positions) for env in envs])
     trackers = [EpisodeTracker(positions[k], instances.goals[k], max_steps, bounds[k]) for k in range(len(envs))]
-    shields = None
-    if shield in ("pibt", "pibt_anchor"):
-        from mapf_fleet.coordination.pibt import PIBTShield
+    from mapf_fleet.coordination.pibt import SHIELD_RULES, make_shield
 
-        shields = [PIBTShield(instances.maps[k], instances.goals[k], anchor=shield == "pibt_anchor")
-                   for k in range(len(envs))]
-    elif shield != "none":
-        raise ValueError(f"shield must be 'none', 'pibt' or 'pibt_anchor', got {shield!r}")
+    if shield not in ("none", *SHIELD_RULES):
+        raise ValueError(f"shield must be 'none' or one of {SHIELD_RULES}, got {shield!r}")
+    shields = None if shield == "none" else [
+        make_shield(shield, instances.maps[k], instances.goals[k]) for k in range(len(envs))]
     policy.reset(len(envs), instances.starts.shape[1])
     live = list(range(len(envs)))
     keep = getattr(policy, "keep", None)

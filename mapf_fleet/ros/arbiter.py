@@ -25,10 +25,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from mapf_fleet.coordination.pibt import SHIELD_RULES, make_shield
 from mapf_fleet.grid.actions import NUM_ACTIONS, STAY, actions_between
 
-CONFLICT_RULES = ("pibt", "pibt_anchor", "revert")
-SHIELD_RULES = ("pibt", "pibt_anchor")
+CONFLICT_RULES = (*SHIELD_RULES, "revert")
 # The fleet's default: measured above plain "pibt" with the shipped policy (README, "Coordination
 # layer": 40x40 at 64 agents 0.700 vs 0.490, fewer steps at every count; structured maps at 64)
 DEFAULT_CONFLICT_RULE = "pibt_anchor"
@@ -102,11 +102,7 @@ class TickArbiter:
         check_conflict_rule(self.rule)
         self.grid = np.asarray(self.grid) != 0
         self.goals = np.asarray(self.goals, dtype=np.int64)
-        self.shield = None
-        if self.rule in SHIELD_RULES:
-            from mapf_fleet.coordination.pibt import PIBTShield
-
-            self.shield = PIBTShield(self.grid, self.goals, anchor=self.rule == "pibt_anchor")
+        self.shield = make_shield(self.rule, self.grid, self.goals)
 
     def resolve(self, positions, preferences, held=None, reserved=()) -> Resolution:
         """Arbitrate one tick. positions (N, 2) the robots' cells; preferences (N, 5) each row a

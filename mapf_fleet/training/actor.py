@@ -131,11 +131,9 @@ class EpisodeWorker:
             env = MAPFEnv(instance, env_cfg)
             obs = env.observe()
         hidden = np.zeros((instance.num_agents, self.hidden_dim), np.float32)
-        shield = None
-        if self.cfg.shield != "none":
-            from mapf_fleet.coordination.pibt import PIBTShield
+        from mapf_fleet.coordination.pibt import make_shield
 
-            shield = PIBTShield(instance.grid, instance.goals, anchor=self.cfg.shield == "pibt_anchor")
+        shield = make_shield(self.cfg.shield, instance.grid, instance.goals)
         state = {"env": env, "obs": obs, "hidden": hidden, "shield": shield,
                  "map_kind": kind, "map_size": int(size),
                  "rec": _Recorder(pack_obs(obs), env.positions.astype(np.int16),

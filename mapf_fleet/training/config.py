@@ -202,8 +202,10 @@ class TrainConfig:
                 raise bad(name, "must be a number >= 0")
         if self.finish_reward not in ("team", "per_agent"):
             raise bad("finish_reward", "must be 'team' or 'per_agent'")
-        if self.shield not in ("none", "pibt", "pibt_anchor"):
-            raise bad("shield", "must be 'none', 'pibt' or 'pibt_anchor'")
+        from mapf_fleet.coordination.pibt import SHIELD_RULES
+
+        if self.shield not in ("none", *SHIELD_RULES):
+            raise bad("shield", f"must be 'none' or one of {', '.join(SHIELD_RULES)}")
         if self.shield_replay not in ("executed", "preferred"):
             raise bad("shield_replay", "must be 'executed' or 'preferred'")
         from mapf_fleet.coordination.preferences import Q_MODES

@@ -137,6 +137,18 @@ def test_single_process_matches_batched_rollout(tmp_path, ros_env, checkpoints):
         assert record["positions"] == expected_positions, algo
 
 
+def assert_fleet_matches_rollout(record, proc, rule, where, choices, executed, positions,
+                                 overridden):
+    """The fleet's record under `rule` equals a `batched_shielded_rollout`: trajectory, executed
+    and first-choice actions, overridden robots; no decision missed, nothing reverted."""
+    assert record["conflict_rule"] == rule and record["missed_decisions"] == 0, proc.stdout
+    assert record["positions"] == positions, where
+    assert record["executed"] == executed, where
+    assert record["actions"] == choices, where
+    assert record["overridden"] == overridden, where
+    assert record["collisions"] == 0 and not any(record["collided"]), where
+
+
 @pytest.mark.ros
 @pytest.mark.slow
 @pytest.mark.parametrize("algo", ["dhc", "dcc_sensitive"])
@@ -155,12 +167,8 @@ def test_shielded_fleet_matches_batched_shielded_rollout(tmp_path, ros_env, chec
                                  extra=["--density", "0.2", "--nodes-per-process",
                                         str(per_process), "--conflict-rule", "pibt"])
         where = f"{algo} seed {seed}: {record.get('summary')}"
-        assert record["conflict_rule"] == "pibt" and record["missed_decisions"] == 0, proc.stdout
-        assert record["positions"] == positions, where
-        assert record["executed"] == executed, where
-        assert record["actions"] == choices, where
-        assert record["overridden"] == expected_overridden, where
-        assert record["collisions"] == 0 and not any(record["collided"]), where
+        assert_fleet_matches_rollout(record, proc, "pibt", where, choices, executed, positions,
+                                     expected_overridden)
         assert [[sorted(r) for r in tick] for tick in record["requested"]] == expected_comm
         assert np.any(np.asarray(executed) != 0)
         overridden += sum(map(len, expected_overridden))
@@ -181,10 +189,5 @@ def test_anchored_fleet_matches_batched_anchored_rollout(tmp_path, ros_env, chec
     record, proc = run_fleet(tmp_path, ros_env, checkpoints["dcc_sensitive"], 7, 12, 9, 20,
                              extra=["--density", "0.2", "--nodes-per-process", "4",
                                     "--conflict-rule", "pibt_anchor"])
-    where = f"seed 7: {record.get('summary')}"
-    assert record["conflict_rule"] == "pibt_anchor" and record["missed_decisions"] == 0, proc.stdout
-    assert record["positions"] == positions, where
-    assert record["executed"] == executed, where
-    assert record["actions"] == choices, where
-    assert record["overridden"] == expected_overridden, where
-    assert record["collisions"] == 0 and not any(record["collided"]), where
+    assert_fleet_matches_rollout(record, proc, "pibt_anchor", f"seed 7: {record.get('summary')}",
+                                 choices, executed, positions, expected_overridden)
