@@ -1,0 +1,85 @@
+"""What a checkpoint is, as the card's first sections state it: its network (`model_summary`),
+how its training config differs from the paper's recipe and which shipped config file is closest
+(`training_config_diff`), alpha*, and the code versions recorded in its metadata."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from mapf_fleet import paths
+
+
+def model_summary(model, metadata: dict) -> dict:
+    """Preset name (or "custom") and parameter count."""
+    from mapf_fleet.models.config import PRESETS, ModelConfig
+
+    config = dict(metadata["model_config"])
+    preset = "custom"
+    for name in PRESETS:
+        if ModelConfig.preset(metadata["algorithm"], name).to_dict() == config:
+            preset = name
+    return {"preset": preset, "parameters": sum(p.numel() for p in model.parameters())}
+
+
+def training_config_diff(training_config: dict) -> tuple[list[tuple[str, Any, Any]], str | None, str | None]:
+    """(fields that differ from the paper's recipe for the algorithm as (name, value, paper value),
+    the closest config file of config/training/ and how it differs), or ([], None, None) when the
+    training config is not a TrainConfig."""
+    try:
+        from mapf_fleet.training.config import TrainConfigError, config_from_dict, load_config
+    except ImportError:
+        return [], None, None
+    try:
+        config = config_from_dict(dict(training_config), source="checkpoint training_config").to_dict()
+        paper = config_from_dict({"preset": config["algo"]}, source="paper preset").to_dict()
+    except (TrainConfigError, KeyError, TypeError):
+        return [], None, None
+    diff = [(k, v, paper.get(k)) for k, v in config.items() if paper.get(k) != v]
+    best, best_diff = None, None
+    for path in sorted(paths.data_path("config", "training").glob("*.yaml")):
+        try:
+            shipped = load_config(path).to_dict()
+        except (TrainConfigError, OSError):
+            continue
+        differs = [k for k in config if shipped.get(k) != config[k]]
+        if best_diff is None or len(differs) < len(best_diff):
+            best, best_diff = path, differs
+    if best is None:
+        return diff, None, None
+    note = "identical" if not best_diff else "differs in " + ", ".join(f"`{k}`" for k in best_diff)
+    return diff, f"config/training/{best.name}", note
+
+
+def _trained_with_text(metadata: dict) -> str:
+    sessions = (metadata.get("extra") or {}).get("trained_with_code")
+    if not isinstance(sessions, list) or not sessions:
+        return "not recorded (runs begun before the trainer recorded it)"
+
+    def one(v: dict) -> str:
+        text = f"{_version_text(v)} from update {v.get('from_update', '?')}"
+        if v.get("overrides"):
+            changed = ", ".join(f"`{k}={value!r}`" for k, value in v["overrides"].items())
+            text += f" (resumed with {changed})"
+        return text
+
+    return "; ".join(one(v) for v in sessions if isinstance(v, dict))
+
+
+def _alpha_star_text(alpha_star, training_config: dict) -> str:
+    """alpha* as the card states it. A fixed-alpha run with the gate off (success_threshold >= 1:
+    no window can exceed it) has no alpha* by design: it trained one alpha for a budget of
+    learner updates, which is how an A/B at matched compute is run."""
+    if alpha_star is not None:
+        return f"{float(alpha_star):g}"
+    if (training_config.get("alpha_mode") == "fixed"
+            and float(training_config.get("success_threshold", 0.9)) >= 1.0):
+        return (f"none by design: fixed alpha {float(training_config.get('fixed_alpha', 0)):g} with the "
+                "gate off (`success_threshold: 1.0`), trained for a budget of learner updates")
+    return "stage 2 did not finish"
+
+
+def _version_text(version: Any) -> str:
+    if not isinstance(version, dict):
+        return "not recorded"
+    commit = version.get("git_commit")
+    return f"mapf_fleet {version.get('package', '?')}" + (f", git {commit[:12]}" if commit else ", git commit unknown")
