@@ -9,8 +9,6 @@ installed, ~/.cache/mapf_fleet/evaluation) in the same .npz layout as the publis
 
 from __future__ import annotations
 
-import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -179,16 +177,10 @@ def _read_npz(path: Path) -> InstanceSet:
 
 
 def _write_npz_atomic(path: Path, maps, starts, goals) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npz.tmp")
-    os.close(fd)
-    try:
-        with open(tmp, "wb") as f:
-            np.savez_compressed(f, maps=maps.astype(np.uint8), starts=starts.astype(np.int16), goals=goals.astype(np.int16))
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    from mapf_fleet.files import atomic_write
+
+    atomic_write(path, lambda f: np.savez_compressed(
+        f, maps=maps.astype(np.uint8), starts=starts.astype(np.int16), goals=goals.astype(np.int16)))
 
 
 def generator_tag() -> str:

@@ -34,7 +34,6 @@ import argparse
 import dataclasses
 import io
 import json
-import os
 import sys
 import time
 import zlib
@@ -42,9 +41,10 @@ from pathlib import Path
 
 import numpy as np
 
+from mapf_fleet.files import TMP_MARK, atomic_write
+
 MANIFEST = "manifest.json"
 FORMAT_VERSION = 1
-TMP_MARK = ".tmp-"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -202,16 +202,7 @@ def plan_shard(spec: DemoSpec, job: ShardJob) -> tuple[dict, dict]:
 
 # -- files -------------------------------------------------------------------------------------
 def _atomic_write(path: Path, data: bytes) -> None:
-    tmp = path.with_name(f"{path.name}{TMP_MARK}{os.getpid()}")
-    try:
-        with open(tmp, "wb") as handle:
-            handle.write(data)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    atomic_write(path, data)  # the project's one writer: temporary file, fsync, os.replace
 
 
 def write_shard(path: Path, arrays: dict) -> None:
