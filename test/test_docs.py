@@ -1,0 +1,272 @@
+"""The docs show commands that work and name files that exist.
+
+Every `mapf-fleet ...` command in a shell block of README.md, docs/*.md and models/README.md is
+parsed by the sub-command's own argparse parser (the one its `main` builds), with the shown
+arguments: unknown options, bad choices, missing values and missing required options fail. A
+`mapf-fleet ...` in running text (an inline code span, often just `mapf-fleet up --record`) is
+checked at `--help` level: the sub-command exists and each `--option` it names is one of its
+options. Nothing is run: the sub-command's `main` is stopped the moment it calls `parse_args`
+(it never reaches rclpy, torch training or a fleet), in a child Python so that the signal
+handlers an entry point installs first thing stay out of pytest.
+
+Every repository path the docs name (in code spans, shell blocks and Markdown links) exists;
+`{a,b}` alternatives and `*` globs are expanded (a glob must match). Placeholders are written in
+capitals (`models/X.md`, `F.yaml`, `RUN/`) and are not checked; neither are paths outside the
+repository's own folders (`runs/...`, `bags/...`, `../shared/...`: outputs or beside the checkout).
+
+Shell blocks are fenced ```bash (or sh, console, no language); ```text blocks are not commands.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+DOCS = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md")), REPO / "models" / "README.md"]
+SHELL_FENCES = {"", "bash", "sh", "shell", "console"}
+# The repository's own folders: a path starting with one of these must exist.
+REPO_DIRS = {"mapf_fleet", "mapf_fleet_interfaces", "config", "models", "docs", "scripts", "test",
+             "benchmarks", "launch", "resource", ".ci"}
+# A placeholder component: X.pt, A.pt, F.yaml, X_curves.png, RUN/..., NAME.py
+PLACEHOLDER = re.compile(r"(^|[_./-])([A-Z]{1,3}|RUN|NAME|DIR|FILE|ARM|PATH)([_./-]|$)")
+SEPARATORS = {"&", "&&", ";", "|", "||"}
+
+
+# ---- reading the docs ---------------------------------------------------------------------------
+
+
+def doc_parts(path: Path) -> tuple[list[tuple[int, str]], list[tuple[int, str]], list[tuple[int, str]]]:
+    """(shell lines, inline code spans, link targets) of one Markdown file, with line numbers.
+    Shell lines ending in a backslash are joined with the next."""
+    shell, spans, links = [], [], []
+    fence = None  # language of the open fence, None outside
+    pending, pending_line = "", 0
+    for number, line in enumerate(path.read_text().splitlines(), 1):
+        stripped = line.strip()
+        if stripped.startswith("```"):
+            fence = stripped[3:].strip().lower() if fence is None else None
+            continue
+        if fence is not None:
+            if fence in SHELL_FENCES:
+                text = stripped[2:] if stripped.startswith("$ ") else stripped
+                if pending:
+                    text, number = pending + " " + text, pending_line
+                if text.endswith("\\"):
+                    pending, pending_line = text[:-1], number
+                    continue
+                pending = ""
+                if text:
+                    shell.append((number, text))
+            continue
+        spans += [(number, m) for m in re.findall(r"`([^`]+)`", line)]
+        links += [(number, m) for m in re.findall(r"\]\(([^)\s]+)\)", line)]
+    return shell, spans, links
+
+
+def commands_of(text: str) -> list[list[str]]:
+    """The `mapf-fleet` argument lists in one shell line (comments dropped; `a & b` is two;
+    `bash scripts/run.sh main ARGS` is `mapf-fleet up ARGS`)."""
+    try:
+        tokens = shlex.split(text, comments=True)
+    except ValueError:
+        return []
+    found, current = [], []
+    for token in tokens + [";"]:
+        if token not in SEPARATORS:
+            current.append(token)
+            continue
+        words = current
+        while words and re.fullmatch(r"[A-Z_]+=\S*|nice|-n|\d+", words[0]):  # env, nice -n 10
+            words = words[1:]
+        if words[:3] == ["bash", "scripts/run.sh", "main"]:
+            found.append(["up", *words[3:]])
+        elif words[:3] == ["bash", "scripts/run.sh", "exec"] and words[3:4] == ["mapf-fleet"]:
+            found.append(words[4:])
+        elif words[:1] == ["mapf-fleet"]:
+            found.append(words[1:])
+        current = []
+    return found
+
+
+def path_candidates(text: str) -> list[str]:
+    """Words of `text` that name a path inside one of the repository's folders."""
+    out = []
+    for word in re.split(r"[\s=;()'\"]+", text):
+        word = word.rstrip(".,:")
+        if "/" not in word or word.startswith(("/", "..", "http")) or "<" in word or "$" in word:
+            continue
+        if word.split("/")[0] in REPO_DIRS and not PLACEHOLDER.search(word):
+            out.append(word)
+    return out
+
+
+def expand_braces(word: str) -> list[str]:
+    match = re.search(r"\{([^{}]*)\}", word)
+    if not match:
+        return [word]
+    return [w for alt in match.group(1).split(",")
+            for w in expand_braces(word[:match.start()] + alt + word[match.end():])]
+
+
+def path_exists(word: str, base: Path) -> bool:
+    return all(list(base.glob(w.rstrip("/"))) if "*" in w else (base / w).exists()
+               for w in expand_braces(word))
+
+
+def collect():
+    """(full commands, inline commands, paths, links), each item (where, ...)."""
+    full, inline, paths, links = [], [], [], []
+    for doc in DOCS:
+        if not doc.is_file():
+            continue
+        name = doc.relative_to(REPO).as_posix()
+        shell, spans, targets = doc_parts(doc)
+        for number, text in shell:
+            full += [(f"{name}:{number}", argv) for argv in commands_of(text)]
+            paths += [(f"{name}:{number}", p) for p in path_candidates(text)]
+        for number, span in spans:
+            if span.startswith("mapf-fleet ") and "<" not in span:
+                inline += [(f"{name}:{number}", argv) for argv in commands_of(span)]
+            paths += [(f"{name}:{number}", p) for p in path_candidates(span)]
+        for number, target in targets:
+            target = target.split("#")[0]
+            if target and not re.match(r"[a-z]+:", target):
+                links.append((f"{name}:{number}", doc.parent, target))
+    return full, inline, paths, links
+
+
+# ---- parsing a command without running it -------------------------------------------------------
+
+
+def parse_in_child(commands: list[list[str]]) -> list[str]:
+    """Run `_check_commands` in a child Python; its verdict per command ('' = parsed)."""
+    done = subprocess.run([sys.executable, __file__], input=json.dumps(commands), text=True,
+                          capture_output=True, cwd=REPO, timeout=600)
+    assert done.returncode == 0, f"the parse check failed:\n{done.stdout}\n{done.stderr}"
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def _check_commands(commands: list[list[str]]) -> list[str]:
+    """Each item: [mode, *argv] with mode "full" (parse the arguments) or "options" (the
+    sub-command exists and names these options). '' when fine, else why not."""
+    import argparse
+    import importlib
+    import io
+    from contextlib import redirect_stderr, redirect_stdout
+
+    from mapf_fleet.cli import COMMANDS
+
+    class Parsed(BaseException):  # not an Exception: no `except Exception` in a main catches it
+        def __init__(self, parser, args):
+            self.parser, self.args = parser, list(args or [])
+
+    real_parse = argparse.ArgumentParser.parse_args
+
+    def intercept(self, args=None, namespace=None):
+        raise Parsed(self, args)
+
+    verdicts = []
+    for mode, *argv in commands:
+        if not argv or argv[0] not in COMMANDS:
+            verdicts.append(f"no sub-command {argv[:1]} (mapf-fleet --help lists {sorted(COMMANDS)})")
+            continue
+        module, func, _ = COMMANDS[argv[0]]
+        shown = argv[1:] if mode == "full" else ["--help"]
+        argparse.ArgumentParser.parse_args = intercept
+        try:
+            getattr(importlib.import_module(module), func)(shown)
+        except Parsed as parsed:
+            caught = parsed
+        except BaseException as exc:  # noqa: BLE001 - reported as the command's verdict
+            verdicts.append(f"stopped before parsing its arguments: {type(exc).__name__}: {exc}")
+            continue
+        else:
+            verdicts.append("returned without calling parse_args")
+            continue
+        finally:
+            argparse.ArgumentParser.parse_args = real_parse
+        if mode == "options":
+            known = caught.parser._option_string_actions  # every option string of the parser
+            unknown = [w.split("=")[0] for w in argv[1:] if w.startswith("--")
+                       and w.split("=")[0] not in known]
+            verdicts.append(f"unknown option(s) {unknown}" if unknown else "")
+            continue
+        err = io.StringIO()
+        try:
+            with redirect_stderr(err), redirect_stdout(io.StringIO()):
+                real_parse(caught.parser, caught.args)
+            verdicts.append("")
+        except SystemExit as exc:
+            verdicts.append("" if exc.code == 0 else err.getvalue().strip().splitlines()[-1])
+    return verdicts
+
+
+# ---- the tests ----------------------------------------------------------------------------------
+
+FULL, INLINE, PATHS, LINKS = collect()
+
+
+def test_the_docs_show_commands():
+    """The collector finds the README's commands (an empty list would pass everything)."""
+    shown = {argv[0] for _, argv in FULL if argv}
+    assert {"up", "train", "evaluate"} <= shown, shown
+
+
+def test_every_shown_command_parses():
+    items = [["full", *argv] for _, argv in FULL] + [["options", *argv] for _, argv in INLINE]
+    verdicts = parse_in_child(items)
+    bad = [f"{where}: mapf-fleet {shlex.join(argv)}: {verdict}"
+           for (where, argv), verdict in zip(FULL + INLINE, verdicts) if verdict]
+    assert not bad, "\n".join(bad)
+
+
+def test_every_named_path_exists():
+    missing = sorted({f"{where}: {word}" for where, word in PATHS if not path_exists(word, REPO)})
+    assert not missing, "paths named in the docs that do not exist:\n" + "\n".join(missing)
+
+
+def test_every_link_resolves():
+    missing = [f"{where}: {target}" for where, base, target in LINKS
+               if not PLACEHOLDER.search(target) and not path_exists(target, base)]
+    assert not missing, "links to files that do not exist:\n" + "\n".join(missing)
+
+
+@pytest.mark.parametrize("text, expected", [
+    ("mapf-fleet up --seed 3 & mapf-fleet up --namespace /b  # two", [["up", "--seed", "3"],
+                                                                      ["up", "--namespace", "/b"]]),
+    ("bash scripts/run.sh main --num-robots 16", [["up", "--num-robots", "16"]]),
+    ("tensorboard --logdir runs/x/tb", []),
+])
+def test_commands_of(text, expected):
+    assert commands_of(text) == expected
+
+
+def test_a_wrong_command_is_caught():
+    """The check fails on what it should fail on: a misspelt option, a bad choice, an unknown
+    sub-command, an option the sub-command does not have."""
+    verdicts = parse_in_child([["full", "evaluate", "--checkpont", "A.pt"],
+                               ["full", "up", "--conflict-rule", "nonsense"],
+                               ["full", "launch"],
+                               ["options", "train", "--num-robots"],
+                               ["full", "evaluate", "--checkpoint", "A.pt", "--sizes", "40"]])
+    assert all(verdicts[:4]), verdicts
+    assert verdicts[4] == "", verdicts
+
+
+def test_placeholders_and_paths():
+    assert path_candidates("see `models/X.md`, config/fleet/fleet.yaml and runs/a/b") == \
+        ["config/fleet/fleet.yaml"]
+    assert path_exists("models/eval/dcc_4x25_cl_alpha1.0{,_pibt}.json", REPO)
+    assert not path_exists("models/eval/dcc_4x25_cl_alpha1.0{,_nothing}.json", REPO)
+    assert not path_exists("config/training/no_such_*.yaml", REPO)
+
+
+if __name__ == "__main__":  # the child of parse_in_child: commands on stdin, verdicts on stdout
+    print(json.dumps(_check_commands(json.loads(sys.stdin.read()))))
