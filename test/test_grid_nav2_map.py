@@ -78,6 +78,29 @@ def test_rgba_trinary_averages_alpha_in_and_scale_marks_transparent_unknown(tmp_
     assert read_nav2_map(path).grid.tolist() == [[1]]  # 89 >= 50: an obstacle
 
 
+def test_pgm_maxval_other_than_255_and_16_bit(tmp_path):
+    # shade = value / maxval, as for any PGM: 0 -> occupied, maxval -> free, half -> unknown
+    (tmp_path / "a.pgm").write_bytes(b"P5\n3 1\n100\n" + bytes([0, 100, 50]))
+    (tmp_path / "b.pgm").write_bytes(b"P5\n3 1\n1000\n" + np.array([0, 1000, 500], ">u2").tobytes())
+    for name in ("a.pgm", "b.pgm"):
+        path = tmp_path / f"{name}.yaml"
+        path.write_text(yaml.safe_dump({**FIELDS, "image": name}))
+        assert occupancy_values(read_nav2_yaml(path)).tolist() == [[100, 0, -1]]
+
+
+def test_palette_png_with_transparency(tmp_path):
+    from PIL import Image  # imageio's backend; only to write a palette PNG here
+
+    image = Image.new("P", (3, 1))
+    image.putpalette([0, 0, 0, 255, 255, 255, 250, 250, 250])
+    image.putdata([0, 1, 2])
+    image.save(tmp_path / "p.png", transparency=1)
+    path = tmp_path / "p.yaml"
+    path.write_text(yaml.safe_dump({**FIELDS, "image": "p.png", "free_thresh": 0.25}))
+    # the palette's transparent white has alpha 0: shade (3 + 0) / 4 = 0.75, occ 0.25: unknown
+    assert occupancy_values(read_nav2_yaml(path)).tolist() == [[100, -1, 0]]
+
+
 def test_raw_mode_values(tmp_path):
     path = _write(tmp_path, [[0, 30, 100, 101, 255]], mode="raw")
     assert occupancy_values(read_nav2_yaml(path)).tolist() == [[0, 30, 100, -1, -1]]
