@@ -14,6 +14,7 @@ COMMANDS = {
     "train": ("mapf_fleet.training.cli", "main", "Ape-X training with both curricula"),
     "demos": ("mapf_fleet.training.demo_dataset", "main",
               "demonstration dataset from LaCAM/PIBT, in resumable shards"),
+    "dagger": ("mapf_fleet.training.dagger", "main", "DAgger behind the arbiter, LaCAM labels"),
     "evaluate": ("mapf_fleet.evaluation.cli", "main", "the paper's evaluation protocol"),
     "render": ("mapf_fleet.evaluation.render", "main", "render one episode as GIF/PNG"),
     "card": ("mapf_fleet.evaluation.model_card", "main", "write a checkpoint's model card"),
@@ -21,6 +22,7 @@ COMMANDS = {
     "echo": ("mapf_fleet.ros.echo", "main", "print a topic's messages as YAML"),
     "topics": ("mapf_fleet.ros.echo", "topics_main", "list the fleet's topics"),
     "record": ("mapf_fleet.ros.bag", "main", "record the fleet's topics into a rosbag2 (MCAP)"),
+    "view": ("mapf_fleet.ros.live_view", "main", "live picture of a running fleet in a browser"),
     "node": ("mapf_fleet.ros.run", "main", "run one node, like `ros2 run mapf_fleet <node>`"),
 }
 

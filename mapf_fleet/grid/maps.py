@@ -18,6 +18,14 @@ Kinds (`MAP_KINDS`):
                  cross aisles of `cross_aisle_width` columns, with a free border of the
                  cross-aisle width; parameters not given are drawn from `WAREHOUSE_CHOICES`.
 
+One more kind, `DENSE` ("dense"), outside `MAP_KINDS` (the training mix `TaskMix` and the demo
+datasets keep their four kinds): the small crowded random maps learned MAPF is compared on
+(17-21 cells a side with 32-64 agents, MAPF-GPT's "random" set). `size` is the largest side: the
+map's side is drawn uniformly from size - 4 .. size (`DENSE_SIDE_SPREAD`), a "random" map at that
+side (same density rule), and the grid is padded to size x size with obstacles. Padding is exact:
+the environment pads off-map cells as obstacles, so the observations, the moves, PIBT and LaCAM
+are the same as on the unpadded map, and instances of one size stack into one array.
+
 Every structured map has one 4-connected free region (tested). Agents' starts and goals are 2N
 distinct cells drawn uniformly from the largest free region; the instance is checked with
 `Instance.validate()`. All randomness comes from `rng` (a numpy Generator or an int seed), so a
@@ -57,6 +65,9 @@ WAREHOUSE_CHOICES = {
 # cells (half the expected free cells at the highest density). generate_instance redraws maps
 # that cannot hold the agents, so this is a sizing rule, not a guarantee.
 RANDOM_CAPACITY_FRACTION = 0.25
+DENSE = "dense"
+DENSE_SIDE_SPREAD = 4  # a "dense" map of size S has a side drawn from S - 4 .. S
+GENERATED_KINDS = MAP_KINDS + (DENSE,)  # every kind generate_kind_instance makes
 
 
 def _dims(size) -> tuple[int, int]:
@@ -258,14 +269,31 @@ def generate_kind_instance(kind: str, size, num_agents: int, rng, **params) -> I
     `num_agents`, reproducible from `rng`. `params` go to the map generator ("random": `density`,
     default drawn from the training triangular distribution)."""
     rng = as_rng(rng)
-    if kind == "random":
+    if kind in ("random", DENSE):
         unknown = set(params) - {"density"}
         if unknown:
-            raise ValueError(f"map kind 'random': unknown parameter(s) {sorted(unknown)}")
+            raise ValueError(f"map kind {kind!r}: unknown parameter(s) {sorted(unknown)}")
         density = params.get("density")
         density = sample_training_density(rng) if density is None else float(density)
+        if kind == DENSE:
+            return dense_instance(size, num_agents, density, rng)
         return generate_instance(size, num_agents, density, rng).validate()
     return place_agents(generate_map(kind, size, rng, **params), num_agents, rng)
+
+
+def dense_instance(size: int, num_agents: int, density: float, rng) -> Instance:
+    """A "dense" instance (module docstring): a random map of side drawn from
+    size - DENSE_SIDE_SPREAD .. size, padded with obstacles to size x size."""
+    rng = as_rng(rng)
+    if isinstance(size, bool) or not isinstance(size, (int, np.integer)) \
+            or size <= DENSE_SIDE_SPREAD:
+        raise ValueError(f"map kind {DENSE!r}: size must be an integer > {DENSE_SIDE_SPREAD}, "
+                         f"got {size!r}")
+    side = int(size) - int(rng.integers(DENSE_SIDE_SPREAD + 1))
+    inner = generate_instance(side, num_agents, density, rng)
+    grid = np.ones((int(size), int(size)), np.uint8)
+    grid[:side, :side] = inner.grid
+    return Instance(grid, inner.starts, inner.goals).validate()
 
 
 @functools.lru_cache(maxsize=None)
@@ -275,6 +303,8 @@ def capacity(kind: str, size: int) -> int:
     combination). "random": `RANDOM_CAPACITY_FRACTION` of the cells (a sizing rule)."""
     if kind == "random":
         return int(RANDOM_CAPACITY_FRACTION * size * size)
+    if kind == DENSE:  # the smallest side it may draw
+        return int(RANDOM_CAPACITY_FRACTION * (size - DENSE_SIDE_SPREAD) ** 2)
     if kind not in MAP_GENERATORS:
         raise ValueError(f"map kind must be one of {MAP_KINDS}, got {kind!r}")
     drawn = _DRAWN[kind]
