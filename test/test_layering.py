@@ -1,4 +1,4 @@
-"""Layers point one way: grid <- coordination <- models <- training, evaluation <- ros.
+"""Layers point one way: grid <- coordination <- fleet <- models <- training, evaluation <- ros.
 
 Checked statically on every import statement of the package (also the lazy ones inside
 functions), so a layer cannot reach up even on a code path no other test runs."""
@@ -15,9 +15,13 @@ PACKAGE = Path(__file__).resolve().parents[1] / "mapf_fleet"
 # layer -> modules it must never import (prefix match)
 FORBIDDEN = {
     "grid": ("torch", "rclpy", "mapf_fleet.models", "mapf_fleet.coordination", "mapf_fleet.training",
-             "mapf_fleet.evaluation", "mapf_fleet.ros"),
+             "mapf_fleet.evaluation", "mapf_fleet.ros", "mapf_fleet.fleet"),
     "coordination": ("torch", "rclpy", "mapf_fleet.models", "mapf_fleet.training",
-                     "mapf_fleet.evaluation", "mapf_fleet.ros"),
+                     "mapf_fleet.evaluation", "mapf_fleet.ros", "mapf_fleet.fleet"),
+    # the fleet core (a run's ticks, goals, tasks, arbiter, record): numpy only, shared by the
+    # simulator, the real-robot aggregator and the evaluator's lifelong rollout
+    "fleet": ("torch", "rclpy", "mapf_fleet.models", "mapf_fleet.training",
+              "mapf_fleet.evaluation", "mapf_fleet.ros"),
     "models": ("rclpy", "mapf_fleet.training", "mapf_fleet.evaluation", "mapf_fleet.ros"),
     "training": ("rclpy", "mapf_fleet.evaluation", "mapf_fleet.ros"),
     "evaluation": ("rclpy", "mapf_fleet.training.trainer", "mapf_fleet.ros"),

@@ -43,6 +43,9 @@ from .preferences import tie_breakers
 # offers besides its unshielded rule: `make_shield` builds the one named.
 SHIELD_RULES = ("pibt", "pibt_anchor")
 
+# Distance maps kept per shield (one per goal cell; 6.4 kB each at 40x40, 26 kB at 80x80)
+MAX_DISTANCE_MAPS = 4096
+
 # One recursion level per agent of a push chain; a chain can hold every agent.
 _MIN_RECURSION = 10_000
 if sys.getrecursionlimit() < _MIN_RECURSION:
@@ -92,7 +95,7 @@ class PIBTShield:
         goals = np.asarray(goals, dtype=np.int64)
         if goals.ndim != 2 or goals.shape[1] != 2:
             raise ValueError(f"goals must have shape (N, 2), got {goals.shape}")
-        self.goals = goals
+        self.goals = goals.copy()  # own copy: `set_goals` compares against it
         self.num_agents = len(goals)
         self._blocked = self.grid.ravel().tolist()
         # _targets[cell, action]: the flat cell an action leads to, -1 off the map / obstacle
@@ -111,22 +114,47 @@ class PIBTShield:
         self.priorities = self.base_priority.copy()
         self.anchor = bool(anchor)
         self.tick = 0  # steps since reset: the anchor's tie-breakers
-        self._distance_maps: dict[int, np.ndarray] = {}
+        # BFS distances per goal CELL (not per agent): a fleet that hands out new goals at run
+        # time (lifelong streams, tasks) reuses a cell's map whichever agent heads there
+        self._distance_maps: dict[tuple[int, int], np.ndarray] = {}
 
     def reset(self) -> None:
         """Start a new episode: every priority back to its tie-breaker."""
         self.priorities = self.base_priority.copy()
         self.tick = 0
 
+    def set_goals(self, goals) -> np.ndarray:
+        """New goals (N, 2) for the next steps, without rebuilding the shield; returns the bool
+        (N,) mask of agents whose goal changed.
+
+        A changed goal puts the agent's priority back to its tie-breaker, as an arrival does:
+        PIBT's priority counts the steps an agent has waited for its *current* goal (lifelong
+        PIBT's "time since the last goal update"), so a new task starts from the bottom instead
+        of inheriting the rank its old task earned; an agent that keeps its goal keeps its
+        priority, so the top agent still reaches its goal (the reachability argument)."""
+        goals = np.asarray(goals, dtype=np.int64)
+        if goals.shape != self.goals.shape:
+            raise ValueError(f"goals must have shape {self.goals.shape}, got {goals.shape}")
+        changed = (goals != self.goals).any(axis=1)
+        if changed.any():
+            self.goals = goals.copy()
+            self.priorities = np.where(changed, self.base_priority, self.priorities)
+        return changed
+
     def distance_map(self, agent: int) -> np.ndarray:
-        """(H * W,) BFS distances to `agent`'s goal (-1 where unreachable), computed once."""
-        if agent not in self._distance_maps:
+        """(H * W,) BFS distances to `agent`'s goal (-1 where unreachable), computed once per
+        goal cell."""
+        goal = (int(self.goals[agent, 0]), int(self.goals[agent, 1]))
+        found = self._distance_maps.get(goal)
+        if found is None:
             # scipy's graph search, imported here: the plain shield (and `up`'s launcher, which
             # reads SHIELD_RULES) never needs it
             from mapf_fleet.grid.heuristic import bfs_distances
 
-            self._distance_maps[agent] = bfs_distances(self.grid, self.goals[agent]).ravel()
-        return self._distance_maps[agent]
+            found = self._distance_maps[goal] = bfs_distances(self.grid, goal).ravel()
+            if len(self._distance_maps) > MAX_DISTANCE_MAPS:  # a long lifelong run: oldest out
+                del self._distance_maps[next(iter(self._distance_maps))]
+        return found
 
     def anchored_ranking(self, agent: int, cell: int) -> np.ndarray:
         """`agent`'s five actions at flat `cell` by distance to its goal (closer first, blocked

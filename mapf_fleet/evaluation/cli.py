@@ -6,6 +6,8 @@
     mapf-fleet evaluate --checkpoint heuristic --map F.map --scen a.scen b.scen --agents 32
     mapf-fleet evaluate --checkpoint heuristic --map a.map b.map --scen a.scen b.scen --agents 32
     mapf-fleet evaluate --checkpoint heuristic --map maps/ --scen scens/ --agents 32
+    mapf-fleet evaluate --lifelong --steps 256 --checkpoint F.pt heuristic --kinds dense
+        (lifelong throughput; `mapf-fleet evaluate --lifelong --help`)
 
 The references of the protocol file (the heuristic policy and LaCAM) are added to the tables
 unless --no-references. Prints the paper-layout tables (success rate, average steps) per map.
@@ -165,6 +167,10 @@ def _metadata(args, config: ProtocolConfig, specs, wall_time: float) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    if "--lifelong" in argv:  # lifelong MAPF throughput on the fleet core: its own options
+        from .lifelong import main as lifelong_main
+
+        return lifelong_main(argv)
     args = build_parser().parse_args(argv)
     args.argv = argv
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")

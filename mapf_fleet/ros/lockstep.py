@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mapf_fleet.ros.arbiter import DEFAULT_CONFLICT_RULE, ranking_problem, single_choice_ranking
+from mapf_fleet.fleet.arbiter import DEFAULT_CONFLICT_RULE, ranking_problem, single_choice_ranking
 from mapf_fleet.ros.instances import InstanceSource
 
 # name: (default, description); both nodes take their instance and their tick from these

@@ -26,7 +26,7 @@ from rclpy.node import Node
 
 from mapf_fleet.entry import one_line_errors
 from mapf_fleet.ros import common, fleet_io
-from mapf_fleet.ros.arbiter import TickArbiter, check_conflict_rule
+from mapf_fleet.fleet.arbiter import TickArbiter, check_conflict_rule
 from mapf_fleet.ros.lockstep import (INSTANCE_PARAMETERS, RUN_PARAMETERS, Decisions, FleetTicker,
                                      RunRecorder, instance_source, require_positive,
                                      set_parameters_result)

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from mapf_fleet.grid.actions import ACTION_DELTAS
-from mapf_fleet.ros.arbiter import unsafe_commands
+from mapf_fleet.fleet.arbiter import unsafe_commands
 
 REPO = Path(__file__).resolve().parents[2]
 INSTANCE = REPO / "config" / "fleet" / "instance_small.yaml"

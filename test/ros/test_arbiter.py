@@ -14,7 +14,7 @@ from mapf_fleet.grid.actions import ACTION_DELTAS
 from mapf_fleet.grid.actions import actions_between
 from mapf_fleet.grid.env import resolve_moves
 from mapf_fleet.grid.instance import generate_instance
-from mapf_fleet.ros.arbiter import (TickArbiter, break_rotations, check_conflict_rule,
+from mapf_fleet.fleet.arbiter import (TickArbiter, break_rotations, check_conflict_rule,
                                     plan_robot_commands, ranking_problem, ready_to_send,
                                     single_choice_ranking, unsafe_commands)
 from mapf_fleet.ros.lockstep import FleetTicker

@@ -16,7 +16,7 @@ import time
 import numpy as np
 import pytest
 
-from mapf_fleet.ros.arbiter import check_pose
+from mapf_fleet.fleet.arbiter import check_pose
 from mapf_fleet.ros.common import MapGeometry
 from mapf_fleet.ros.lockstep import FleetTicker, RunRecorder
 

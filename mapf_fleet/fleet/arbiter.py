@@ -1,4 +1,4 @@
-"""The tick's arbiter (plain Python, no rclpy): turns every robot's ranked decision into the cells
+"""The tick's arbiter (numpy only, part of the fleet core): turns every robot's ranked decision into the cells
 the robots are commanded to, with the configured conflict rule. The simulator and the real-robot
 aggregator both call it; only the arbiter commands waypoints.
 
@@ -101,8 +101,19 @@ class TickArbiter:
     def __post_init__(self):
         check_conflict_rule(self.rule)
         self.grid = np.asarray(self.grid) != 0
-        self.goals = np.asarray(self.goals, dtype=np.int64)
+        self.goals = np.array(self.goals, dtype=np.int64)  # own copy: `set_goals` replaces it
         self.shield = make_shield(self.rule, self.grid, self.goals)
+
+    def set_goals(self, goals) -> None:
+        """New goals without rebuilding the arbiter (a fleet that takes goals at run time): the
+        shield keeps its distance maps (per goal cell) and the priorities of robots whose goal
+        did not change (`PIBTShield.set_goals`)."""
+        goals = np.asarray(goals, dtype=np.int64)
+        if goals.shape != self.goals.shape:
+            raise ValueError(f"goals must have shape {self.goals.shape}, got {goals.shape}")
+        self.goals = goals.copy()
+        if self.shield is not None:
+            self.shield.set_goals(self.goals)
 
     def resolve(self, positions, preferences, held=None, reserved=()) -> Resolution:
         """Arbitrate one tick. positions (N, 2) the robots' cells; preferences (N, 5) each row a

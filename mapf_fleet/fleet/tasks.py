@@ -1,0 +1,273 @@
+"""Where a fleet's goals come from (numpy only): the task sources of `FleetRun`.
+
+A *goal* is a cell a robot is sent to; a *task* is one goal, or a pick-up and a drop-off in
+that order, for a named robot or for "any idle robot". Sources (`TASK_SOURCES`):
+
+  instance  the classic one-shot episode: every robot has its instance goal from the start and
+            keeps it; the run ends when all robots stand on their goals at once.
+  lifelong  POGEMA's lifelong MAPF (`on_target: restart`): the first goals are the instance's;
+            on arrival a robot draws its next goal, a free cell of its own connected region.
+            Robot i's k-th goal depends only on (seed, i, k) (its own generator), so the same
+            seed gives every policy the same goal sequence; goals of two robots may coincide, as
+            in POGEMA (one of them arrives first and moves on).
+  tasks     a task list (YAML, `load_task_file`): robots start idle; each task goes to its
+            robot, or to the nearest idle robot by path distance, when that robot is idle; the
+            run ends when every task is done.
+  external  robots start idle on their start cells and move only for goals given at run time
+            (ROS `goal_pose`, the `navigate_to_pose` action, the fleet's task service).
+
+Goals given at run time (`FleetRun.request_goal`, `submit_task`) work with every source.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+TASK_SOURCES = ("instance", "lifelong", "tasks", "external")
+
+
+class TaskFileError(ValueError):
+    """A task file (or a task request) that cannot be used: names the file, the task and the
+    field."""
+
+
+@dataclass(frozen=True)
+class Task:
+    """`goals`: the cells to visit in order (one goal, or pick-up then drop-off); `robot`: the
+    robot it is for, None for the nearest idle robot; `task_id`: how events name it."""
+
+    goals: tuple[tuple[int, int], ...]
+    robot: int | None = None
+    task_id: str = ""
+    source: str = "tasks"
+
+
+@dataclass
+class TaskSource:
+    """The instance source and the base of the others: initial goals and what an arrival does."""
+
+    name: str = "instance"
+    # False: the run ends when every robot stands on its goal; True: it runs on (max_steps,
+    # a stop, or `done` of the source)
+    continuous: bool = False
+
+    def initial(self, starts: np.ndarray, goals: np.ndarray | None):
+        """(goals (N, 2), active (N,) bool): a robot without a task is idle (inactive)."""
+        if goals is None:
+            raise ValueError(f"task source {self.name!r} needs the instance's goals")
+        return np.asarray(goals, dtype=np.int64).copy(), np.ones(len(starts), dtype=bool)
+
+    def next_goal(self, robot: int, reached: tuple[int, int]) -> tuple[int, int] | None:
+        """A robot's next goal after it reached `reached` (None: it keeps that goal / idles)."""
+        return None
+
+    def keeps_goal(self) -> bool:
+        """Whether a robot that arrives keeps its goal (one-shot MAPF) instead of idling."""
+        return True
+
+    def initial_tasks(self) -> list[Task]:
+        return []
+
+    def done(self, queued: int, busy: int) -> bool:
+        """Whether the source has nothing more to hand out (continuous sources only)."""
+        return False
+
+
+@dataclass
+class InstanceTasks(TaskSource):
+    name: str = "instance"
+    continuous: bool = False
+
+
+@dataclass
+class LifelongTasks(TaskSource):
+    """A new goal on arrival, from each robot's own seeded generator (module docstring)."""
+
+    grid: np.ndarray | None = None
+    seed: int = 0
+    name: str = "lifelong"
+    continuous: bool = True
+    _regions: dict = field(default_factory=dict, init=False, repr=False)
+    _rngs: dict = field(default_factory=dict, init=False, repr=False)
+    _labels: np.ndarray | None = field(default=None, init=False, repr=False)
+
+    def __post_init__(self):
+        from scipy.ndimage import label
+
+        free = np.asarray(self.grid) == 0
+        self._labels, _ = label(free)  # 4-connected regions of free cells
+
+    def initial(self, starts, goals):
+        if goals is None:  # no instance goals: the first goal is drawn too
+            goals = np.array([self._draw(i, tuple(map(int, s))) for i, s in enumerate(starts)])
+        self._starts = np.asarray(starts, dtype=np.int64)
+        return np.asarray(goals, dtype=np.int64).copy(), np.ones(len(starts), dtype=bool)
+
+    def keeps_goal(self) -> bool:
+        return False
+
+    def next_goal(self, robot, reached):
+        return self._draw(robot, reached)
+
+    def _draw(self, robot: int, avoid: tuple[int, int]) -> tuple[int, int]:
+        rng = self._rngs.get(robot)
+        if rng is None:
+            rng = self._rngs[robot] = np.random.default_rng([int(self.seed), int(robot)])
+        cells = self._region_cells(robot, avoid)
+        if len(cells) < 2:
+            return avoid  # a region of one cell: nowhere else to go
+        while True:  # draws depend on the robot's own history only (never on the policy)
+            cell = tuple(int(v) for v in cells[rng.integers(len(cells))])
+            if cell != tuple(avoid):
+                return cell
+
+    def _region_cells(self, robot: int, cell: tuple[int, int]) -> np.ndarray:
+        region = int(self._labels[cell[0], cell[1]])
+        found = self._regions.get(region)
+        if found is None:
+            found = self._regions[region] = np.argwhere(self._labels == region)
+        return found
+
+
+@dataclass
+class TaskListTasks(TaskSource):
+    """The tasks of a task file, handed to robots as they become idle."""
+
+    tasks: list = field(default_factory=list)
+    name: str = "tasks"
+    continuous: bool = True
+
+    def initial(self, starts, goals):
+        return np.asarray(starts, dtype=np.int64).copy(), np.zeros(len(starts), dtype=bool)
+
+    def keeps_goal(self) -> bool:
+        return False
+
+    def initial_tasks(self):
+        return list(self.tasks)
+
+    def done(self, queued, busy):
+        return queued == 0 and busy == 0
+
+
+@dataclass
+class ExternalTasks(TaskSource):
+    name: str = "external"
+    continuous: bool = True
+
+    def initial(self, starts, goals):
+        return np.asarray(starts, dtype=np.int64).copy(), np.zeros(len(starts), dtype=bool)
+
+    def keeps_goal(self) -> bool:
+        return False
+
+
+def make_task_source(name: str, grid=None, *, seed: int = 0, task_file: str = "",
+                     num_robots: int | None = None, cell_of=None) -> TaskSource:
+    """The source called `name` (one of TASK_SOURCES). `task_file` for "tasks"; `seed` for
+    "lifelong"; `cell_of(x, y)` turns metres into cells for task files that give `xy`."""
+    if name not in TASK_SOURCES:
+        raise ValueError(f"task_source must be one of {TASK_SOURCES}, got {name!r}")
+    if name == "tasks" and not task_file:
+        raise ValueError("task_source 'tasks' needs a task file (task_file / --task-source "
+                         "tasks FILE)")
+    if name != "tasks" and task_file:
+        raise ValueError(f"task_file {task_file!r} is only read with task_source 'tasks', "
+                         f"not {name!r}")
+    if name == "instance":
+        return InstanceTasks()
+    if name == "lifelong":
+        return LifelongTasks(grid=np.asarray(grid), seed=int(seed))
+    if name == "external":
+        return ExternalTasks()
+    return TaskListTasks(tasks=load_task_file(task_file, num_robots=num_robots, cell_of=cell_of))
+
+
+# ---- task files -------------------------------------------------------------------------------
+
+def parse_tasks(entries, where: str, *, num_robots: int | None = None, cell_of=None,
+                source: str = "tasks") -> list[Task]:
+    """Tasks from a list of mappings, each one of
+        {goal: [row, col]}                        a goal for the nearest idle robot
+        {goal: [row, col], robot: 3}              a goal for robot 3
+        {pickup: [row, col], dropoff: [row, col]} (optionally robot: 3) two goals in order
+        {xy: [x, y]} / {pickup_xy: ..., dropoff_xy: ...}   the same in metres (map frame)
+    and an optional `id`. `where` names the file (or request) in errors."""
+    if not isinstance(entries, list):
+        raise TaskFileError(f"{where}: expected a list of tasks, got {type(entries).__name__}")
+    tasks = []
+    for k, entry in enumerate(entries):
+        here = f"{where}: task {k}"
+        if not isinstance(entry, dict):
+            raise TaskFileError(f"{here}: expected a mapping with goal or pickup/dropoff, got "
+                                f"{entry!r}")
+        known = {"goal", "xy", "pickup", "dropoff", "pickup_xy", "dropoff_xy", "robot", "id"}
+        unknown = sorted(set(entry) - known)
+        if unknown:
+            raise TaskFileError(f"{here}: unknown field {unknown[0]!r} (fields: "
+                                f"{', '.join(sorted(known))})")
+        goals = []
+        if "goal" in entry or "xy" in entry:
+            goals.append(_task_cell(entry, "goal", "xy", here, cell_of))
+            if {"pickup", "dropoff", "pickup_xy", "dropoff_xy"} & set(entry):
+                raise TaskFileError(f"{here}: give either goal or pickup/dropoff, not both")
+        else:
+            for name in ("pickup", "dropoff"):
+                if name not in entry and f"{name}_xy" not in entry:
+                    raise TaskFileError(f"{here}: missing field 'goal' (or 'pickup' and "
+                                        f"'dropoff')")
+                goals.append(_task_cell(entry, name, f"{name}_xy", here, cell_of))
+        robot = entry.get("robot")
+        if robot is not None:
+            if isinstance(robot, bool) or not isinstance(robot, int) or robot < 0 or (
+                    num_robots is not None and robot >= num_robots):
+                limit = "" if num_robots is None else f" 0..{num_robots - 1}"
+                raise TaskFileError(f"{here}: field 'robot': {robot!r} is not a robot id{limit}")
+        tasks.append(Task(tuple(goals), robot, str(entry.get("id", f"{source}-{k}")), source))
+    return tasks
+
+
+def _task_cell(entry: dict, cell_field: str, xy_field: str, here: str, cell_of):
+    if cell_field in entry:
+        value = entry[cell_field]
+        if (not isinstance(value, (list, tuple)) or len(value) != 2
+                or not all(isinstance(v, int) and not isinstance(v, bool) for v in value)):
+            raise TaskFileError(f"{here}: field {cell_field!r}: expected [row, col] integers, "
+                                f"got {value!r}")
+        return int(value[0]), int(value[1])
+    value = entry[xy_field]
+    if (not isinstance(value, (list, tuple)) or len(value) != 2
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                       and math.isfinite(v) for v in value)):
+        raise TaskFileError(f"{here}: field {xy_field!r}: expected [x, y] finite numbers "
+                            f"(metres), got {value!r}")
+    if cell_of is None:
+        raise TaskFileError(f"{here}: field {xy_field!r}: metres need the map's geometry")
+    return tuple(int(v) for v in cell_of(float(value[0]), float(value[1])))
+
+
+def load_task_file(path: str, *, num_robots: int | None = None, cell_of=None) -> list[Task]:
+    """The tasks of a YAML file: a list of tasks, or a mapping with the list under `tasks`."""
+    import yaml
+
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except OSError as exc:
+        raise TaskFileError(f"{path}: cannot read the task file: {exc.strerror or exc}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise TaskFileError(f"{path}: not valid YAML: {str(exc).splitlines()[0]}") from None
+    if isinstance(data, dict):
+        if "tasks" not in data:
+            raise TaskFileError(f"{path}: missing field 'tasks' (a list of tasks)")
+        data = data["tasks"]
+    tasks = parse_tasks(data, str(path), num_robots=num_robots, cell_of=cell_of)
+    if not tasks:
+        raise TaskFileError(f"{path}: field 'tasks': the list is empty")
+    return tasks
