@@ -73,9 +73,11 @@ def doc_parts(path: Path) -> tuple[list[tuple[int, str]], list[tuple[int, str]],
 def commands_of(text: str) -> list[list[str]]:
     """The `mapf-fleet` argument lists in one shell line (comments dropped; `a & b` is two;
     `bash scripts/run.sh main ARGS` is `mapf-fleet up ARGS`)."""
+    lexer = shlex.shlex(text, posix=True, punctuation_chars=True)  # `a;b` and `a&b` split too
+    lexer.whitespace_split, lexer.commenters = True, "#"
     try:
-        tokens = shlex.split(text, comments=True)
-    except ValueError:
+        tokens = list(lexer)
+    except ValueError:  # an unclosed quote: not a command line
         return []
     found, current = [], []
     for token in tokens + [";"]:
@@ -83,8 +85,8 @@ def commands_of(text: str) -> list[list[str]]:
             current.append(token)
             continue
         words = current
-        while words and re.fullmatch(r"[A-Z_]+=\S*|nice|-n|\d+", words[0]):  # env, nice -n 10
-            words = words[1:]
+        while words and re.fullmatch(r"[A-Za-z_]+=\S*|nice|-n|\d+|do|then|else|time", words[0]):
+            words = words[1:]  # VAR=x, nice -n 10, a loop's body
         if words[:3] == ["bash", "scripts/run.sh", "main"]:
             found.append(["up", *words[3:]])
         elif words[:3] == ["bash", "scripts/run.sh", "exec"] and words[3:4] == ["mapf-fleet"]:
@@ -243,6 +245,7 @@ def test_every_link_resolves():
                                                                       ["up", "--namespace", "/b"]]),
     ("bash scripts/run.sh main --num-robots 16", [["up", "--num-robots", "16"]]),
     ("tensorboard --logdir runs/x/tb", []),
+    ("for A in a b; do mapf-fleet train --set x=$A; done", [["train", "--set", "x=$A"]]),
 ])
 def test_commands_of(text, expected):
     assert commands_of(text) == expected
