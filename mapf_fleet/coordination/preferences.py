@@ -17,9 +17,15 @@ Modes (`PREFERENCE_MODES`):
                   gets closer
   q_then_distance the argmax of Q first, then the rest in the distance order (ties broken by
                   `ties` when given, else by Q)
+  confidence      the argmax of Q first only where it leads the runner-up by more than
+                  `margin` (`CONFIDENCE_MARGIN` unless given), then the distance order; an agent
+                  whose Q-values are that close ranks by the distance order alone (ties by `ties`,
+                  then Q): the network overrides plain PIBT only where it is sure (issue 25)
   distance        the distance order, ties by action order: plain PIBT (no learning); also the
                   non-learned heuristic's ranking (it follows a closer move, else stays)
-The learned default is `DEFAULT_Q_MODE` (chosen by measurement; README "Coordination layer").
+The learned default is `DEFAULT_Q_MODE` (chosen by measurement; README "Coordination layer");
+`default_q_mode(rule)` is the default of each shield rule (measured: `q_then_distance` under
+`pibt_anchor`, `q` under `pibt`, issue 25), which the evaluator follows.
 """
 
 from __future__ import annotations
@@ -28,9 +34,19 @@ import numpy as np
 
 from mapf_fleet.grid.actions import ACTION_DELTAS, NUM_ACTIONS, STAY
 
-PREFERENCE_MODES = ("q", "q_demote_stay", "q_then_distance", "distance")
-Q_MODES = ("q", "q_demote_stay", "q_then_distance")
+PREFERENCE_MODES = ("q", "q_demote_stay", "q_then_distance", "confidence", "distance")
+Q_MODES = ("q", "q_demote_stay", "q_then_distance", "confidence")
 DEFAULT_Q_MODE = "q"
+# the ranking each shield rule uses by default (coordination.pibt.SHIELD_RULES)
+DEFAULT_Q_MODE_BY_RULE = {"pibt": "q", "pibt_anchor": "q_then_distance"}
+# `confidence`: the Q lead of the argmax over the runner-up above which the network's choice
+# goes first (Q units: one step costs 0.075)
+CONFIDENCE_MARGIN = 0.05
+
+
+def default_q_mode(rule: str) -> str:
+    """The ranking a learned policy uses under shield `rule` when none is asked for."""
+    return DEFAULT_Q_MODE_BY_RULE.get(rule, DEFAULT_Q_MODE)
 
 # distance classes of a move, lower is better
 _CLOSER, _STAY, _AWAY, _BLOCKED = 0, 1, 2, 3
@@ -81,9 +97,11 @@ def tie_breakers(agent_ids, tick: int, seed: int = 0) -> np.ndarray:
     return (x >> np.uint64(11)).astype(np.float64) / float(2**53)
 
 
-def rank_actions(obs, q=None, mode: str = DEFAULT_Q_MODE, ties=None) -> np.ndarray:
+def rank_actions(obs, q=None, mode: str = DEFAULT_Q_MODE, ties=None,
+                 margin: float | None = None) -> np.ndarray:
     """(..., 5) int64 preference orders. obs (..., 6, S, S); q (..., 5) for the Q modes;
-    `ties` (..., 5) breaks the remaining ties (`tie_breakers`; default: the action order)."""
+    `ties` (..., 5) breaks the remaining ties (`tie_breakers`; default: the action order);
+    `margin`: the `confidence` mode's threshold (default `CONFIDENCE_MARGIN`)."""
     if mode not in PREFERENCE_MODES:
         raise ValueError(f"preference mode must be one of {PREFERENCE_MODES}, got {mode!r}")
     classes = distance_classes(obs)
@@ -97,8 +115,12 @@ def rank_actions(obs, q=None, mode: str = DEFAULT_Q_MODE, ties=None) -> np.ndarr
         raise ValueError(f"Q-values must have shape {classes.shape}, got {q.shape}")
     if mode == "q":
         return _rank([-q, *tail])
-    if mode == "q_then_distance":
+    if mode in ("q_then_distance", "confidence"):
         best = np.argmax(q, axis=-1)[..., None] == np.arange(NUM_ACTIONS)
+        if mode == "confidence":
+            top2 = np.sort(q, axis=-1)[..., -2:]
+            lead = top2[..., 1] - top2[..., 0]
+            best &= (lead > (CONFIDENCE_MARGIN if margin is None else float(margin)))[..., None]
         return _rank([~best, classes, *tail, -q])
     # q_demote_stay: stay's Q lowered just below the lowest Q of a closer move (off goal only)
     closer = classes == _CLOSER

@@ -24,9 +24,10 @@ import sys
 import time
 from pathlib import Path
 
+from mapf_fleet.grid.maps import DENSE
 from mapf_fleet.version import code_version
 
-from mapf_fleet.coordination.preferences import DEFAULT_Q_MODE, PREFERENCE_MODES
+from mapf_fleet.coordination.preferences import DEFAULT_Q_MODE_BY_RULE, PREFERENCE_MODES
 
 from .policies import REFERENCE_NAMES, SHIELDS, parse_policy, unique_names, with_shield
 from .protocol import (
@@ -61,8 +62,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "its distance order); several give one row each (default: none)")
     p.add_argument("--preferences", nargs="+", choices=list(PREFERENCE_MODES), metavar="MODE",
                    help=f"how a policy ranks its actions under the shield, one row per mode: "
-                        f"{', '.join(PREFERENCE_MODES)} (default: {DEFAULT_Q_MODE} for checkpoints, "
-                        f"distance for the heuristic)")
+                        f"{', '.join(PREFERENCE_MODES)} (default: the shield rule's, for "
+                        f"checkpoints "
+                        + ", ".join(f"{m} under {r}" for r, m in DEFAULT_Q_MODE_BY_RULE.items())
+                        + "; distance for the heuristic)")
     p.add_argument("--config", default=str(DEFAULT_CONFIG), help="protocol YAML (default %(default)s)")
     p.add_argument("--sizes", nargs="+", type=int, help="map sizes to run (default: all of the protocol)")
     p.add_argument("--agents", nargs="+", type=int, help="agent counts to run (with --map: exactly one)")
@@ -76,12 +79,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="MovingAI .scen files or folders, one instance each: with one map, all "
                         "of them; with several, in --map order (as many as maps), else each "
                         "with the map its lines name")
-    p.add_argument("--kinds", nargs="+", choices=list(FAMILY_KINDS), metavar="KIND",
+    p.add_argument("--kinds", nargs="+", choices=[*FAMILY_KINDS, DENSE], metavar="KIND",
                    help=f"structured map families instead of the protocol's random maps: "
                         f"{', '.join(FAMILY_KINDS)}; generated from --seed, sides from --sizes "
                         f"(default {' '.join(map(str, FAMILY_SIZES))}), counts from --agents "
                         f"(default {' '.join(map(str, FAMILY_AGENTS))}), the protocol's step limit "
-                        f"of that side")
+                        f"of that side. {DENSE}: the small crowded random maps (side drawn from "
+                        f"S-4..S for --sizes S, default {DENSE_SIZE}; agents default "
+                        f"{' '.join(map(str, DENSE_AGENTS))}; {DENSE_STEPS} steps unless "
+                        f"--max-steps)")
     p.add_argument("--max-steps", type=int, help=f"step limit for --map (default {SMALL_MAP_LIMIT} up to 40x40, else {LARGE_MAP_LIMIT})")
     p.add_argument("--workers", type=int, default=1, help="parallel processes")
     p.add_argument("--batch-size", type=int, default=200, help="episodes stepped together per job")
@@ -118,8 +124,12 @@ def _scenarios(args, config: ProtocolConfig):
     count = args.instances or config.instances
     seed = config.seed if args.seed is None else args.seed
     if args.kinds:
-        return family_scenarios(config, args.kinds, count, seed, args.sizes, args.agents,
-                                args.max_steps)
+        families = [k for k in args.kinds if k != DENSE]
+        out = family_scenarios(config, families, count, seed, args.sizes, args.agents,
+                               args.max_steps) if families else []
+        if DENSE in args.kinds:
+            out += dense_scenarios(count, seed, args.sizes, args.agents, args.max_steps)
+        return out
     out = []
     for scenario in protocol_scenarios(config, args.sizes, args.agents):
         if args.max_steps:
@@ -130,6 +140,36 @@ def _scenarios(args, config: ProtocolConfig):
             scenario, count, density=config.density, seed=seed,
             testsets_dir=args.testsets, cache_dir=args.cache_dir,
         )))
+    return out
+
+
+# the small dense random maps learned MAPF is compared on (grid.maps.DENSE: 17-21 cells a side)
+DENSE_SIZE, DENSE_AGENTS, DENSE_STEPS = 21, (32, 48, 64), 128
+
+
+def dense_scenarios(count: int, seed: int, sizes=None, agents=None, max_steps=None):
+    """One scenario per (largest side, agent count) of `grid.maps.DENSE` instances; instance i
+    from the seed sequence (seed, "dense", side, agents, i), so any prefix is the same."""
+    import zlib
+
+    import numpy as np
+
+    from mapf_fleet.grid.maps import capacity, generate_kind_instance
+
+    from .protocol import InstanceSet, Scenario
+
+    code = zlib.crc32(DENSE.encode())
+    out = []
+    for size in sizes or [DENSE_SIZE]:
+        for n in agents or DENSE_AGENTS:
+            if n > capacity(DENSE, size):
+                raise ProtocolError(f"--kinds {DENSE}: {n} agents do not fit every map of "
+                                    f"side {size - 4}..{size} (at most {capacity(DENSE, size)})")
+            made = [generate_kind_instance(DENSE, size, n,
+                                           np.random.default_rng([seed, code, size, n, i]))
+                    for i in range(count)]
+            out.append((Scenario(f"{DENSE} {size - 4}-{size}", n, max_steps or DENSE_STEPS),
+                        InstanceSet.from_instances(made, f"generated {DENSE} maps (seed {seed})")))
     return out
 
 

@@ -17,7 +17,8 @@ import numpy as np
 
 from mapf_fleet.coordination.planners import PLANNER_NAMES
 from mapf_fleet.coordination.pibt import SHIELD_RULES
-from mapf_fleet.coordination.preferences import DEFAULT_Q_MODE, PREFERENCE_MODES, Q_MODES
+from mapf_fleet.coordination.preferences import (DEFAULT_Q_MODE, PREFERENCE_MODES, Q_MODES,
+                                                 default_q_mode)
 
 HEURISTIC = "heuristic"
 REFERENCE_NAMES = (HEURISTIC, *PLANNER_NAMES)
@@ -52,7 +53,7 @@ class PolicySpec:
         first: it follows a closer move), a checkpoint by its Q-values."""
         if self.preferences is not None:
             return self.preferences
-        return "distance" if self.kind == "heuristic" else DEFAULT_Q_MODE
+        return "distance" if self.kind == "heuristic" else default_q_mode(self.shield)
 
 
 def with_shield(spec: PolicySpec, shield: str, preferences: str | None = None) -> PolicySpec:

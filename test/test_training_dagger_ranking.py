@@ -1,0 +1,57 @@
+"""Issue 25 item 3 (evaluator side): the `confidence` ranking, the default ranking per shield
+rule, and the evaluator's `--kinds dense` scenarios."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mapf_fleet.coordination.preferences import (DEFAULT_Q_MODE_BY_RULE, default_q_mode,
+                                                 rank_actions)
+from mapf_fleet.grid.actions import DOWN, LEFT, RIGHT, STAY, UP
+from mapf_fleet.grid.env import MAPFEnv
+from mapf_fleet.grid.instance import Instance
+
+
+def test_confidence_puts_the_argmax_first_only_when_it_leads():
+    grid = np.zeros((5, 5), dtype=np.uint8)
+    obs = MAPFEnv(Instance(grid, np.array([[2, 2]]), np.array([[0, 2]]))).reset()  # goal up
+    q = np.array([[3.0, 2.0, 1.0, 2.5, 0.0]])  # stay leads left by 0.5
+    assert rank_actions(obs, q, "confidence", margin=0.4)[0].tolist() == \
+        rank_actions(obs, q, "q_then_distance")[0].tolist() == [STAY, UP, LEFT, DOWN, RIGHT]
+    # not sure enough: the distance order (closer, stay, then away moves by Q)
+    assert rank_actions(obs, q, "confidence", margin=0.6)[0].tolist() == \
+        [UP, STAY, LEFT, DOWN, RIGHT]
+    # per agent: one sure, one not
+    both = np.concatenate([obs, obs])
+    qs = np.array([[3.0, 2.0, 1.0, 2.5, 0.0], [3.0, 2.0, 1.0, 2.95, 0.0]])
+    ranked = rank_actions(both, qs, "confidence", margin=0.1)
+    assert ranked[:, 0].tolist() == [STAY, UP]
+
+
+def test_default_ranking_follows_the_shield_rule():
+    from mapf_fleet.evaluation.policies import parse_policy, with_shield
+
+    assert default_q_mode("pibt_anchor") == "q_then_distance" and default_q_mode("pibt") == "q"
+    spec = parse_policy("heuristic")
+    assert with_shield(spec, "pibt_anchor").preference_mode == "distance"
+    from mapf_fleet.evaluation.policies import PolicySpec
+
+    learned = PolicySpec("checkpoint", "x", path="x.pt")
+    for rule, mode in DEFAULT_Q_MODE_BY_RULE.items():
+        assert with_shield(learned, rule).preference_mode == mode
+    # an explicit --preferences wins
+    assert with_shield(learned, "pibt_anchor", "q").preference_mode == "q"
+
+
+def test_evaluate_dense_scenarios():
+    from mapf_fleet.evaluation.cli import dense_scenarios
+    from mapf_fleet.evaluation.protocol import ProtocolError
+
+    (scenario, instances), = dense_scenarios(3, 7, [21], [32])
+    assert scenario.max_steps == 128 and scenario.num_agents == 32
+    assert instances.maps.shape == (3, 21, 21)
+    again = dense_scenarios(2, 7, [21], [32])[0][1]
+    assert (again.maps == instances.maps[:2]).all()  # a prefix is the same instances
+    with pytest.raises(ProtocolError, match="do not fit"):
+        dense_scenarios(1, 7, [12], [64])
