@@ -108,7 +108,7 @@ fi
 
 # ---- 5. mapf_fleet_interfaces ----------------------------------------------------------------
 IFACE="$REPO/mapf_fleet_interfaces"
-mapfile -t iface_files < <(cd "$IFACE" && find CMakeLists.txt package.xml msg srv -type f \( -name '*.msg' -o -name '*.srv' -o -name 'CMakeLists.txt' -o -name 'package.xml' \) 2>/dev/null | LC_ALL=C sort)
+mapfile -t iface_files < <(cd "$IFACE" && find CMakeLists.txt package.xml msg srv action -type f \( -name '*.msg' -o -name '*.srv' -o -name '*.action' -o -name 'CMakeLists.txt' -o -name 'package.xml' \) 2>/dev/null | LC_ALL=C sort)
 IFACE_HASH="$(cd "$IFACE" && inputs_hash "$VENV $REQ_HASH" "${iface_files[@]}")"
 if stamp_matches interfaces "$IFACE_HASH" && "$PY" -c 'import mapf_fleet_interfaces.msg' 2>/dev/null; then
   say "mapf_fleet_interfaces unchanged: skipping build"
