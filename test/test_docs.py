@@ -180,10 +180,9 @@ def _check_commands(commands: list[list[str]]) -> list[str]:
             verdicts.append(f"no sub-command {argv[:1]} (mapf-fleet --help lists {sorted(COMMANDS)})")
             continue
         module, func, _ = COMMANDS[argv[0]]
-        shown = argv[1:] if mode == "full" else ["--help"]
         argparse.ArgumentParser.parse_args = intercept
-        try:
-            getattr(importlib.import_module(module), func)(shown)
+        try:  # the shown arguments pick the parser (`evaluate --lifelong` has its own)
+            getattr(importlib.import_module(module), func)(argv[1:])
         except Parsed as parsed:
             caught = parsed
         except BaseException as exc:  # noqa: BLE001 - reported as the command's verdict
