@@ -8,7 +8,15 @@ interface does not change with the process layout), but the robots of one proces
 - one decision thread that runs the local robots' encode / communication rounds / Q-values as
   batched torch calls, with the numbers of the batched evaluator (same padding and masking);
 - local delivery: a message between two robots of the same process goes straight into the
-  mailbox (it is still published, so viewers and other processes see it).
+  mailbox (it is still published, so viewers and other processes see it);
+- DCC requests and replies between processes as ONE service call per tick and per pair of
+  processes (`DccBatch` on the receiving hub's service `fleet/dcc_hub/<host>`, one client per
+  remote hub, created when its first heartbeat names it): with 32 robots per process that is at
+  most (processes - 1) calls per phase instead of one per robot pair, and no client is created
+  during the run (issue 23: a client per robot pair, created as robots met new peers, grew the
+  executor's wait set and the DDS discovery traffic tick after tick until every decision was
+  missed). The per-robot services `/robot_<i>/dcc_request` / `dcc_reply` still take messages
+  from anything else.
 
 Each robot publishes its five actions ranked (`coordination.preferences.rank_actions` over its
 Q-values, `preference_mode`, ties broken by `tie_breakers(robot id, tick)`, exactly as the batched
@@ -21,6 +29,8 @@ node are used.
 
 from __future__ import annotations
 
+import array
+import collections
 import os
 import threading
 import time
@@ -33,6 +43,13 @@ from mapf_fleet.grid.heuristic import cached_heuristic_bits
 from mapf_fleet.ros import common
 from mapf_fleet.ros.lockstep import EpisodeBinding
 from mapf_fleet.ros.mailbox import Mailbox
+
+BATCH_KINDS = ("request", "reply")  # DccBatch.kind
+
+
+def dcc_hub_service(host: str) -> str:
+    """The batch service of the hub named `host` (its node name, as its heartbeats say)."""
+    return f"/fleet/dcc_hub/{host}"
 
 
 class LocalObserver:
@@ -105,10 +122,68 @@ class StateWatch:
                 f"aggregator) stopped or is unreachable; the robots wait")
 
 
+TIMING_EVERY = 50  # log the hub's per-tick time split every this many decisions
+
+
+class TickTiming:
+    """Where a hub's tick goes (plain Python), for the log and benchmarks/bench_fleet.py:
+    `latency` from the state's stamp to its callback (the simulator's publish and DDS), `wake`
+    from the callback to the decision thread, then `observe`, `network` (torch), `send`
+    (publishing peer messages, DCC batch calls), `wait` (for the peers' messages) and `moves`
+    (ranking, publishing the moves); `begin` a tick, `mark(phase)` at the end of each piece."""
+
+    PHASES = ("latency", "wake", "observe", "network", "send", "wait", "moves")
+
+    def __init__(self):
+        self.ticks = 0
+        self.total = dict.fromkeys(self.PHASES, 0.0)
+        self._tick = dict.fromkeys(self.PHASES, 0.0)
+        self._last = None
+        self.recent: collections.deque = collections.deque(maxlen=TIMING_EVERY)  # decide s
+
+    def begin(self, started: float, arrived, stamp) -> None:
+        self._tick = dict.fromkeys(self.PHASES, 0.0)
+        arrived_at, arrived_wall = arrived
+        if arrived_at:
+            self._tick["wake"] = max(0.0, started - arrived_at)
+            sent = stamp.sec + stamp.nanosec * 1e-9
+            if sent > 0:
+                self._tick["latency"] = max(0.0, arrived_wall - sent)
+        self._started = started
+        self._last = started
+
+    def mark(self, phase: str) -> None:
+        if self._last is None:
+            return
+        now = time.perf_counter()
+        self._tick[phase] += now - self._last
+        self._last = now
+
+    def end(self) -> None:
+        if self._last is None:
+            return
+        self.ticks += 1
+        for phase, seconds in self._tick.items():
+            self.total[phase] += seconds
+        self.recent.append(self._last - self._started)
+        self._last = None
+
+    def text(self, sent: dict | None = None) -> str:
+        n = max(1, self.ticks)
+        parts = ", ".join(f"{p} {1000 * self.total[p] / n:.1f}" for p in self.PHASES)
+        recent = (f"; last {len(self.recent)} ticks: decide {1000 * np.mean(self.recent):.1f} ms"
+                  if self.recent else "")
+        counts = (f"; DCC messages local {sent['local']}, to other processes {sent['service']} "
+                  f"in {sent['batches']} batch calls, unsent {sent['unsent']}"
+                  if sent and (sent["local"] or sent["service"] or sent["unsent"]) else "")
+        return f"hub timing over {self.ticks} ticks, ms per tick: {parts}{recent}{counts}"
+
+
 class PolicyHub:
     def __init__(self, nodes, model):
         from mapf_fleet_interfaces.msg import (DccAnnounce, DhcHidden, FleetState,
                                                RobotStatus)
+        from mapf_fleet_interfaces.srv import DccBatch
         from nav_msgs.msg import OccupancyGrid
         from rclpy.callback_groups import ReentrantCallbackGroup
         from rclpy.node import Node
@@ -126,6 +201,7 @@ class PolicyHub:
         self.index_of = {int(r): m for m, r in enumerate(ids)}
         first = nodes[0]
         self.comm_timeout = first.comm_timeout
+        self.service_timeout = first.service_timeout
         self.preference_mode = first.preference_mode
         self.host = f"mapf_policy_hub_{os.getpid()}_{ids[0]}"
         self.node = Node(self.host)
@@ -135,6 +211,7 @@ class PolicyHub:
         self._observer: LocalObserver | None = None
         self._state_cond = threading.Condition()
         self._latest_state = None
+        self._state_at = (0.0, 0.0)  # (perf_counter, wall clock) when it arrived
         self._episode = None
         self._tick = -1
         # the run this hub serves: never a foreign simulator's (lockstep.EpisodeBinding)
@@ -145,10 +222,13 @@ class PolicyHub:
         self._stop = threading.Event()
         self._hosts: dict[int, str] = {}  # robot id -> host, from heartbeats
         self.decisions = 0
-        self.sent = {"local": 0, "service": 0}
+        self.sent = {"local": 0, "service": 0, "batches": 0, "unsent": 0}
+        self._hub_clients: dict[str, object] = {}  # remote host -> client of its batch service
+        self._inflight: collections.deque = collections.deque()  # (tick, client, future)
+        self.timing = TickTiming()
         for node in nodes:
             node.hub = self
-        group = ReentrantCallbackGroup()
+        group = self._group = ReentrantCallbackGroup()
         self.node.create_subscription(OccupancyGrid, common.rel(common.MAP_TOPIC), self._on_map,
                                       common.latched_qos(), callback_group=group)
         self.node.create_subscription(FleetState, common.rel(common.STATE_TOPIC), self._on_state,
@@ -164,6 +244,8 @@ class PolicyHub:
             self.node.create_subscription(DccAnnounce, common.rel(common.DCC_ANNOUNCE_TOPIC),
                                           self._on_announce, common.reliable_qos(1000),
                                           callback_group=group)
+            self.node.create_service(DccBatch, common.rel(dcc_hub_service(self.host)),
+                                     self._on_batch, callback_group=group)
         self.node.create_timer(first.status_period, self._heartbeat, callback_group=group)
         self._thread = threading.Thread(target=self._loop, name=f"policy-hub-{ids[0]}",
                                         daemon=True)
@@ -188,19 +270,28 @@ class PolicyHub:
                         f"this namespace? give each fleet its own: up --namespace /NAME)")
                 return
             self._latest_state = msg  # a slow or restarted hub skips to the newest tick
+            self._state_at = (time.perf_counter(), time.time())
             back = self.watch.note(msg.tick, msg.done)
             self._state_cond.notify_all()
         if back:
             self.node.get_logger().info(back)
 
     def _on_status(self, msg):
-        self._hosts[int(msg.robot_id)] = msg.host
+        host = msg.host
+        self._hosts[int(msg.robot_id)] = host
+        if self.algo == "dcc" and host != self.host and host not in self._hub_clients:
+            # created when the host is first heard, long before tick 0 (readiness waits for it):
+            # never during the run
+            from mapf_fleet_interfaces.srv import DccBatch
+
+            self._hub_clients[host] = self.node.create_client(
+                DccBatch, common.rel(dcc_hub_service(host)), callback_group=self._group)
 
     def _on_hidden(self, msg):
         if int(msg.robot_id) in self.index_of:
             return  # delivered locally already
         self.mailbox.put(msg.episode, f"dhc{msg.round}", msg.tick, msg.robot_id,
-                         np.asarray(msg.hidden, dtype=np.float32))
+                         np.frombuffer(msg.hidden, dtype=np.float32))
 
     def _on_announce(self, msg):
         if int(msg.robot_id) in self.index_of:
@@ -213,12 +304,39 @@ class PolicyHub:
         return self.mailbox.put(request.episode, f"{kind}{receiver}", request.tick,
                                 request.sender, np.asarray(request.hidden, np.float32))
 
+    def _on_batch(self, request, response):
+        """Another hub's requests or replies of one tick for robots of this process."""
+        kind = BATCH_KINDS[request.kind] if request.kind < len(BATCH_KINDS) else None
+        hidden = np.frombuffer(request.hidden, dtype=np.float32)
+        dim = int(request.dim)
+        if kind is None or dim <= 0 or len(hidden) != dim * len(request.senders) or \
+                len(request.receivers) != len(request.senders):
+            self.node.get_logger().warning(f"ignored a malformed DCC batch (kind {request.kind}, "
+                                           f"dim {dim}, {len(request.senders)} senders)")
+            response.accepted = 0
+            return response
+        hidden = hidden.reshape(-1, dim)
+        accepted = 0
+        for k, (sender, receiver) in enumerate(zip(request.senders, request.receivers)):
+            if int(receiver) in self.index_of:
+                accepted += self.mailbox.put(request.episode, f"{kind}{int(receiver)}",
+                                             request.tick, int(sender), hidden[k])
+        response.accepted = accepted
+        return response
+
     def peers_reachable(self) -> int:
         """Robots whose heartbeat was heard, provided every host seen also subscribes to our peer
-        topic (so nothing we publish is lost); 0 otherwise."""
+        topic (so nothing we publish is lost) and, for DCC, serves the batch service our client
+        of it sees; 0 otherwise."""
         hosts = set(self._hosts.values()) | {self.host}
         matched = min(n.peer_pub.get_subscription_count() for n in self.nodes)
-        return len(self._hosts) if matched >= len(hosts) else 0
+        if matched < len(hosts):
+            return 0
+        if self.algo == "dcc" and not all(self._hub_clients[h].service_is_ready()
+                                          for h in hosts - {self.host}
+                                          if h in self._hub_clients):
+            return 0
+        return len(self._hosts)
 
     def _heartbeat(self):
         from mapf_fleet_interfaces.msg import RobotStatus
@@ -242,6 +360,8 @@ class PolicyHub:
             self._state_cond.notify_all()
         self.mailbox.interrupt()
         self._thread.join(5.0)
+        if self.timing.ticks:
+            self.node.get_logger().info(self.timing.text(self.sent))
 
     def _loop(self):
         while not self._stop.is_set():
@@ -256,9 +376,9 @@ class PolicyHub:
                         self.node.get_logger().warning(f"robots {self.ids.tolist()}: {silence}")
                 if self._stop.is_set():
                     return
-                state = self._latest_state
+                state, arrived = self._latest_state, self._state_at
             try:
-                self._decide(state)
+                self._decide(state, arrived)
             except Exception as exc:  # a bad tick must not kill the robots
                 import traceback
 
@@ -266,7 +386,8 @@ class PolicyHub:
                                              f"{traceback.format_exc()}")
                 self._tick = state.tick
 
-    def _decide(self, state):
+    def _decide(self, state, arrived=(None, None)):
+        started = time.perf_counter()
         if state.episode != self._episode or state.tick != self._tick + 1:
             # a new run, or joined mid-run / skipped ticks: the recurrent state is not ours
             self._hidden = None
@@ -286,6 +407,8 @@ class PolicyHub:
         if self._observer is None or self._observer.key != key:
             self._observer = LocalObserver(self.grid, local_goals, self.radius)
         obs = torch.from_numpy(self._observer.observe(positions, self.ids))
+        self.timing.begin(started, arrived, state.header.stamp)
+        self.timing.mark("observe")
         if self._hidden is None:
             self._hidden = torch.zeros(len(self.ids), self.model.config.hidden_dim)
         with torch.no_grad():
@@ -295,6 +418,7 @@ class PolicyHub:
                 last = torch.as_tensor(np.asarray(state.last_actions, dtype=np.int64)[self.ids])
                 h, requested, received, missing = self._dcc(tick, obs, last, positions)
             q = self.model.head(h).numpy()
+        self.timing.mark("network")
         preferences = rank_actions(obs.numpy(), q, self.preference_mode,
                                    ties=tie_breakers(self.ids, tick))
         if self.mailbox.current_tick != tick:
@@ -309,9 +433,13 @@ class PolicyHub:
                 episode=state.episode, tick=tick, robot_id=node.robot_id, action=ranking[0],
                 preferences=ranking, missing_peers=sorted(missing[m]), requested=requested[m],
                 messages_received=received[m]))
+        self.timing.mark("moves")
+        self.timing.end()
         if any(missing):
             left_out = {int(self.ids[m]): sorted(s) for m, s in enumerate(missing) if s}
             self.node.get_logger().warning(f"tick {tick}: left out peers {left_out}")
+        if self.decisions % TIMING_EVERY == 0:
+            self.node.get_logger().info(self.timing.text(self.sent))
 
     def _deadline(self) -> float:
         return time.monotonic() + self.comm_timeout
@@ -323,6 +451,7 @@ class PolicyHub:
 
         model, m_count = self.model, len(self.ids)
         h = model.encode_batch(obs, self._hidden)
+        self.timing.mark("network")
         partners = dhc_partners(positions, self.radius, model.config.max_partners)[self.ids]
         wanted = {int(j) for j in partners.reshape(-1) if j >= 0}
         missing = [set() for _ in range(m_count)]
@@ -333,8 +462,10 @@ class PolicyHub:
                 self.mailbox.put(self._episode, f"dhc{r}", tick, node.robot_id, vectors[m])
                 node.peer_pub.publish(DhcHidden(episode=self._episode, tick=tick, round=r,
                                                 robot_id=node.robot_id,
-                                                hidden=vectors[m].tolist()))
+                                                hidden=array.array("f", vectors[m].tobytes())))
+            self.timing.mark("send")
             box = self.mailbox.wait_for(f"dhc{r}", tick, wanted, self._deadline())
+            self.timing.mark("wait")
             # members: self first, then the partners nearest first (as the batched step)
             members = np.zeros((m_count, 1 + partners.shape[1], h.shape[1]), dtype=np.float32)
             valid = np.zeros(members.shape[:2], dtype=bool)
@@ -353,6 +484,7 @@ class PolicyHub:
                 updated = model.round_batch(h[rows], torch.from_numpy(members)[rows],
                                        torch.from_numpy(valid)[rows])
                 h = h.index_put((rows,), updated)
+            self.timing.mark("network")
         requested = [[int(j) for j in row if j >= 0] for row in partners]
         return h, requested, received, missing
 
@@ -376,40 +508,47 @@ class PolicyHub:
         missing = [set() for _ in range(m_count)]
         received = [0] * m_count
         vectors = h.numpy().copy()
+        self.timing.mark("network")
         for m, node in enumerate(self.nodes):
             self.mailbox.put(self._episode, "announce", tick, node.robot_id, targets[m])
             node.peer_pub.publish(DccAnnounce(episode=self._episode, tick=tick,
-                                              robot_id=node.robot_id, targets=targets[m]))
-        for m, node in enumerate(self.nodes):
-            for j in targets[m]:
-                self._send("request", node, j, tick, vectors[m], positions)
+                                              robot_id=node.robot_id,
+                                              targets=array.array("I", targets[m])))
+        self._dispatch("request", tick, [(node.robot_id, j, vectors[m])
+                                         for m, node in enumerate(self.nodes)
+                                         for j in targets[m]])
+        self.timing.mark("send")
         # Requesters of a robot are among its FOV neighbours (the FOV is symmetric): their
-        # announcements tell how many requests to await.
+        # announcements tell how many requests to await. One deadline per phase, whatever the
+        # number of local robots.
         neighbours = [set(neighbour[owner == m].tolist()) for m in range(m_count)]
-        announced = self.mailbox.wait_for("announce", tick, set().union(*neighbours),
-                                          self._deadline())
+        deadline = self._deadline()
+        announced = self.mailbox.wait_for("announce", tick, set().union(*neighbours), deadline)
         requests = []
         for m, node in enumerate(self.nodes):
             missing[m].update(neighbours[m] - set(announced))
             requesters = [i for i, t in announced.items()
                           if i in neighbours[m] and node.robot_id in t]
-            got = self.mailbox.wait_for(f"request{node.robot_id}", tick, requesters,
-                                        self._deadline())
+            got = self.mailbox.wait_for(f"request{node.robot_id}", tick, requesters, deadline)
             missing[m].update(set(requesters) - set(got))
             received[m] += len(got)
             requests.append(got)
+        self.timing.mark("wait")
         h1 = self._aggregate(model.request_comm, h, requests, positions)
         vectors1 = h1.numpy().copy()
-        for m, node in enumerate(self.nodes):
-            for i in requests[m]:
-                self._send("reply", node, i, tick, vectors1[m], positions)
+        self.timing.mark("network")
+        self._dispatch("reply", tick, [(node.robot_id, i, vectors1[m])
+                                       for m, node in enumerate(self.nodes)
+                                       for i in requests[m]])
+        self.timing.mark("send")
         replies = []
+        deadline = self._deadline()
         for m, node in enumerate(self.nodes):
-            got = self.mailbox.wait_for(f"reply{node.robot_id}", tick, targets[m],
-                                        self._deadline())
+            got = self.mailbox.wait_for(f"reply{node.robot_id}", tick, targets[m], deadline)
             missing[m].update(set(targets[m]) - set(got))
             received[m] += len(got)
             replies.append(got)
+        self.timing.mark("wait")
         h2 = self._aggregate(model.reply_comm, h1, replies, positions)
         return h2, targets, received, missing
 
@@ -440,13 +579,45 @@ class PolicyHub:
                                                                       position_index, valid_t)
         return h.index_put((index,), layer(own, sender_t, position_index, valid_t))
 
-    def _send(self, kind: str, node, peer: int, tick: int, vector: np.ndarray, positions):
-        """A DCC message from local robot `node` to robot `peer`: straight into the mailbox when
-        the peer lives in this process, else a (fire-and-forget) call of its service."""
-        if int(peer) in self.index_of:
-            self.mailbox.put(self._episode, f"{kind}{int(peer)}", tick, node.robot_id, vector)
-            self.sent["local"] += 1
-            return
-        offset = positions[node.robot_id] - positions[int(peer)]
-        if node.call_peer_service(kind, int(peer), self._episode, tick, offset, vector):
-            self.sent["service"] += 1
+    def _dispatch(self, kind: str, tick: int, messages) -> None:
+        """DCC messages (sender, receiver, vector) of this tick from local robots: to a local
+        receiver straight into the mailbox, to the others one `DccBatch` call per receiving
+        process (fire and forget: the receiver only stores them, so nobody blocks inside a
+        callback and the protocol cannot deadlock; `comm_timeout` bounds every wait)."""
+        from mapf_fleet_interfaces.srv import DccBatch
+
+        remote: dict[str, list] = collections.defaultdict(list)
+        for sender, receiver, vector in messages:
+            receiver = int(receiver)
+            if receiver in self.index_of:
+                self.mailbox.put(self._episode, f"{kind}{receiver}", tick, sender, vector)
+                self.sent["local"] += 1
+            else:
+                remote[self._hosts.get(receiver, "")].append((sender, receiver, vector))
+        for host, entries in remote.items():
+            client = self._hub_clients.get(host)
+            if client is None or not client.service_is_ready():
+                self.sent["unsent"] += len(entries)
+                self.node.get_logger().warning(
+                    f"tick {tick}: no DCC service for robots {[e[1] for e in entries]} "
+                    f"({'no heartbeat heard' if not host else host}): {kind}s not sent")
+                continue
+            vectors = np.stack([e[2] for e in entries]).astype(np.float32, copy=False)
+            future = client.call_async(DccBatch.Request(
+                episode=self._episode, tick=tick, kind=BATCH_KINDS.index(kind),
+                dim=vectors.shape[1], senders=array.array("I", [e[0] for e in entries]),
+                receivers=array.array("I", [e[1] for e in entries]),
+                hidden=array.array("f", vectors.tobytes())))
+            self._inflight.append((tick, client, future))
+            self.sent["service"] += len(entries)
+            self.sent["batches"] += 1
+        self._forget_old_calls(tick)
+
+    def _forget_old_calls(self, tick: int, keep_ticks: int = 2) -> None:
+        """A call whose response never comes (a receiver that died or restarted) would keep its
+        future in the client forever: forget those older than `keep_ticks` ticks, so nothing
+        grows over a run."""
+        while self._inflight and self._inflight[0][0] < tick - keep_ticks:
+            _, client, future = self._inflight.popleft()
+            if future is not None and not future.done():
+                client.remove_pending_request(future)

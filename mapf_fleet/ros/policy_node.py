@@ -17,7 +17,6 @@ from __future__ import annotations
 import sys
 import time
 
-import numpy as np
 import rclpy
 from mapf_fleet_interfaces.msg import DccAnnounce, DhcHidden, RobotMove, RobotStatus
 from mapf_fleet_interfaces.srv import DccMessage
@@ -96,7 +95,6 @@ class PolicyNode(Node):
         self.algo = model.config.algo
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.hub = None  # set by PolicyHub
-        self._peer_clients: dict[tuple[str, int], object] = {}
         quiet = common.quiet_publisher_events()
         self.move_pub = self.create_publisher(RobotMove, common.rel(common.MOVES_TOPIC),
                                               common.reliable_qos(100),
@@ -138,33 +136,12 @@ class PolicyNode(Node):
                                                                       request)
         return response
 
-    def call_peer_service(self, kind: str, peer: int, episode: int, tick: int, offset,
-                          hidden) -> bool:
-        """Fire-and-forget DCC service call (request or reply) to robot `peer`: the receiver
-        only stores it, so nobody blocks inside a callback and the protocol cannot deadlock;
-        timeouts bound every wait. False when the service was not found in time."""
-        key = (kind, int(peer))
-        client = self._peer_clients.get(key)
-        if client is None:
-            name = common.rel((common.dcc_request_service if kind == "request" else
-                               common.dcc_reply_service)(peer))
-            client = self.create_client(DccMessage, name)
-            self._peer_clients[key] = client
-        if not client.service_is_ready() and not client.wait_for_service(self.service_timeout):
-            self.get_logger().warning(f"tick {tick}: {kind} service of robot {peer} not found")
-            return False
-        client.call_async(DccMessage.Request(
-            episode=episode, tick=tick, sender=self.robot_id, rel_row=int(offset[0]),
-            rel_col=int(offset[1]), hidden=np.asarray(hidden, np.float32).tolist()))
-        return True
-
 
 def needs_spinning(node: PolicyNode) -> bool:
-    """Whether the node serves the fleet's protocol: a DCC node its request and reply services;
-    a DHC node only publishes (the hub subscribes for it). Such nodes are spun by the hub's
-    executor; the others only serve their parameter services, in a second executor, so the
-    decision path's executor (whose per-spin cost grows with every entity it holds) stays
-    small."""
+    """Whether the node itself serves anything besides its parameters: a DCC node its
+    per-robot request and reply services (for senders that are not hubs; hubs send each other
+    one `DccBatch` per tick). Every robot node is spun by a second executor, apart from the
+    decision path (`spin_policy_nodes`)."""
     return node.algo == "dcc"
 
 
@@ -188,13 +165,16 @@ def spin_policy_nodes(nodes: list[PolicyNode], until=None, extra_nodes=(), on_st
     from mapf_fleet.ros.hub import PolicyHub
 
     hub = PolicyHub(nodes, nodes[0].model)
-    spun = list(extra_nodes) + [hub.node] + [n for n in nodes if needs_spinning(n)]
+    # The decision path's executor holds only the hub's node (and `extra_nodes`): the Python
+    # executor rebuilds its wait set from every entity it holds on every spin, so 32 robot nodes
+    # with 6 parameter services and 2 DCC services each made every message cost milliseconds.
     executor = SingleThreadedExecutor()
-    for node in spun:
+    for node in list(extra_nodes) + [hub.node]:
         executor.add_node(node)
     spinner = common.SpinThread(executor).start()
-    # nodes with nothing but their parameter services: their own executor and thread
-    parameter_nodes = [n for n in nodes if not needs_spinning(n) and n.has_parameter_services]
+    # the robots' own nodes (parameter services; DCC: the per-robot services): their own
+    # executor and thread, off the decision path
+    parameter_nodes = [n for n in nodes if needs_spinning(n) or n.has_parameter_services]
     parameter_spinner = None
     if parameter_nodes:
         parameter_executor = SingleThreadedExecutor()
