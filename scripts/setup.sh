@@ -1,12 +1,15 @@
 #!/usr/bin/env bash
 # One idempotent set-up of mapf_fleet on Debian 12 / Python 3.11:
 #   1. Debian tools (cmake, make, g++, python3.11 venv + headers) via apt-get, only when missing;
+#      then Debian's chromium + chromium-driver (the live view's headless-browser test), when
+#      missing and apt-get can run (root or sudo); without them set-up only warns, except under
+#      CI (CI=true), whose suite needs the browser;
 #   2. the venv (<repo>/.venv, or $MAPF_FLEET_VENV) with python3.11;
 #   3. pinned PyPI packages (requirements.txt + constraints.txt);
 #   4. the repair of the ROS wheels' CMake export files (DESIGN.md section 2);
 #   5. mapf_fleet_interfaces built with CMake (out of tree in build/) into the venv prefix;
 #   6. mapf_fleet installed in editable mode.
-# Steps 3, 5 and 6 leave a hash stamp in <venv>/.mapf_fleet_setup/ and are skipped while their
+# Steps 1b, 3, 5 and 6 leave a hash stamp in <venv>/.mapf_fleet_setup/ and are skipped while their
 # inputs are unchanged, so a second run takes seconds. Downloads come only from PyPI and Debian.
 set -euo pipefail
 
@@ -66,6 +69,33 @@ if [ ${#missing[@]} -gt 0 ]; then
 fi
 "$PYTHON_FOR_VENV" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))' \
   || die "$PYTHON_FOR_VENV is not Python 3.11 (the ROS 2 Jazzy wheels are cp311); set MAPF_FLEET_PYTHON"
+
+# ---- 1b. headless browser for the live view's screenshot test -------------------------------
+# `mapf-fleet view` is tested in a real browser (test/ros/test_live_view.py); Debian's chromium
+# is the one CI can install. Set MAPF_FLEET_BROWSER=0 to skip this step.
+BROWSER_PACKAGES=(chromium chromium-driver)
+browser_present() { command -v chromium >/dev/null && command -v chromedriver >/dev/null; }
+if [ "${MAPF_FLEET_BROWSER:-1}" = "0" ]; then
+  say "MAPF_FLEET_BROWSER=0: not checking for chromium"
+elif browser_present && [ -f "$STAMPS/browser" ]; then
+  say "chromium present: $(chromium --version 2>/dev/null | head -1)"
+elif browser_present; then
+  write_stamp browser "$(chromium --version 2>/dev/null | head -1)"
+  say "chromium present: $(cat "$STAMPS/browser")"
+elif command -v apt-get >/dev/null && { [ "$(id -u)" -eq 0 ] || sudo -n true 2>/dev/null; }; then
+  if apt_install "${BROWSER_PACKAGES[@]}" && browser_present; then
+    write_stamp browser "$(chromium --version 2>/dev/null | head -1)"
+    say "installed $(cat "$STAMPS/browser")"
+  elif [ "${CI:-}" = "true" ]; then
+    die "could not install ${BROWSER_PACKAGES[*]} (the live view's browser test needs them under CI)"
+  else
+    say "warning: could not install ${BROWSER_PACKAGES[*]}; the live view's browser test will skip"
+  fi
+elif [ "${CI:-}" = "true" ]; then
+  die "chromium is missing and apt-get cannot run here (root or sudo needed); CI's browser test needs it"
+else
+  say "warning: no chromium and no apt-get/sudo to install it; the live view's browser test will skip"
+fi
 
 # ---- 2. venv ---------------------------------------------------------------------------------
 if [ -x "$VENV/bin/python" ] && "$VENV/bin/python" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))' 2>/dev/null; then
