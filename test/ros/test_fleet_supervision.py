@@ -59,7 +59,7 @@ def test_stopped_ticker_returns_at_once_and_the_outcome_says_stopped_at_tick(tmp
     started = time.monotonic()
     assert ticker.wait_ready(30.0) == [0, 1]
     decisions = ticker.collect(30.0)
-    assert time.monotonic() - started < 1.0
+    assert time.monotonic() - started < 20.0  # not the 60 s of the two timeouts, on any load
     assert decisions.missing == [0, 1]
     recorder = RunRecorder(5, 2, [[1, 1], [2, 2]], 50, series=())
     recorder.start(np.array([[0, 0], [2, 2]]))
@@ -145,7 +145,7 @@ def test_a_dead_policy_process_is_reported_with_its_last_lines_and_stops_the_run
     warnings = []
     started = time.monotonic()
     code, problem = supervise(main, [dying, healthy], StopSignals(), warn=warnings.append)
-    assert time.monotonic() - started < 20
+    assert time.monotonic() - started < 300  # the healthy ones run forever: it did not wait
     assert problem == "policy process (robots 0-3) exited with code 1"
     text = "\n".join(warnings)
     assert "policy process (robots 0-3) exited with code 1; its last output lines:" in text
@@ -203,7 +203,7 @@ def test_a_simulator_that_does_not_stop_is_killed_after_its_grace(tmp_path, stat
     graces = {"grace": 1.0, "startup_grace": 600.0} if state == "stuck" else \
         {"grace": 600.0, "startup_grace": 1.0}
     code, _ = supervise(main, [], signals, warn=warnings.append, **graces)
-    assert time.monotonic() - started < 60
+    assert time.monotonic() - started < 300  # the 1 s grace applied, not the 600 s one
     assert code == -signal.SIGKILL and "did not stop in time: killed" in warnings[0]
 
 

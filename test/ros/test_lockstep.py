@@ -41,8 +41,9 @@ def test_collect_returns_as_soon_as_all_moves_are_in_and_late_moves_are_dropped(
     timer = threading.Timer(0.05, lambda: [ticker.on_move(_move(i, 1, tick=5)) for i in (0, 1)])
     timer.start()
     started = time.monotonic()
-    decisions = ticker.collect(10.0)
-    assert time.monotonic() - started < 5.0 and decisions.missing == []
+    decisions = ticker.collect(600.0)
+    # far below the timeout, whatever the machine's load: it did not wait for it
+    assert time.monotonic() - started < 300.0 and decisions.missing == []
     ticker.on_move(_move(0, 4, tick=5))   # late for tick 5 (the aggregator still waits)
     assert ticker.advance() == 6
     assert ticker.collect(0.01).missing == [0, 1]
