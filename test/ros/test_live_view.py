@@ -1,0 +1,148 @@
+"""`mapf-fleet view` on a running simulated fleet (issue 24 item 1): the page, opened in headless
+chromium, shows the fleet's map and its robots where the fleet says they are, and follows the
+run; the Foxglove app's WebSocket server answers on loopback with the view's channels.
+
+How the screenshot is checked (test/headless_browser.check_picture): the map comes from the
+instance generator (`up --size 10 --seed 2`, not from the page), so every obstacle cell must be
+obstacle-dark and every free cell light; the robots drawn (window.viewDrawn, read before and
+after the screenshot, same tick) must be the record's positions at that tick (`up --record`,
+read after the run), and each robot's cell centre must have that robot's colour. A blank page,
+a page without the map, or robots in the wrong place fail.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import pytest
+
+from mapf_fleet.ros.live_view import READY_PREFIX
+
+CLI = [sys.executable, "-m", "mapf_fleet.cli"]
+SIZE, ROBOTS, SEED = 10, 4, 2
+CELL = 24
+
+pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.timeout(900)]
+
+
+def _start_view(env, *extra):
+    proc = subprocess.Popen(CLI + ["view", "--port", "0", "--foxglove-port", "0", *extra],
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    url = foxglove = None
+    lines = []
+    for line in proc.stdout:  # the two lines come before anything else it prints
+        lines.append(line)
+        if line.startswith(READY_PREFIX):
+            url = line.split()[-1]
+        elif line.startswith("mapf-fleet view: Foxglove app: ws://"):
+            foxglove = int(line.split("ws://127.0.0.1:")[1].split()[0])
+        if url and foxglove:
+            return proc, url, foxglove
+    raise AssertionError("the view did not start:\n" + "".join(lines))
+
+
+def _stop(proc, sig=signal.SIGINT, timeout=60) -> str:
+    if proc.poll() is None:
+        proc.send_signal(sig)
+    try:
+        out, _ = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, _ = proc.communicate()
+    return out or ""
+
+
+def _foxglove_hello(port: int) -> list[dict]:
+    """The first JSON messages of foxglove-sdk's server (serverInfo, advertise) after a
+    WebSocket handshake with the Foxglove protocol."""
+    key = base64.b64encode(os.urandom(16)).decode()
+    with socket.create_connection(("127.0.0.1", port), timeout=30) as sock:
+        sock.sendall((f"GET / HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\n"
+                      f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\n"
+                      "Sec-WebSocket-Version: 13\r\nSec-WebSocket-Protocol: foxglove.sdk.v1\r\n"
+                      "\r\n").encode())
+        stream = sock.makefile("rb")
+        status = stream.readline()
+        assert b" 101 " in status, status
+        while stream.readline() not in (b"\r\n", b""):
+            pass
+        messages = []
+        while len(messages) < 2:
+            head = stream.read(2)
+            length = head[1] & 0x7F
+            if length == 126:
+                length = int.from_bytes(stream.read(2), "big")
+            elif length == 127:
+                length = int.from_bytes(stream.read(8), "big")
+            payload = stream.read(length)
+            if head[0] & 0x0F == 1:  # a text frame: JSON
+                messages.append(json.loads(payload))
+        return messages
+
+
+def _consistent_screenshot(browser):
+    """A screenshot and what the page says it drew, taken at the same tick."""
+    for _ in range(50):
+        before = browser.run("return window.viewDrawn")
+        image = browser.screenshot()
+        after = browser.run("return window.viewDrawn")
+        if before == after:
+            return image, after
+    raise AssertionError("the page never held still for a screenshot")
+
+
+@pytest.mark.parametrize("namespace", ["", "/fleet_v"])
+def test_the_view_shows_a_running_fleet_in_a_browser(tmp_path, ros_env, checkpoints, namespace):
+    from headless_browser import Browser, check_picture, require_browser
+
+    from mapf_fleet.grid.instance import generate_instance
+
+    require_browser()
+    instance = generate_instance(SIZE, ROBOTS, 0.3, SEED)  # what `up` generates
+    record = tmp_path / "run.json"
+    in_ns = ["--namespace", namespace] if namespace else []
+    view, url, foxglove_port = _start_view(ros_env, *in_ns)
+    fleet = None
+    try:
+        fleet = subprocess.Popen(
+            CLI + ["up", "--checkpoint", checkpoints["dhc"], "--num-robots", str(ROBOTS),
+                   "--size", str(SIZE), "--seed", str(SEED), "--max-steps", "2000",
+                   "--single-process", "--record", str(record), "--quiet", *in_ns,
+                   "--ros-args", "-p", "tick_period:=0.3"],
+            env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        with Browser(width=SIZE * CELL + 420, height=SIZE * CELL + 300) as browser:
+            browser.open(f"{url}?cell={CELL}")
+            # live: the page follows the ticks as they come (no reload)
+            browser.wait_for("return window.viewDrawn && window.viewDrawn.tick >= 2", 300)
+            first = browser.run("return window.viewDrawn.tick")
+            browser.wait_for(f"return window.viewDrawn.tick >= {first + 2}", 120)
+            image, drawn = _consistent_screenshot(browser)
+            image.save(tmp_path / "view.png")
+            panel = browser.run("return document.getElementById('tick').textContent")
+            assert browser.run("return document.body.dataset.map") == f"{SIZE}x{SIZE}"
+        assert drawn["cell"] == CELL and drawn["goals"] == instance.goals.tolist()
+        check_picture(image, instance.grid, drawn["robots"], drawn["colours"], CELL)
+        hello = _foxglove_hello(foxglove_port)
+        assert hello[0]["op"] == "serverInfo", hello
+        topics = {channel["topic"] for channel in hello[1]["channels"]}
+        assert {"/view/scene", "/view/stats"} <= topics, hello
+        up_out = _stop(fleet)
+    finally:
+        if fleet is not None and fleet.poll() is None:
+            fleet.kill()
+            fleet.wait()
+        view_out = _stop(view)
+    assert fleet.returncode == 130, up_out
+    assert view.returncode == 0 and "Traceback" not in view_out, view_out
+    run = json.loads(record.read_text())
+    # the robots drawn are the fleet's at the tick drawn
+    assert drawn["episode"] == str(run["episode"])
+    assert drawn["robots"] == run["positions"][drawn["tick"]], (drawn, panel)
+    assert panel.startswith(f"{drawn['tick']} / 2000")
