@@ -118,6 +118,18 @@ class RunRecorder:
         self.overridden += len(series.get("overridden", ()))
         self.record["positions"].append(np.asarray(positions).tolist())
 
+    def checkpoint(self, path, tick: int) -> None:
+        """The record so far, marked incomplete (`finish` replaces these fields): what a reader
+        finds if the process dies before the end."""
+        if "summary" not in self.record or self.record.get("incomplete"):
+            self.record.update(incomplete=True, success=False, steps=self.steps,
+                               collisions=self.collisions, missed_decisions=self.missed,
+                               run_seconds=time.monotonic() - self.started,
+                               summary=f"incomplete: the run's record stops at tick {tick} "
+                                       f"({self.steps} steps recorded; the process ended before "
+                                       f"its outcome)")
+        self.write(path)
+
     def write(self, path) -> None:
         """The record as JSON, atomically (a reader never sees half a file)."""
         from mapf_fleet.files import atomic_write

@@ -446,6 +446,7 @@ class FleetRun:
                    + extra)
         if stopped_at is not None:
             rec.record["stopped_at_tick"] = int(stopped_at)
+        rec.record.pop("incomplete", None)
         rec.record.update(run_seconds=time.monotonic() - rec.started,
                           success=success, steps=rec.steps, collisions=rec.collisions,
                           missed_decisions=rec.missed, summary=summary,

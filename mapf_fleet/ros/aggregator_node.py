@@ -43,11 +43,12 @@ from rclpy.node import Node
 from mapf_fleet.entry import one_line_errors
 from mapf_fleet.grid.actions import STAY, actions_between
 from mapf_fleet.ros import common, fleet_io
-from mapf_fleet.fleet.arbiter import (TickArbiter, check_conflict_rule, check_pose,
-                                    plan_robot_commands, ready_to_send)
-from mapf_fleet.ros.lockstep import (INSTANCE_PARAMETERS, RUN_PARAMETERS, Decisions, FleetTicker,
-                                     RunRecorder, instance_source, require_positive,
-                                     set_parameters_result)
+from mapf_fleet.fleet.arbiter import (check_conflict_rule, check_pose, plan_robot_commands,
+                                      ready_to_send)
+from mapf_fleet.fleet.record import Decisions
+from mapf_fleet.ros.goals import GoalServer
+from mapf_fleet.ros.lockstep import (INSTANCE_PARAMETERS, RUN_PARAMETERS, FleetTicker, fleet_run,
+                                     instance_source, require_positive, set_parameters_result)
 
 PARAMETERS = {
     **INSTANCE_PARAMETERS,
@@ -55,57 +56,67 @@ PARAMETERS = {
     "scen_file": ("", "MovingAI .scen file (with map_file): goals"),
     **RUN_PARAMETERS,
     "startup_timeout": (60.0, "seconds to wait for every robot's pose and policy node"),
-    "resolution": (1.0, "metres per cell"),
+    "resolution": (1.0, "metres per cell (a Nav2 map_file sets its own)"),
     "arrival_timeout": (10.0, "seconds to wait for robots to reach their waypoints"),
-    "origin_x": (0.0, "x of the map's corner (cell (0, 0) starts there)"),
+    "pose_timeout": (3.0, "seconds without a pose message after which a robot is reported "
+                          "silent and held as an obstacle (the run ends when every robot is)"),
+    "origin_x": (0.0, "x of the map's corner (cell (0, 0) starts there; a Nav2 map sets its own)"),
     "origin_y": (0.0, "y of the map's corner"),
 }
 
 
 REJECT_LOG_PERIOD_S = 10.0
+WAIT_LOG_PERIOD_S = 5.0
+
+
+class StartupError(RuntimeError):
+    """The fleet could not start (robots without a pose): one line, exit 2, no traceback."""
 
 
 class FleetStateAggregator(Node):
     def __init__(self, **node_kwargs):
         super().__init__("mapf_aggregator", **node_kwargs)
         p = self.params = fleet_io.declare_parameters(self, PARAMETERS)
-        require_positive(p, ["decision_timeout", "arrival_timeout", "startup_timeout"])
-        instance = instance_source(p).load()
+        require_positive(p, ["decision_timeout", "arrival_timeout", "startup_timeout",
+                             "pose_timeout"])
+        source = instance_source(p)
+        instance = source.load()
         self.grid = np.asarray(instance.grid, dtype=np.uint8)
-        self.goals = np.array(instance.goals, dtype=np.int64)
-        self.num_robots = len(self.goals)
-        self.geometry = common.MapGeometry(float(p["resolution"]), float(p["origin_x"]),
-                                           float(p["origin_y"]))
+        self.instance_goals = np.array(instance.goals, dtype=np.int64)
+        self.num_robots = len(self.instance_goals)
+        self.geometry = common.MapGeometry(*(source.geometry() or (
+            float(p["resolution"]), float(p["origin_x"]), float(p["origin_y"]))))
         self.episode = random.getrandbits(63)
         self.positions = np.full((self.num_robots, 2), -1, dtype=np.int64)  # last valid cells
-        self.last_actions = np.full(self.num_robots, -1, dtype=np.int64)
         self.waypoints: np.ndarray | None = None  # last commanded cell per robot
         self.conflict_rule = check_conflict_rule(str(p["conflict_rule"]))
-        self.arbiter = TickArbiter(self.grid, self.goals, self.conflict_rule)
-        self.rejected = 0
+        self.run = None  # the FleetRun, once every robot reported its first pose
+        self.lock = threading.RLock()
+        self.rejected = 0  # every rejected pose message (not only those left at a tick's end)
         self.pose_conflicts = 0  # moments two robots reported one cell
         self.outcome: FleetOutcome | None = None
+        self.exit_code: int | None = None
         self.finished = threading.Event()
 
         self.ticker = FleetTicker(self.num_robots, self.episode)
-        self.recorder = RunRecorder(self.episode, self.num_robots, self.goals,
-                                    int(p["max_steps"]),
-                                    series=("rejected", "executed", "overridden", "late",
-                                            "waypoints"),
-                                    conflict_rule=self.conflict_rule)
         # the poses are guarded by (and notify) the ticker's condition, so the start-up and the
         # arrival waits see moves, heartbeats and poses alike
         self._cond = self.ticker.cond
         self._reported: dict[int, tuple[int, int]] = {}  # latest snapped cell per robot
         self._rejected_reason: dict[int, str] = {}
+        self._rejected_in_tick: set[int] = set()
         self._accepted: dict[int, tuple[int, int]] = {}  # last accepted cell per robot
         self._logged_reject: dict[tuple[int, str], float] = {}  # (robot, reason) -> when logged
+        self._heard: dict[int, float] = {}  # robot -> when its last pose message came
+        self.silent: set[int] = set()  # robots reported silent (held as obstacles)
         self.channels = fleet_io.FleetChannels(self, self.ticker, self.geometry)
         for i in range(self.num_robots):
             self.create_subscription(PoseStamped, common.rel(common.pose_topic(i)),
                                      lambda msg, i=i: self._on_pose(i, msg),
                                      common.reliable_qos(10))
-        self.channels.publish_map_and_goals(self.grid, self.goals)
+        self.channels.publish_map_and_goals(self.grid, self.instance_goals)
+        # goals at run time; bound to the run once the robots have posed
+        self.goals = GoalServer(self, None, self.lock, self.geometry, self.num_robots)
         # decision_timeout, arrival_timeout, progress_every apply from the next tick; any other
         # change at runtime is refused with the reason (lockstep.RUNTIME_PARAMETERS)
         self.add_on_set_parameters_callback(
@@ -118,6 +129,10 @@ class FleetStateAggregator(Node):
     def tick(self) -> int:
         return self.ticker.tick
 
+    @property
+    def extra_nodes(self) -> list:
+        return [self.goals.node]
+
     # ---- pose feeds ----
     def check_pose(self, robot_id: int, x: float, y: float) -> tuple[tuple[int, int] | None, str]:
         """(cell, "") for a pose on a free cell at most one move from the robot's last accepted
@@ -129,9 +144,15 @@ class FleetStateAggregator(Node):
     def _on_pose(self, robot_id: int, msg: PoseStamped):
         x, y = msg.pose.position.x, msg.pose.position.y
         with self._cond:
+            self._heard[robot_id] = time.monotonic()
+            if robot_id in self.silent:
+                self.silent.discard(robot_id)
+                self.get_logger().info(f"robot {robot_id}: pose feed back")
             checked = check_pose(self.grid, self.geometry, x, y, self._accepted.get(robot_id))
             cell, reason = checked.cell, checked.reason
             if cell is None:
+                self.rejected += 1
+                self._rejected_in_tick.add(robot_id)
                 if checked.raw is not None:
                     self._reported[robot_id] = checked.raw  # it did move there: counts for arrival
                 # one line per robot and reason (again after REJECT_LOG_PERIOD_S: a feed that
@@ -159,93 +180,169 @@ class FleetStateAggregator(Node):
                                                 f"where robots {others} are")
             self._cond.notify_all()
 
+    def _check_silent(self) -> list[int]:
+        """Robots whose feed went quiet past `pose_timeout` (reported once each); all silent."""
+        timeout = float(self.params["pose_timeout"])
+        now = time.monotonic()
+        with self._cond:
+            quiet = [i for i in range(self.num_robots)
+                     if now - self._heard.get(i, now) > timeout]
+            new = [i for i in quiet if i not in self.silent]
+            self.silent.update(new)
+        if new:
+            self.get_logger().error(f"robots {new}: no pose for {timeout} s: held as obstacles "
+                                    f"until their feed comes back")
+        return sorted(self.silent)
+
     # ---- the tick loop (own thread) ----
     def start(self):
         self._thread.start()
 
+    def _wait_for_poses(self, timeout: float) -> list[int]:
+        """Wait for every robot's first valid pose and every policy node; progress every
+        WAIT_LOG_PERIOD_S. The robots still without a pose (stopped: at once)."""
+        subscribers = int(self.params["state_subscribers"])
+        deadline = time.monotonic() + timeout
+        while not self.ticker.stopped:
+            left = deadline - time.monotonic()
+            unready = self.ticker.wait_ready(
+                min(WAIT_LOG_PERIOD_S, max(left, 0.0)),
+                also=lambda: bool((self.positions[:, 0] >= 0).all())
+                and self.channels.state_heard(subscribers))
+            with self._cond:
+                unposed = np.flatnonzero(self.positions[:, 0] < 0).tolist()
+            if (not unposed and not unready) or left <= WAIT_LOG_PERIOD_S:
+                break
+            if not self.ticker.stopped:
+                self.get_logger().info(
+                    f"waiting for poses from robots {unposed} and policy nodes of robots "
+                    f"{unready} ({max(left, 0):.0f} s left of startup_timeout {timeout} s)"
+                    if unready and unposed else
+                    f"waiting for poses from robots {unposed} ({max(left, 0):.0f} s left)"
+                    if unposed else
+                    f"waiting for the policy nodes of robots {unready} ({max(left, 0):.0f} s left)")
+        with self._cond:
+            return np.flatnonzero(self.positions[:, 0] < 0).tolist()
+
     def _run(self):
         startup_timeout = float(self.params["startup_timeout"])
-        subscribers = int(self.params["state_subscribers"])
-        unready = self.ticker.wait_ready(
-            startup_timeout, also=lambda: bool((self.positions[:, 0] >= 0).all())
-            and self.channels.state_heard(subscribers))
-        with self._cond:
-            unposed = np.flatnonzero(self.positions[:, 0] < 0).tolist()
-        if unposed and not self.ticker.stopped:
-            raise RuntimeError(f"no valid pose from robots {unposed} within {startup_timeout} s")
+        unposed = self._wait_for_poses(startup_timeout)
+        if self.ticker.stopped:
+            self.outcome = FleetOutcome(
+                episode=self.episode, success=False,
+                summary=f"stopped at tick 0 while waiting for poses from robots {unposed}"
+                if unposed else "stopped at tick 0 before the first tick")
+            self.get_logger().info(self.outcome.summary)
+            return
+        if unposed:
+            self.exit_code = 2
+            raise StartupError(f"no valid pose from robots {unposed} within startup_timeout "
+                               f"{startup_timeout} s: check their pose feeds "
+                               f"({common.pose_topic(unposed[0])}, ...)")
+        unready = self.ticker.unready()
         if unready:
             self.get_logger().warning(f"starting without ready robots {unready} "
                                       f"after {startup_timeout} s")
+        with self.lock:
+            starts = self.positions.copy()
+            self.run = fleet_run(self.params, self.grid, starts, self.instance_goals,
+                                 self.episode, ("rejected", "executed", "overridden", "late",
+                                                "waypoints"), self.geometry)
+            self.goals.bind(self.run)
         self.get_logger().info(f"all {self.num_robots} robots posed at "
-                               f"{self.positions.tolist()}, conflict rule {self.conflict_rule}")
-        self.waypoints = self.positions.copy()
+                               f"{starts.tolist()}, conflict rule {self.conflict_rule}, "
+                               f"task source {self.params['task_source']}")
+        self.waypoints = starts.copy()
+        self._heard = {i: time.monotonic() for i in range(self.num_robots)}
         self.outcome = fleet_io.run_lockstep(
-            self, self.channels, self.recorder, self.positions.copy(), self._step,
-            self._publish_state, decision_timeout=float(self.params["decision_timeout"]),
+            self, self.channels, self.run, self._step, self._publish_state, lock=self.lock,
+            goals=self.goals, decision_timeout=float(self.params["decision_timeout"]),
             progress_every=int(self.params["progress_every"]),
             record_file=self.params["record_file"], summary_extra=self._summary_extra,
             settings=self.params)
 
     def _summary_extra(self) -> str:
-        self.recorder.record["pose_conflicts"] = self.pose_conflicts
-        return f", {self.rejected} rejected poses, {self.pose_conflicts} pose conflicts"
+        self.run.recorder.record.update(pose_conflicts=self.pose_conflicts,
+                                        rejected_poses=self.rejected,
+                                        silent_robots=sorted(self.silent))
+        silent = f", robots {sorted(self.silent)} silent" if self.silent else ""
+        return (f", {self.rejected} rejected poses, {self.pose_conflicts} pose conflicts"
+                f"{silent}")
 
     def _step(self, decisions: Decisions):
         """The real robots' move: command the arbitrated waypoints (followers once their cell is
         vacated), wait until the robots report their commanded cells (or `arrival_timeout`),
-        then take their valid reported cells as the next positions."""
+        then take their valid reported cells as the next positions. Silent robots (no pose for
+        `pose_timeout`) are held like robots without a decision; when every robot is silent
+        the run stops."""
         arrival_timeout = float(self.params["arrival_timeout"])
-        plan = plan_robot_commands(self.arbiter, self.positions.copy(), self.waypoints,
-                                   decisions.preferences, decisions.missing)
+        silent = self._check_silent()
+        if len(silent) == self.num_robots:
+            self.get_logger().error(f"tick {decisions.tick}: every robot's pose feed is silent "
+                                    f"(no pose for {self.params['pose_timeout']} s): the run "
+                                    f"ends")
+            self.ticker.stop()
+        missing = sorted(set(decisions.missing) | set(silent))
+        plan = plan_robot_commands(self.run.arbiter, self.positions.copy(), self.waypoints,
+                                   decisions.preferences, missing)
         if plan.problems:
             self.get_logger().error(f"tick {decisions.tick}: unsafe commands "
                                     f"({'; '.join(plan.problems)}): every robot stays")
         if plan.stopped:
             self.get_logger().info(f"tick {decisions.tick}: robots {plan.stopped} would "
                                    f"rotate: they stay")
-        if plan.late.any():
-            self.get_logger().warning(f"tick {decisions.tick}: robots "
-                                      f"{np.flatnonzero(plan.late).tolist()} still in transit: "
-                                      f"they hold both cells")
+        late_live = np.flatnonzero(plan.late & ~np.isin(np.arange(self.num_robots),
+                                                        silent)).tolist()
+        if late_live:
+            self.get_logger().warning(f"tick {decisions.tick}: robots {late_live} still in "
+                                      f"transit: they hold both cells")
         commanded, executed, late = plan.waypoints.copy(), plan.executed.copy(), plan.late
-        sent = self._dispatch_and_wait(commanded, arrival_timeout)
+        sent = self._dispatch_and_wait(commanded, arrival_timeout, skip=set(silent))
         # never sent a new waypoint (its cell was not vacated in time): it stayed; a robot in
         # transit had its waypoint before and keeps it
         unsent = np.flatnonzero(~sent & ~late).tolist()
-        if unsent:
-            self.get_logger().warning(f"tick {decisions.tick}: robots {unsent} waited for their "
-                                      f"cell to be vacated: they stay")
-            commanded[unsent] = self.positions[unsent]
-            executed[unsent] = STAY
+        unsent_live = [i for i in unsent if i not in silent]
+        if unsent_live:
+            self.get_logger().warning(f"tick {decisions.tick}: robots {unsent_live} waited for "
+                                      f"their cell to be vacated: they stay")
+        commanded[unsent] = self.positions[unsent]
+        executed[unsent] = STAY
         self.waypoints = commanded
         with self._cond:
             arrived = np.array([tuple(commanded[i]) == tuple(self._reported.get(i, (-1, -1)))
                                 for i in range(self.num_robots)])
             previous = self.positions.copy()
-            rejected = sorted(self._rejected_reason)
+            # every robot with a pose rejected during the tick (a good pose may have come
+            # after it) or still rejected now
+            rejected = sorted(self._rejected_in_tick | set(self._rejected_reason))
+            self._rejected_in_tick = set()
             for i, cell in self._reported.items():
                 if i not in self._rejected_reason:
                     self.positions[i] = cell
             self.ticker.advance()
-        if not arrived.all():
-            self.get_logger().warning(f"tick {decisions.tick}: robots "
-                                      f"{np.flatnonzero(~arrived).tolist()} not at their "
+        not_there = [i for i in np.flatnonzero(~arrived).tolist() if i not in silent]
+        if not_there:
+            self.get_logger().warning(f"tick {decisions.tick}: robots {not_there} not at their "
                                       f"waypoints after {arrival_timeout} s")
-        self.last_actions = actions_between(previous, self.positions)
         _, counts = np.unique(self.positions, axis=0, return_counts=True)
-        self.rejected += len(rejected)
         overridden = np.flatnonzero((executed != decisions.actions)
                                     & ~plan.resolution.held).tolist()
-        return self.positions.copy(), int((counts[counts > 1]).sum()), {
-            "rejected": rejected, "executed": executed.tolist(), "overridden": overridden,
-            "late": np.flatnonzero(late).tolist(), "waypoints": commanded.tolist()}
+        events = self.run.advance(
+            decisions, self.positions, actions_between(previous, self.positions),
+            collisions=int((counts[counts > 1]).sum()),
+            rejected=rejected,
+            executed=executed.tolist(), overridden=overridden,
+            late=np.flatnonzero(late).tolist(), waypoints=commanded.tolist())
+        self.channels.publish_goal_changes(self.run.goals, events)
+        return events, overridden
 
-    def _dispatch_and_wait(self, commanded: np.ndarray, timeout: float) -> np.ndarray:
+    def _dispatch_and_wait(self, commanded: np.ndarray, timeout: float, skip=()) -> np.ndarray:
         """Send each robot its waypoint as soon as no other robot reports being in that cell,
-        and wait until every robot reports its commanded cell, or `timeout`. bool (N,): the
-        robots that were sent their waypoint."""
+        and wait until every robot (but `skip`: silent ones) reports its commanded cell, or
+        `timeout`. bool (N,): the robots that were sent their waypoint."""
         deadline = time.monotonic() + timeout
         sent = np.zeros(self.num_robots, dtype=bool)
+        awaited = [i for i in range(self.num_robots) if i not in skip]
         with self._cond:
             while True:
                 # a robot whose pose is rejected may still be in its last valid cell
@@ -256,14 +353,29 @@ class FleetStateAggregator(Node):
                     self.channels.publish_waypoints(commanded, ready)
                     sent[ready] = True
                 arrived = all(tuple(commanded[i]) == tuple(self._reported.get(i, (-1, -1)))
-                              for i in range(self.num_robots))
+                              for i in awaited)
                 remaining = deadline - time.monotonic()
-                if (arrived and sent.all()) or remaining <= 0 or self.ticker.stopped:
+                if (arrived and sent[awaited].all()) or remaining <= 0 or self.ticker.stopped:
                     return sent
-                self._cond.wait(remaining)
+                self._cond.wait(min(remaining, 0.5))
+                if self._newly_silent(awaited):
+                    awaited = [i for i in awaited if i not in self.silent]
+
+    def _newly_silent(self, awaited) -> bool:
+        timeout = float(self.params["pose_timeout"])
+        now = time.monotonic()
+        quiet = [i for i in awaited if now - self._heard.get(i, now) > timeout]
+        if quiet:
+            self.silent.update(quiet)
+            self.get_logger().error(f"robots {quiet}: no pose for {timeout} s: held as "
+                                    f"obstacles until their feed comes back")
+        return bool(quiet)
 
     def _publish_state(self, done: bool):
-        self.channels.publish_state(self.positions, self.goals, self.last_actions, done)
+        goals = self.run.goals if self.run is not None else self.instance_goals
+        last = self.run.last_actions if self.run is not None else \
+            np.full(self.num_robots, -1, dtype=np.int64)
+        self.channels.publish_state(self.positions, goals, last, done)
 
 
 @one_line_errors("aggregator")

@@ -21,7 +21,7 @@ from rclpy.executors import SingleThreadedExecutor
 from visualization_msgs.msg import Marker, MarkerArray
 
 from mapf_fleet.ros import common
-from mapf_fleet.ros.lockstep import FleetTicker, RunRecorder
+from mapf_fleet.ros.lockstep import FleetTicker
 
 
 def declare_parameters(node, table: dict) -> dict:
@@ -75,8 +75,18 @@ class FleetChannels:
 
     def publish_map_and_goals(self, grid, goals) -> None:
         self.map_pub.publish(common.grid_to_occupancy(np.asarray(grid), self.geometry))
+        self._goals_sent = np.array(goals, dtype=np.int64)
         for i, pub in enumerate(self.goal_pubs):
             pub.publish(common.cell_pose(*goals[i], self.geometry))
+
+    def publish_goal_changes(self, goals, events=()) -> None:
+        """Each robot's latched goal, again for the robots whose goal changed since (run-time
+        goals, lifelong goals, idle robots whose goal is where they stand)."""
+        goals = np.asarray(goals, dtype=np.int64)
+        changed = np.flatnonzero((goals != self._goals_sent).any(axis=1)).tolist()
+        for i in changed:
+            self.goal_pubs[i].publish(common.cell_pose(*goals[i], self.geometry))
+        self._goals_sent = goals.copy()
 
     def publish_waypoints(self, cells, robots=None) -> None:
         """Command robots (all, or the ids in `robots`) to their cells (N, 2)."""
@@ -99,24 +109,37 @@ class FleetChannels:
         return stamp
 
 
-def run_lockstep(node, channels: FleetChannels, recorder: RunRecorder, positions, step,
-                 publish_state, *, decision_timeout: float, tick_period: float = 0.0,
+def run_lockstep(node, channels: FleetChannels, run, step, publish_state, *, lock,
+                 goals=None, decision_timeout: float, tick_period: float = 0.0,
                  progress_every: int = 10, record_file: str = "",
                  summary_extra=lambda: "", settings: dict | None = None) -> FleetOutcome:
-    """Tick until every robot is on its goal or `recorder.max_steps` ticks.
+    """Tick `run` (a `fleet.run.FleetRun`) until it is finished (every robot on its goal for a
+    one-shot instance, the tick limit, every task done) or stopped.
 
-    Each tick: `publish_state(done=False)`, collect the moves, then
-    `step(decisions) -> (positions, collisions, series)` makes the next tick (it must call
-    `ticker.advance()`); progress is published and logged. At the end: the final state, the
-    outcome (published, latched; `summary_extra()` is appended to its summary) and the record.
-    `ticker.stop()` (a signal, a failed callback) ends the run before the next tick: the outcome
-    is "stopped at tick k" and the record is written all the same.
+    Each tick: `publish_state(done=False)`, collect the moves, then `step(decisions) ->
+    (events, overridden robot ids)` makes the next tick (it must call `ticker.advance()` and
+    `run.advance`, under `lock`); the goal events go to `goals` (`ros.goals.GoalServer`, also
+    the action feedback), progress is published and logged, and the record is rewritten every
+    `progress_every` ticks (a killed process leaves what it ran). A continuous fleet with nothing
+    to do (`run.waiting`: every robot idle) does not tick: it waits for a goal. At the end: the
+    final state, the outcome (published, latched; `summary_extra()` is appended to its summary)
+    and the record. `ticker.stop()` (a signal, a failed callback) ends the run before the next
+    tick: the outcome is "stopped at tick k" and the record is written all the same.
     """
     logger = node.get_logger()
     ticker = channels.ticker
-    recorder.start(positions)
-    while (not recorder.all_on_goal(positions) and recorder.steps < recorder.max_steps
-           and rclpy.ok() and not ticker.stopped):
+    idle_logged = False
+    while not run.finished() and rclpy.ok() and not ticker.stopped:
+        if run.waiting and goals is not None:
+            if not idle_logged:
+                logger.info(f"tick {run.tick}: every robot idle: waiting for goals")
+                idle_logged = True
+            goals.request_signal.wait(0.2)
+            with lock:
+                events = run.apply_requests()
+                goals.on_tick(events)
+            continue
+        idle_logged = False
         started = time.monotonic()
         if settings is not None:  # the node's parameters, changed at runtime (lockstep)
             decision_timeout = float(settings.get("decision_timeout", decision_timeout))
@@ -127,23 +150,36 @@ def run_lockstep(node, channels: FleetChannels, recorder: RunRecorder, positions
         if ticker.stopped:
             break  # this tick is not played: the record stays consistent
         if decisions.missing:
-            logger.warning(recorder.missing_text(decisions, decision_timeout))
-        positions, collisions, series = step(decisions)
-        progress = recorder.add_tick(decisions, positions, collisions, **series)
+            logger.warning(run.recorder.missing_text(decisions, decision_timeout))
+        with lock:
+            events, overridden = step(decisions)
+            progress = run.progress(decisions.missing)
+            if goals is not None:
+                goals.on_tick(events, overridden, time.monotonic() - started)
+        for event in events:
+            if event.event not in ("reached", "assigned") or run.num_robots <= 16:
+                logger.info(event.text())
         channels.progress_pub.publish(FleetProgress(**progress))
-        if recorder.steps % progress_every == 0:
-            logger.info(recorder.progress_text(progress["tick"], positions))
+        if run.steps % progress_every == 0:
+            logger.info(run.progress_text())
+            if record_file:
+                run.recorder.checkpoint(record_file, run.tick)
         if tick_period > 0:
             time.sleep(max(0.0, tick_period - (time.monotonic() - started)))
     publish_state(done=True)
-    stopped_at = (ticker.tick if ticker.stopped and not recorder.all_on_goal(positions)
-                  and recorder.steps < recorder.max_steps else None)
-    outcome = FleetOutcome(**recorder.finish(positions, extra=summary_extra(),
-                                             stopped_at=stopped_at))
+    stopped_at = run.tick if ticker.stopped and not run.finished() else None
+    with lock:
+        reason = (f"the run ended at tick {run.tick}" if stopped_at is None
+                  else f"the run was stopped at tick {run.tick}")
+        events = run.abort_active(reason) if run.tasks.continuous else []
+        if goals is not None:
+            goals.on_tick(events)
+            goals.close(reason)
+        outcome = FleetOutcome(**run.finish(extra=summary_extra(), stopped_at=stopped_at))
     channels.outcome_pub.publish(outcome)
     logger.info(outcome.summary)
     if record_file:
-        recorder.write(record_file)
+        run.recorder.write(record_file)
     return outcome
 
 
@@ -153,6 +189,12 @@ def run_reporting_failure(node, name: str, run) -> None:
     try:
         run()
     except Exception as exc:  # keep the process alive long enough to report
+        if getattr(node, "exit_code", None) is not None:
+            # a failure the node explains in one line (exit code set: no traceback)
+            node.get_logger().error(f"{name}: {exc}")
+            node.outcome = FleetOutcome(episode=node.episode, success=False,
+                                        summary=f"{name}: {exc}")
+            return
         import traceback
 
         node.get_logger().error(f"{name} failed: {exc!r}\n{traceback.format_exc().rstrip()}")
@@ -172,6 +214,7 @@ def spin_until_finished(make_node, name: str, argv: list[str] | None = None) -> 
     common.prepare_environment()
     signals = common.init_process(sys.argv if argv is None else [name] + list(argv))
     node = spinner = None
+    extra_spinners = []
     try:
         # a signal during start-up (imports, init, the node's set-up) is acted on in the loop:
         # the run stops before tick 0, with its outcome and record all the same
@@ -179,9 +222,16 @@ def spin_until_finished(make_node, name: str, argv: list[str] | None = None) -> 
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         spinner = common.SpinThread(executor).start()
+        # the goal inputs (per-robot goal_pose, actions; `ros.goals`) on their own executor, so
+        # their entities do not slow the tick's (every robot's move, each tick)
+        for extra in getattr(node, "extra_nodes", []):
+            extra_executor = SingleThreadedExecutor()
+            extra_executor.add_node(extra)
+            extra_spinners.append(common.SpinThread(extra_executor).start())
         node.start()
         while not node.finished.wait(0.2):
-            if signals.requested or spinner.error is not None:
+            if signals.requested or spinner.error is not None or any(
+                    extra.error is not None for extra in extra_spinners):
                 node.ticker.stop()
             if signals.forced:  # a second signal: one more second for the record, then exit
                 node.finished.wait(1.0)
@@ -189,15 +239,21 @@ def spin_until_finished(make_node, name: str, argv: list[str] | None = None) -> 
         if node.finished.is_set() and not signals.requested:
             time.sleep(0.5)  # let the latched outcome reach late subscribers
     finally:
+        for extra in extra_spinners:
+            extra.stop()
         if spinner is not None:
             spinner.stop()
         if node is not None:
+            for extra in getattr(node, "extra_nodes", []):
+                extra.destroy_node()
             node.destroy_node()
         rclpy.try_shutdown()
         signals.restore()
     if signals.requested:
         return signals.exit_code
-    if spinner.error is not None:
+    if getattr(node, "exit_code", None) is not None:
+        return node.exit_code
+    if spinner.error is not None or any(extra.error is not None for extra in extra_spinners):
         return 1
     return 0 if node.outcome is not None and node.outcome.success else 1
 

@@ -1,5 +1,7 @@
-"""Where a fleet's instance comes from (no rclpy): an instance YAML file, MovingAI .map/.scen
-files, or a generated random instance.
+"""Where a fleet's instance comes from (no rclpy): an instance YAML file, a map file (MovingAI
+.map, with a .scen for starts and goals, or a building's Nav2 map_server YAML + image, see
+`grid.nav2_map`) with starts and goals drawn from the seed when no .scen is given, or a
+generated random instance.
 
 Instance YAML (e.g. config/fleet/instance_*.yaml):
 
@@ -32,6 +34,7 @@ class InstanceSource:
     size: int = 16
     density: float = 0.3
     seed: int = 0
+    cell_size: float = 0.0  # Nav2 maps: metres per cell (0: one image pixel per cell)
 
     def __post_init__(self):
         if self.num_robots < 1:
@@ -40,19 +43,53 @@ class InstanceSource:
             raise ValueError(f"size must be >= 2, got {self.size}")
         if not 0.0 <= self.density < 1.0:
             raise ValueError(f"density must be in [0, 1), got {self.density}")
-        if bool(self.map_file) != bool(self.scen_file):
-            raise ValueError("map_file and scen_file go together: give both or neither "
-                             f"(map_file={self.map_file!r}, scen_file={self.scen_file!r})")
+        if self.scen_file and not self.map_file:
+            raise ValueError(f"scen_file {self.scen_file!r} needs its map_file")
+        if self.scen_file and self.is_nav2:
+            raise ValueError(f"scen_file {self.scen_file!r} goes with a MovingAI .map, not the "
+                             f"Nav2 map {self.map_file!r}")
+        if self.cell_size < 0:
+            raise ValueError(f"cell_size must be >= 0 (0: the map image's resolution), got "
+                             f"{self.cell_size}")
+
+    @property
+    def is_nav2(self) -> bool:
+        return Path(self.map_file).suffix.lower() in (".yaml", ".yml")
+
+    def geometry(self) -> tuple[float, float, float] | None:
+        """(resolution, origin_x, origin_y) of a Nav2 map (the map frame's metres), else None
+        (the node's `resolution` / origin parameters place the grid)."""
+        if not self.map_file or not self.is_nav2:
+            return None
+        return self._nav2().geometry
+
+    def _nav2(self):
+        from mapf_fleet.grid.nav2_map import read_nav2_map
+
+        found = getattr(self, "_nav2_map", None)
+        if found is None:
+            found = read_nav2_map(self.map_file, self.cell_size or None)
+            object.__setattr__(self, "_nav2_map", found)  # frozen: cache the parsed map
+        return found
+
+    def grid(self) -> np.ndarray:
+        from mapf_fleet.grid.movingai import read_map
+
+        return np.asarray(self._nav2().grid if self.is_nav2 else read_map(self.map_file))
 
     def load(self):
         from mapf_fleet.grid.instance import generate_instance
 
         if self.instance_file:
             return load_instance_yaml(self.instance_file)
-        if self.map_file:
+        if self.scen_file:
             from mapf_fleet.grid.movingai import load_movingai_instances
 
             return load_movingai_instances(self.map_file, self.scen_file, self.num_robots).validate()
+        if self.map_file:  # a map without a .scen: starts and goals drawn from the seed
+            from mapf_fleet.grid.maps import place_agents
+
+            return place_agents(self.grid(), self.num_robots, np.random.default_rng(self.seed))
         return generate_instance(self.size, self.num_robots, self.density, self.seed)
 
 

@@ -5,20 +5,21 @@ for k (its ranked actions; a move missing after `decision_timeout` is "stay" and
 arbitrate them (`arbiter.TickArbiter`, the configured conflict rule) and command the waypoints,
 turn the commands into the positions of k + 1 (this is where they differ: the simulator takes
 them, the aggregator waits for the real robots' poses), then report progress; at the end the
-outcome and the run record. `FleetTicker` holds the per-tick decisions and readiness, `RunRecorder` the
-counts, the record and the texts; the nodes feed them messages and publish what they return.
+outcome and the run record. `FleetTicker` holds the per-tick decisions and readiness; the run
+itself (cells, goals, tasks, arbiter, record) is the fleet core's `fleet.run.FleetRun`; the nodes
+feed them messages and publish what they return.
 """
 
 from __future__ import annotations
 
-import json
 import threading
 import time
-from dataclasses import dataclass
 
 import numpy as np
 
 from mapf_fleet.fleet.arbiter import DEFAULT_CONFLICT_RULE, ranking_problem, single_choice_ranking
+from mapf_fleet.fleet.record import Decisions
+from mapf_fleet.fleet.tasks import TASK_SOURCES
 from mapf_fleet.ros.instances import InstanceSource
 
 # name: (default, description); both nodes take their instance and their tick from these
@@ -29,14 +30,25 @@ INSTANCE_PARAMETERS = {
     "num_robots": (8, "robots to generate or to take from the .scen file"),
     "size": (16, "side of a generated square map"),
     "density": (0.3, "obstacle density of a generated map"),
-    "seed": (0, "seed of a generated instance"),
+    "seed": (0, "seed of a generated instance (and of the starts and goals drawn on a map_file "
+                "without scen_file)"),
+    "cell_size": (0.0, "Nav2 map YAML (map_file F.yaml): metres per grid cell, a whole number of "
+                       "image pixels (0: one pixel per cell); a cell is blocked when any of its "
+                       "pixels is occupied or unknown"),
 }
 RUN_PARAMETERS = {
     "conflict_rule": (DEFAULT_CONFLICT_RULE, "how the tick's decisions become moves: pibt (PIBT over the "
                               "robots' ranked actions, nothing reverted), pibt_anchor (the same, "
                               "the top-priority robot on its distance order) or revert (the "
                               "paper's rules on the first choices)"),
-    "max_steps": (256, "tick limit: the run fails when robots are not all on goal by then"),
+    "max_steps": (256, "tick limit: a one-shot run fails when robots are not all on goal by "
+                       "then; continuous runs end there (0: no limit, continuous task sources)"),
+    "task_source": ("instance", f"where goals come from: {' | '.join(TASK_SOURCES)} (instance: "
+                                f"the one-shot episode; lifelong: a new random goal on arrival; "
+                                f"tasks: task_file's goals / pick-up-drop-off pairs for the "
+                                f"nearest idle robot; external: only goals given at run time)"),
+    "task_file": ("", "task list YAML for task_source tasks"),
+    "goal_seed": (-1, "seed of the lifelong goal stream (-1: the instance seed)"),
     "decision_timeout": (5.0, "seconds to wait for a robot's move before it counts as stay"),
     "startup_timeout": (60.0, "seconds to wait for every policy node to report ready"),
     "resolution": (1.0, "metres per cell in poses and the map"),
@@ -95,7 +107,25 @@ def instance_source(params: dict) -> InstanceSource:
     """The (validated) instance source named by a node's INSTANCE_PARAMETERS values."""
     return InstanceSource(params["instance_file"], params["map_file"], params["scen_file"],
                           int(params["num_robots"]), int(params["size"]),
-                          float(params["density"]), int(params["seed"]))
+                          float(params["density"]), int(params["seed"]),
+                          float(params.get("cell_size", 0.0)))
+
+
+def fleet_run(params: dict, grid, starts, goals, episode: int, series, geometry=None,
+              start_tick: int = 0):
+    """The node's `fleet.run.FleetRun` from its RUN_PARAMETERS (task source, tick limit, rule)."""
+    from mapf_fleet.fleet.run import FleetRun
+    from mapf_fleet.fleet.tasks import make_task_source
+
+    seed = int(params["goal_seed"]) if int(params.get("goal_seed", -1)) >= 0 else \
+        int(params.get("seed", 0))
+    cell_of = None if geometry is None else geometry.xy_to_cell
+    tasks = make_task_source(str(params["task_source"]), grid, seed=seed,
+                             task_file=str(params["task_file"]), num_robots=len(starts),
+                             cell_of=cell_of)
+    return FleetRun(grid, starts, tasks, goals, rule=str(params["conflict_rule"]),
+                    max_steps=int(params["max_steps"]), episode=episode, series=series,
+                    start_tick=start_tick)
 
 
 def require_positive(params: dict, names) -> None:
@@ -135,19 +165,6 @@ class EpisodeBinding:
     def reported(self) -> int:
         """The episode to report in heartbeats: the bound one, 0 when free."""
         return self.episode or 0
-
-
-@dataclass(frozen=True)
-class Decisions:
-    """The moves collected for one tick; a missing robot's action is 0 (stay), its
-    preferences [0, 1, 2, 3, 4]."""
-
-    tick: int
-    actions: np.ndarray            # (N,) int64: first choices
-    preferences: np.ndarray        # (N, 5) int64: each robot's actions ranked, best first
-    missing: list[int]             # robots without a move by the deadline
-    requested: list[list[int]]     # per robot: DHC partners / DCC requested peers
-    messages: list[int]            # per robot: peer messages it used
 
 
 class FleetTicker:
@@ -248,94 +265,3 @@ class FleetTicker:
             self.tick += 1
             self._prefs, self._comm = {}, {}
             return self.tick
-
-
-class RunRecorder:
-    """Counts, per-tick record and texts of one run. `series` names the node's own per-tick
-    record entries (e.g. "collided", "rejected"), given to `add_tick` as keyword arguments."""
-
-    def __init__(self, episode: int, num_robots: int, goals, max_steps: int,
-                 series=("requested", "messages"), conflict_rule: str = ""):
-        self.episode = int(episode)
-        self.conflict_rule = conflict_rule
-        self.overridden = 0  # robots whose executed move was not their first choice (series
-        #                      "overridden": robot ids per tick)
-        self.num_robots = int(num_robots)
-        self.goals = np.asarray(goals, dtype=np.int64)
-        self.max_steps = int(max_steps)
-        self.series = tuple(series)
-        self.steps = self.collisions = self.missed = 0
-        self.missed_robots: set[int] = set()
-        self.record: dict = {"episode": self.episode, "positions": [], "actions": [],
-                             "missed": [], **{name: [] for name in self.series}}
-        if conflict_rule:
-            self.record["conflict_rule"] = conflict_rule
-        self.started = time.monotonic()
-
-    def on_goal(self, positions) -> int:
-        return int((np.asarray(positions) == self.goals).all(1).sum())
-
-    def all_on_goal(self, positions) -> bool:
-        return self.on_goal(positions) == self.num_robots
-
-    def start(self, positions) -> None:
-        self.record["positions"].append(np.asarray(positions).tolist())
-        self.started = time.monotonic()
-
-    def missing_text(self, decisions: Decisions, timeout: float) -> str:
-        return (f"tick {decisions.tick}: no decision from robots {decisions.missing} within "
-                f"{timeout} s: they stay")
-
-    def add_tick(self, decisions: Decisions, positions, collisions: int, **series) -> dict:
-        """Count and record one tick; the FleetProgress fields of the new tick."""
-        if set(series) != set(self.series):
-            raise ValueError(f"add_tick: expected series {sorted(self.series)}, "
-                             f"got {sorted(series)}")
-        self.steps += 1
-        self.collisions += int(collisions)
-        self.missed += len(decisions.missing)
-        self.missed_robots.update(decisions.missing)
-        self.record["actions"].append(decisions.actions.tolist())
-        self.record["missed"].append(list(decisions.missing))
-        for name, value in series.items():
-            self.record[name].append(value)
-        self.overridden += len(series.get("overridden", ()))
-        self.record["positions"].append(np.asarray(positions).tolist())
-        return dict(episode=self.episode, tick=decisions.tick + 1, max_steps=self.max_steps,
-                    num_robots=self.num_robots, on_goal=self.on_goal(positions),
-                    collisions=self.collisions, missed_decisions=self.missed,
-                    missed_robots=list(decisions.missing))
-
-    def progress_text(self, tick: int, positions) -> str:
-        return (f"tick {tick}: {self.on_goal(positions)}/{self.num_robots} on goal, "
-                f"{self.collisions} collisions, {self.missed} missed decisions")
-
-    def finish(self, positions, extra: str = "", stopped_at: int | None = None) -> dict:
-        """The FleetOutcome fields (with its summary); `extra` is appended to the summary.
-        `stopped_at`: the run was stopped (signal, failure) at that tick: a failure whose
-        summary starts with "stopped at tick k"."""
-        success = self.all_on_goal(positions) and stopped_at is None
-        verdict = ('success' if success else 'failure') if stopped_at is None else \
-            f"stopped at tick {stopped_at}"
-        summary = (f"{verdict}: {self.on_goal(positions)}/"
-                   f"{self.num_robots} robots on goal after {self.steps} steps, "
-                   f"{self.collisions} collisions, {self.missed} missed decisions"
-                   + (f" (robots {sorted(self.missed_robots)})" if self.missed_robots else "")
-                   + (f", {self.overridden} overridden moves ({self.conflict_rule})"
-                      if self.conflict_rule else "")
-                   + extra)
-        if stopped_at is not None:
-            self.record["stopped_at_tick"] = int(stopped_at)
-        self.record.update(run_seconds=time.monotonic() - self.started, success=success,
-                           steps=self.steps, collisions=self.collisions,
-                           missed_decisions=self.missed, summary=summary)
-        if self.conflict_rule:
-            self.record["overridden_moves"] = self.overridden
-        return dict(episode=self.episode, success=success, steps=self.steps,
-                    num_robots=self.num_robots, collisions=self.collisions,
-                    missed_decisions=self.missed, missed_robots=sorted(self.missed_robots),
-                    summary=summary)
-
-    def write(self, path) -> None:
-        with open(path, "w") as handle:
-            json.dump(self.record, handle)

@@ -18,7 +18,9 @@ import pytest
 
 from mapf_fleet.fleet.arbiter import check_pose
 from mapf_fleet.ros.common import MapGeometry
-from mapf_fleet.ros.lockstep import FleetTicker, RunRecorder
+from mapf_fleet.fleet.run import FleetRun
+from mapf_fleet.fleet.tasks import InstanceTasks
+from mapf_fleet.ros.lockstep import FleetTicker
 
 GRID = np.zeros((4, 4), dtype=np.uint8)
 GRID[1, 1] = 1
@@ -61,12 +63,12 @@ def test_stopped_ticker_returns_at_once_and_the_outcome_says_stopped_at_tick(tmp
     decisions = ticker.collect(30.0)
     assert time.monotonic() - started < 20.0  # not the 60 s of the two timeouts, on any load
     assert decisions.missing == [0, 1]
-    recorder = RunRecorder(5, 2, [[1, 1], [2, 2]], 50, series=())
-    recorder.start(np.array([[0, 0], [2, 2]]))
-    outcome = recorder.finish(np.array([[0, 0], [2, 2]]), stopped_at=7)
+    run = FleetRun(np.zeros((3, 3)), [[0, 0], [2, 2]], InstanceTasks(), [[1, 1], [2, 2]],
+                   max_steps=50, episode=5)
+    outcome = run.finish(stopped_at=7)
     assert outcome["success"] is False
     assert outcome["summary"].startswith("stopped at tick 7: 1/2 robots on goal")
-    recorder.write(tmp_path / "run.json")
+    run.recorder.write(tmp_path / "run.json")
     assert json.loads((tmp_path / "run.json").read_text())["stopped_at_tick"] == 7
 
 

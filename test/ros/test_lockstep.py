@@ -12,7 +12,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from mapf_fleet.ros.lockstep import FleetTicker, RunRecorder
+from mapf_fleet.fleet.run import FleetRun
+from mapf_fleet.fleet.tasks import InstanceTasks
+from mapf_fleet.ros.lockstep import FleetTicker
 
 
 def _move(robot, action, tick=0, episode=9, requested=(), received=0, missing=()):
@@ -59,23 +61,44 @@ def test_wait_ready_needs_every_robot_hearing_every_peer():
     assert ticker.wait_ready(5.0) == []
 
 
-def test_recorder_counts_records_and_summarises(tmp_path):
+def test_run_records_counts_and_summarises(tmp_path):
     goals = np.array([[0, 1], [2, 2]])
-    recorder = RunRecorder(9, 2, goals, max_steps=4, series=("rejected",))
-    recorder.start([[0, 0], [2, 2]])
+    run = FleetRun(np.zeros((3, 3)), [[0, 0], [2, 2]], InstanceTasks(), goals, max_steps=4,
+                   episode=9, series=("rejected",))
     ticker = FleetTicker(2, episode=9)
     ticker.on_move(_move(0, 4))
     decisions = ticker.collect(0.01)
     with pytest.raises(ValueError, match="series"):
-        recorder.add_tick(decisions, [[0, 1], [2, 2]], 0)
-    progress = recorder.add_tick(decisions, [[0, 1], [2, 2]], 1, rejected=[1])
+        run.advance(decisions, [[0, 1], [2, 2]], [4, 0], collisions=0)
+    run = FleetRun(np.zeros((3, 3)), [[0, 0], [2, 2]], InstanceTasks(), goals, max_steps=4,
+                   episode=9, series=("rejected",))
+    run.advance(decisions, [[0, 1], [2, 2]], [4, 0], collisions=1, rejected=[1])
+    progress = run.progress(decisions.missing)
     assert progress["tick"] == 1 and progress["on_goal"] == 2
     assert progress["missed_decisions"] == 1 and progress["missed_robots"] == [1]
-    outcome = recorder.finish([[0, 1], [2, 2]], extra=", 1 rejected poses")
+    assert run.finished() == "every robot on its goal"
+    outcome = run.finish(extra=", 1 rejected poses")
     assert outcome["success"] and outcome["steps"] == 1 and outcome["collisions"] == 1
     assert outcome["summary"] == ("success: 2/2 robots on goal after 1 steps, 1 collisions, "
-                                  "1 missed decisions (robots [1]), 1 rejected poses")
-    recorder.write(tmp_path / "run.json")
-    run = json.loads((tmp_path / "run.json").read_text())
-    assert run["positions"] == [[[0, 0], [2, 2]], [[0, 1], [2, 2]]]
-    assert run["actions"] == [[4, 0]] and run["missed"] == [[1]] and run["rejected"] == [[1]]
+                                  "1 missed decisions (robots [1]), 0 overridden moves "
+                                  "(pibt_anchor), 1 rejected poses")
+    run.recorder.write(tmp_path / "run.json")
+    record = json.loads((tmp_path / "run.json").read_text())
+    assert record["positions"] == [[[0, 0], [2, 2]], [[0, 1], [2, 2]]]
+    assert record["actions"] == [[4, 0]] and record["missed"] == [[1]]
+    assert record["rejected"] == [[1]]
+
+
+def test_a_checkpointed_record_says_it_is_incomplete_until_the_outcome(tmp_path):
+    run = FleetRun(np.zeros((3, 3)), [[0, 0]], InstanceTasks(), [[2, 2]], max_steps=9)
+    ticker = FleetTicker(1, episode=0)
+    ticker.on_move(_move(0, 2, episode=0))
+    run.advance(ticker.collect(0.01), [[1, 0]], [2])
+    run.recorder.checkpoint(tmp_path / "run.json", run.tick)
+    record = json.loads((tmp_path / "run.json").read_text())
+    assert record["incomplete"] and record["steps"] == 1 and not record["success"]
+    assert record["summary"].startswith("incomplete: the run's record stops at tick 1")
+    run.finish(stopped_at=1)
+    run.recorder.write(tmp_path / "run.json")
+    record = json.loads((tmp_path / "run.json").read_text())
+    assert "incomplete" not in record and record["summary"].startswith("stopped at tick 1")
