@@ -449,7 +449,7 @@ def test_card_of_an_intermediate_checkpoint_stops_its_curves_at_it(evaluated, tm
     assert "| `curriculum/num_agents` | 5 | 400 |" in card  # only logged before the checkpoint
     assert "up to this checkpoint's update 4,321, the run logged on to update 6,000" in card
     assert "| run stop reason | stopped by SIGINT (resume with --resume) (at update 6,000, after this checkpoint) |" in card
-    assert "6,000 |" not in card.split("## Training curves")[1].split("## Evaluation")[0]
+    assert "6,000 |" not in card.split("### Training curves")[1].split("## Versions")[0]
     # Its metadata holds no counters of its own moment: the run's compute is only an upper bound.
     assert ("This checkpoint is an intermediate point (update 4,321) of a run that went on to update 6,000: "
             "the figures here are the whole run's") in card
@@ -485,14 +485,37 @@ def test_append_adds_the_shielded_rows_to_an_existing_card(tmp_path):
     assert card_main(["--checkpoint", str(checkpoint), "--eval", str(plain), str(shielded),
                       "--out", str(card), "--append", "Under the coordination layer"]) == 0
     after = card.read_text()
-    assert after.startswith(before)
-    added = after[len(before):]
-    assert "## Under the coordination layer" in added and "--shield pibt" in added
+    # with the card's other results, before its training part; nothing else changed
+    head, tail = before.split("\n## How it was trained and what it cost\n")
+    assert after.startswith(head.rstrip("\n")) and after.endswith("## How it was trained and what it cost\n" + tail)
+    added = after[len(head.rstrip("\n")):-len("## How it was trained and what it cost\n" + tail)]
+    assert "### Under the coordination layer" in added and "--shield pibt" in added
+    assert after.index("## Results") < after.index("### Under the coordination layer") \
+        < after.index("## How it was trained")
     assert "**rand +PIBT** (this checkpoint under the PIBT shield)" in added
     assert "heuristic +PIBT (reference)" in added
     other = save_random_checkpoint(tmp_path / "other.pt", "dcc", "small", seed=5)
     assert card_main(["--checkpoint", str(other), "--eval", str(shielded), "--out", str(card),
                       "--append", "x"]) == 2
+
+
+def test_the_card_reads_in_the_readers_order(evaluated, tmp_path):
+    """What it is, how to run it, the results, then how it was trained and what it cost."""
+    _, checkpoint, _, eval_json = evaluated
+    card = build_card(checkpoint, eval_json)
+    headings = [line for line in card.splitlines() if line.startswith("## ")]
+    assert headings == ["## What it is", "## How to run it", "## Results",
+                        "## How it was trained and what it cost", "## Versions"]
+    assert f"mapf-fleet up --checkpoint {checkpoint}" in card  # outside a checkout: as given
+    assert card.index("### Evaluation (the paper's protocol)") < card.index("### Training configuration")
+
+
+def test_add_section_to_an_older_card_appends_it():
+    from mapf_fleet.evaluation.model_card import add_section
+
+    assert add_section("# card\n\n## Versions\n", "\n## New\n") == "# card\n\n## Versions\n\n## New\n"
+    new = add_section("## Results\n\nr\n\n## How it was trained and what it cost\n\nt\n", "\n### New\n")
+    assert new == "## Results\n\nr\n\n### New\n\n## How it was trained and what it cost\n\nt\n"
 
 
 def test_shielded_rows_are_compared_with_plain_pibt_in_success_and_steps():

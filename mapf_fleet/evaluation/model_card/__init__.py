@@ -16,13 +16,14 @@ One module per job, each readable on its own:
 - `compute`: what it cost (wall time x reserved CPUs, measured CPU time)
 - `curves`: the TensorBoard scalars and their PNG
 - `tables`: the results beside the references and the paper, the side-by-side table
-- `card`: `build_card` and `append_evaluation`, which put the sections together
+- `card`: `build_card`, `append_evaluation` and `add_section`: the sections in the reader's order
+  (what it is, how to run it, results, how it was trained and what it cost, versions)
 - `command`: `build_parser` and `main` (`mapf-fleet card`)
 
 The names below are re-exported so `from mapf_fleet.evaluation.model_card import X` keeps working.
 """
 
-from .card import append_evaluation, build_card
+from .card import add_section, append_evaluation, build_card
 from .command import build_parser, main
 from .compute import CHECKPOINT_POINT, Compute, compute_spent, uncounted_warm_start_seconds
 from .curves import CURVE_TAGS, plot_curves, read_scalars, scalars_up_to
@@ -34,7 +35,7 @@ from .tables import (CARD_METRICS, PLAIN_PIBT, _against_plain_pibt, comparison_s
 
 __all__ = [
     "CARD_METRICS", "CHECKPOINT_POINT", "CURVE_TAGS", "PLAIN_PIBT", "CardError", "Compute",
-    "EvalFiles", "RunInfo", "append_evaluation", "build_card", "build_parser", "comparison_section",
+    "EvalFiles", "RunInfo", "add_section", "append_evaluation", "build_card", "build_parser", "comparison_section",
     "compute_spent", "evaluation_block", "evaluation_section",
     "load_evaluation", "load_evaluations", "main", "match_policy", "model_summary", "plot_curves",
     "read_run_dir", "read_scalars", "scalars_up_to", "training_config_diff",

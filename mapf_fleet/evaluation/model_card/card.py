@@ -1,6 +1,7 @@
-"""The card itself: `build_card` puts the sections together (what it is, training
-configuration, compute, curves, evaluation, side by side, versions); `append_evaluation` adds an
-evaluation section to an existing card."""
+"""The card itself, in the order a reader needs it: `build_card` puts the sections together
+(what it is, how to run it, results beside the references and the paper, how it was trained and
+what it cost: configuration, compute, curves, side by side; versions); `append_evaluation`
+writes another results section for an existing card and `add_section` puts it with the results."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from .compute import CHECKPOINT_POINT, compute_spent
 from .curves import CURVE_TAGS, plot_curves, read_scalars, scalars_up_to
 from .facts import _alpha_star_text, _trained_with_text, _version_text, model_summary, training_config_diff
 from .inputs import CardError, _sha256, load_evaluations, match_policy, read_run_dir
-from .tables import comparison_section, evaluation_block
+from .tables import _repo_relative, comparison_section, evaluation_block
 
 
 def _yaml_block(data: dict) -> str:
@@ -47,10 +48,40 @@ def append_evaluation(checkpoint: str | Path, eval_path, out: str | Path, title:
     evaluation, eval_path = load_evaluations(eval_path)
     policy = match_policy(evaluation, checkpoint, eval_path)
     now = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
-    lines = evaluation_block(evaluation, policy, metadata, eval_path, title)
+    # in a card of the reader's order the section is one of its results (a level-3 heading)
+    level = 3 if f"\n{TRAINED}\n" in card else 2
+    lines = evaluation_block(evaluation, policy, metadata, eval_path, title, level=level)
     lines.insert(2, f"Appended {now} by `{command}`.")
     lines.insert(3, "")
     return "\n" + "\n".join(lines) + "\n"
+
+
+RESULTS = "## Results"
+TRAINED = "## How it was trained and what it cost"  # `--append` puts new results before it
+
+
+def how_to_run(checkpoint: Path, metadata: dict) -> list[str]:
+    """The commands that run the checkpoint on the fleet and in the evaluator (under the fleet's
+    default conflict rule beside plain PIBT)."""
+    path = _repo_relative(str(checkpoint))
+    lines = ["```bash",
+             f"mapf-fleet up --checkpoint {path}            # a simulated fleet over ROS 2",
+             f"mapf-fleet evaluate --checkpoint {path} heuristic --shield none pibt_anchor --sizes 40",
+             "```", ""]
+    if metadata["algorithm"] == "dcc":
+        lines += ["On a fleet, DCC robots exchange requests and replies with their neighbours each tick "
+                  "(services `/robot_<i>/dcc_request`, `/robot_<i>/dcc_reply`).", ""]
+    return lines
+
+
+def add_section(card: str, section: str) -> str:
+    """`card` with an evaluation `section` (from `append_evaluation`) added: before the training
+    part of a card in the reader's order, so results stay together; at the end of an older card."""
+    marker = f"\n{TRAINED}\n"
+    if marker in card:
+        head, _, tail = card.partition(marker)
+        return head.rstrip("\n") + "\n" + section.rstrip("\n") + "\n" + marker + tail
+    return card + section
 
 
 def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | Path | None = None,
@@ -120,8 +151,12 @@ def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | 
                 stop += f" (at update {later_updates:,}, after this checkpoint)"
             facts.append(("run stop reason", stop))
     lines += [f"| {k} | {v} |" for k, v in facts]
+    lines += ["", "## How to run it", ""] + how_to_run(checkpoint, metadata)
+    # The reader's order: what it is, how to run it, its results, then how it was trained and what
+    # it cost. The training part is written first (it reads the run) and placed after the results.
+    front, lines = lines, []
 
-    lines += ["", "## Training configuration", ""]
+    lines += ["", "### Training configuration", ""]
     training_config = dict(metadata.get("training_config") or {})
     diff, closest, closest_note = training_config_diff(training_config)
     if closest:
@@ -137,7 +172,7 @@ def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | 
     lines += ["", "<details><summary>full training configuration (checkpoint metadata)</summary>", "",
               _yaml_block(training_config), "", "</details>"]
 
-    lines += ["", "## Compute", ""]
+    lines += ["", "### Compute", ""]
     compute = compute_spent(run, metadata)
     if compute is None:
         lines.append("Not recorded: no run directory given and the checkpoint holds no elapsed time.")
@@ -172,7 +207,7 @@ def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | 
     for note in (run.notes if run else []):
         lines.append(f"Note: {note}.")
 
-    lines += ["", "## Training curves", ""]
+    lines += ["", "### Training curves", ""]
     if curves is not None:
         scalars, cut = scalars_up_to(read_scalars(run.tb_dir), steps)
         plotted = plot_curves(scalars, Path(curves), f"{checkpoint.stem}: {metadata['algorithm'].upper()}")
@@ -193,8 +228,10 @@ def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | 
     else:
         lines.append("No curves: the card was written without `--run-dir` and `--curves`.")
 
-    lines += [""] + evaluation_block(evaluation, policy, metadata, eval_path,
-                                     "Evaluation (the paper's protocol)")
+    trained, lines = lines, front
+    lines += [RESULTS, ""] + evaluation_block(evaluation, policy, metadata, eval_path,
+                                                  "Evaluation (the paper's protocol)", level=3)
+    lines += [TRAINED, ""] + trained[1:] + [""]
     if compare:
         others = []
         for item in map(str, compare):
@@ -206,7 +243,7 @@ def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | 
                 raise CardError(f"--compare {path}: {exc}") from exc
             other_run = read_run_dir(other_run_dir, path, meta) if other_run_dir else None
             others.append((path, meta, other_run))
-        lines += comparison_section(evaluation, policy, metadata, eval_path, others, run)
+        lines += comparison_section(evaluation, policy, metadata, eval_path, others, run, level=3)
     lines += ["## Versions", "",
               f"- card written {now} with code {_version_text(code_version())}",
               f"- checkpoint written {metadata.get('created', '?')} with code {_version_text(metadata.get('code_version'))}",

@@ -9,7 +9,9 @@ import argparse
 import sys
 from pathlib import Path
 
-from .card import append_evaluation, build_card
+from mapf_fleet.files import atomic_write
+
+from .card import add_section, append_evaluation, build_card
 from .inputs import CardError
 
 
@@ -22,8 +24,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="Markdown file to write (models/X.md)")
     p.add_argument("--curves", metavar="PNG", help="write the training curves here (needs --run-dir)")
     p.add_argument("--append", metavar="TITLE",
-                   help="append the --eval section under this heading to the existing card --out "
-                        "(which must name the checkpoint's SHA-256) instead of writing a new card")
+                   help="add the --eval section under this heading to the existing card --out "
+                        "(which must name the checkpoint's SHA-256) instead of writing a new card: "
+                        "with its other results, before 'How it was trained' (an older card: at "
+                        "the end)")
     p.add_argument("--compare", nargs="+", metavar="CHECKPOINT", default=[],
                    help="other checkpoints evaluated in the --eval JSON(s), as CHECKPOINT or "
                         "CHECKPOINT=RUN_DIR (its run directory, for what the checkpoint does not "
@@ -44,9 +48,8 @@ def main(argv: list[str] | None = None) -> int:
         except CardError as exc:
             print(f"mapf-fleet card: {exc}", file=sys.stderr)
             return 2
-        with open(args.out, "a") as handle:
-            handle.write(text)
-        print(f"appended to {args.out}")
+        atomic_write(args.out, add_section(Path(args.out).read_text(), text).encode())
+        print(f"added to {args.out}")
         return 0
     try:
         text = build_card(args.checkpoint, args.eval, run_dir=args.run_dir, out=args.out,

@@ -38,9 +38,10 @@ def _map_size(map_name: str) -> int | None:
     return None
 
 
-def evaluation_section(evaluation: dict, policy: str, metadata: dict, eval_path: Path) -> list[str]:
-    """Per map: the measured rows of this checkpoint and of the references, the paper's rows of
-    the same algorithm below them."""
+def evaluation_section(evaluation: dict, policy: str, metadata: dict, eval_path: Path,
+                       level: int = 3) -> list[str]:
+    """Per map (a heading of `level`): the measured rows of this checkpoint and of the references,
+    the paper's rows of the same algorithm below them."""
     references = [p["name"] for p in evaluation["metadata"]["policies"] if p.get("kind") != "checkpoint"]
     # the same checkpoint under the coordination layer (rows "<policy> +PIBT", "+PIBT(mode)")
     shielded = [p["name"] for p in evaluation["metadata"]["policies"] if p.get("kind") == "checkpoint"
@@ -62,7 +63,7 @@ def evaluation_section(evaluation: dict, policy: str, metadata: dict, eval_path:
         if size in paper_results.TABLE_BY_SIZE:
             methods = (BASELINE, CURRICULUM, FIXED) if fixed else (BASELINE, CURRICULUM)
             paper = paper_results.paper_rows(algorithm, size, methods)
-        lines.append(f"### {map_name}\n")
+        lines.append(f"{'#' * level} {map_name}\n")
         lines.append(f"Measured on {counts} instances per scenario, limit {limits} steps; instances: {sources}.")
         if paper:
             tables = ", ".join(dict.fromkeys(r.table for r in paper))
@@ -103,7 +104,7 @@ def _hours(value: float | None) -> str:
 
 
 def comparison_section(evaluation: dict, policy: str, metadata: dict, eval_path: Path,
-                       others: list[tuple[Path, dict]], run: RunInfo | None) -> list[str]:
+                       others: list[tuple[Path, dict]], run: RunInfo | None, level: int = 2) -> list[str]:
     """This checkpoint beside other checkpoints measured in the same evaluation JSON(s) (issue 8
     item 4: the warm start beside the paper's recipe): how each was trained, the compute spent up
     to it and its success rates. `others`: (checkpoint, its metadata, its RunInfo or None)."""
@@ -113,7 +114,7 @@ def comparison_section(evaluation: dict, policy: str, metadata: dict, eval_path:
         if name == policy:
             raise CardError(f"--compare {path}: is the card's own checkpoint")
         entries.append((name, meta, compute_spent(other_run, meta)))
-    lines = ["## Side by side", "",
+    lines = [f"{'#' * level} Side by side", "",
              f"Checkpoints measured with the same protocol (`{eval_path.name}`); compute up to each "
              "checkpoint, read from its metadata (measured = process CPU time of the trainer and its "
              "actors; reserved = wall time x CPUs of the run).", "",
@@ -195,10 +196,12 @@ def _repo_relative(path: str) -> str:
         return path
 
 
-def evaluation_block(evaluation: dict, policy: str, metadata: dict, eval_path, title: str) -> list[str]:
-    """The card's evaluation section: the re-run commands of the JSON(s), then the tables."""
+def evaluation_block(evaluation: dict, policy: str, metadata: dict, eval_path, title: str,
+                     level: int = 2) -> list[str]:
+    """The card's evaluation section (a heading of `level`): the re-run commands of the JSON(s),
+    then the tables, one sub-heading per map."""
     runs = evaluation["runs"]
-    lines = [f"## {title}", "",
+    lines = [f"{'#' * level} {title}", "",
               "Re-run the numbers below with (from the directory it was run in):", ""]
     for path, meta in runs:
         if len(runs) > 1:
@@ -219,5 +222,5 @@ def evaluation_block(evaluation: dict, policy: str, metadata: dict, eval_path, t
             lines += ["Evaluation: " + "; ".join(info) + ".", ""]
     if len(runs) > 1:
         lines += ["A row measured in several of these files is taken from the first one listed.", ""]
-    lines += evaluation_section(evaluation, policy, metadata, eval_path)
+    lines += evaluation_section(evaluation, policy, metadata, eval_path, level + 1)
     return lines
