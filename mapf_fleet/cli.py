@@ -16,7 +16,8 @@ COMMANDS = {
               "demonstration dataset from LaCAM/PIBT, in resumable shards"),
     "dagger": ("mapf_fleet.training.dagger", "main", "DAgger behind the arbiter, LaCAM labels"),
     "evaluate": ("mapf_fleet.evaluation.cli", "main", "the paper's evaluation protocol"),
-    "render": ("mapf_fleet.evaluation.render", "main", "render one episode as GIF/PNG"),
+    "render": ("mapf_fleet.view.replay", "main",
+               "an episode, or a fleet's recorded run (--run JSON/rosbag), as GIF/WebP"),
     "card": ("mapf_fleet.evaluation.model_card", "main", "write a checkpoint's model card"),
     "up": ("mapf_fleet.ros.launcher", "main", "start a simulated (or real-robot) fleet"),
     "echo": ("mapf_fleet.ros.echo", "main", "print a topic's messages as YAML"),
@@ -24,6 +25,8 @@ COMMANDS = {
     "record": ("mapf_fleet.ros.bag", "main", "record the fleet's topics into a rosbag2 (MCAP)"),
     "view": ("mapf_fleet.ros.live_view", "main", "live picture of a running fleet in a browser"),
     "node": ("mapf_fleet.ros.run", "main", "run one node, like `ros2 run mapf_fleet <node>`"),
+    "goal": ("mapf_fleet.ros.goal_cli", "main",
+             "send a robot a goal (navigate_to_pose, goal_pose, or tasks for any idle robot)"),
 }
 
 

@@ -1,10 +1,14 @@
-"""`mapf-fleet render`: one episode as an animated GIF (or a folder of PNG frames).
+"""`mapf-fleet render`: one episode as an animated GIF or WebP (or a folder of PNG frames).
 
     mapf-fleet render --checkpoint C --size 40 --agents 16 --seed 3 --out ep.gif
     mapf-fleet render --checkpoint lacam --map F.map --scen F.scen --agents 8 --out ep.gif
+    mapf-fleet render --run run.json --out run.gif     # a fleet's run: `up --record run.json`
+    mapf-fleet render --run bags/run1 --out run.webp   # or its rosbag2 (`record` / `up --bag`)
 
 Each agent has a colour: its disc is the agent, the hollow square of the same colour its goal;
-a red ring marks an agent whose move was just reverted (a collision).
+a red ring marks an agent whose move was just reverted (a collision); a recorded run also shows
+the paths taken. The format follows --out: .gif, .webp (animated, smaller), .mp4 (only with the
+optional imageio-ffmpeg installed: `pip install imageio-ffmpeg`), else a folder of PNG frames.
 """
 
 from __future__ import annotations
@@ -50,8 +54,12 @@ def record_episode(spec, instances: InstanceSet, max_steps: int) -> tuple[np.nda
     return np.stack(trail), (np.stack(bumps) if bumps else np.zeros((0, n), bool)), success
 
 
-def draw_frames(grid: np.ndarray, goals: np.ndarray, positions: np.ndarray, collided: np.ndarray, title: str):
-    """Yield RGB frames (H, W, 3) uint8, one per time step."""
+def draw_frames(grid: np.ndarray, goals: np.ndarray, positions: np.ndarray, collided: np.ndarray, title: str,
+                trails: bool = False, captions=None):
+    """Yield RGB frames (H, W, 3) uint8, one per time step. `goals` (N, 2), or (T + 1, N, 2)
+    when they change during the run; `collided` (T, N) may have no rows (nothing known);
+    `trails`: draw each agent's path so far; `captions[t]` replaces frame t's default
+    "on goal" text."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -59,29 +67,76 @@ def draw_frames(grid: np.ndarray, goals: np.ndarray, positions: np.ndarray, coll
 
     h, w = grid.shape
     n = positions.shape[1]
+    goals = np.asarray(goals)
+    goals_at = (lambda t: goals[t]) if goals.ndim == 3 else (lambda t: goals)
     colours = plt.get_cmap("hsv")(np.linspace(0, 1, n, endpoint=False))
     scale = max(4.0, min(8.0, 480 / max(h, w) / 10))
     fig, ax = plt.subplots(figsize=(scale * w / max(h, w) + 0.5, scale * h / max(h, w) + 0.7), dpi=80)
     ax.imshow(grid != 0, cmap="Greys", vmin=0, vmax=1.6, interpolation="nearest")
     marker = max(8.0, 2400.0 / max(h, w))
-    ax.scatter(goals[:, 1], goals[:, 0], s=marker, marker="s", facecolors="none", edgecolors=colours, linewidths=1.2)
+    paths = [ax.plot([], [], color=colours[i], alpha=0.45, linewidth=max(1.0, 70.0 / max(h, w)))[0]
+             for i in range(n)] if trails else []
+    targets = ax.scatter(goals_at(0)[:, 1], goals_at(0)[:, 0], s=marker, marker="s", facecolors="none",
+                         edgecolors=colours, linewidths=1.2)
     agents = ax.scatter(positions[0, :, 1], positions[0, :, 0], s=marker, c=colours, edgecolors="none")
     rings = ax.scatter([], [], s=marker * 2.2, facecolors="none", edgecolors="red", linewidths=1.5)
     ax.set_xticks([])
     ax.set_yticks([])
     for t in range(len(positions)):
         agents.set_offsets(positions[t][:, ::-1])
-        bumped = collided[t - 1] if t > 0 else np.zeros(n, bool)
+        targets.set_offsets(goals_at(t)[:, ::-1])
+        for i, line in enumerate(paths):
+            line.set_data(positions[: t + 1, i, 1], positions[: t + 1, i, 0])
+        bumped = collided[t - 1] if 0 < t <= len(collided) else np.zeros(n, bool)
         rings.set_offsets(positions[t][bumped][:, ::-1] if bumped.any() else np.empty((0, 2)))
-        on_goal = int(np.all(positions[t] == goals, axis=1).sum())
-        ax.set_title(f"{title}  step {t}/{len(positions) - 1}  on goal {on_goal}/{n}", fontsize=9)
+        on_goal = int(np.all(positions[t] == goals_at(t), axis=1).sum())
+        caption = captions[t] if captions is not None else f"on goal {on_goal}/{n}"
+        ax.set_title(f"{title}  step {t}/{len(positions) - 1}  {caption}", fontsize=9)
         fig.canvas.draw()
         yield np.asarray(fig.canvas.buffer_rgba())[:, :, :3].copy()
     plt.close(fig)
 
 
+ANIMATIONS = (".gif", ".webp", ".mp4")
+
+
+def check_out(out: str) -> None:
+    """Refuse, before any work, an output the installed writers cannot make (ValueError)."""
+    if Path(out).suffix.lower() == ".mp4":
+        try:
+            import imageio_ffmpeg  # noqa: F401
+        except ImportError:
+            raise ValueError(f"--out {out}: MP4 needs the optional imageio-ffmpeg (pip install "
+                             "imageio-ffmpeg); .gif and .webp work without it") from None
+
+
+def save_frames(out, frames, fps: float) -> Path:
+    """Write the frames (an iterable of RGB arrays) to `out`: an animated .gif or .webp, an
+    .mp4 (imageio-ffmpeg), else a folder of PNG frames."""
+    import imageio.v2 as imageio
+
+    out = Path(out)
+    suffix = out.suffix.lower()
+    if suffix in ANIMATIONS:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        if suffix == ".mp4":
+            check_out(str(out))
+            # H.264 wants even sides: the writer's block size 2 pads the frames
+            imageio.mimsave(out, list(frames), fps=fps, macro_block_size=2)
+        else:
+            # the Pillow writers take each frame's duration in milliseconds
+            imageio.mimsave(out, list(frames), duration=1000.0 / fps, loop=0)
+    else:
+        out.mkdir(parents=True, exist_ok=True)
+        for t, frame in enumerate(frames):
+            imageio.imwrite(out / f"frame_{t:04d}.png", frame)
+    return out
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="mapf-fleet render", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="mapf-fleet render", description=__doc__.split("\n")[0],
+                                epilog="A fleet's recorded run: mapf-fleet render --run F.json|BAG_DIR --out "
+                                       "F.gif (mapf-fleet render --run X --help for its options).")
     p.add_argument("--checkpoint", required=True, help=f"checkpoint file or one of {', '.join(REFERENCE_NAMES)}")
     p.add_argument("--size", type=int, default=40, help="square map size of a generated instance")
     p.add_argument("--agents", type=int, default=16)
@@ -90,7 +145,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--map", help="MovingAI .map instead of a generated instance")
     p.add_argument("--scen", help="MovingAI .scen (with --map)")
     p.add_argument("--max-steps", type=int, help="step limit (default: the protocol's for the size)")
-    p.add_argument("--out", required=True, help="output .gif, or a folder for PNG frames")
+    p.add_argument("--out", required=True, help="output .gif / .webp / .mp4, or a folder for PNG frames")
     p.add_argument("--fps", type=float, default=8.0, help="frames per second of the GIF (default %(default)s)")
     p.add_argument("--device", default="cpu")
     return p
@@ -100,6 +155,11 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(sys.argv[1:] if argv is None else argv)
     if not args.fps > 0:  # also rejects nan
         print(f"mapf-fleet render: --fps must be > 0, got {args.fps:g}", file=sys.stderr)
+        return 2
+    try:
+        check_out(args.out)
+    except ValueError as exc:
+        print(f"mapf-fleet render: {exc}", file=sys.stderr)
         return 2
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     config = ProtocolConfig.from_yaml()
@@ -128,19 +188,7 @@ def main(argv: list[str] | None = None) -> int:
     positions, collided, success = record_episode(spec, instances, max_steps)
     frames = draw_frames(instance.grid, instance.goals, positions, collided, f"{spec.name} | {label}")
 
-    out = Path(args.out)
-    if out.suffix.lower() == ".gif":
-        import imageio.v2 as imageio
-
-        out.parent.mkdir(parents=True, exist_ok=True)
-        # the GIF writer (Pillow) takes each frame's duration in milliseconds
-        imageio.mimsave(out, list(frames), duration=1000.0 / args.fps, loop=0)
-    else:
-        import imageio.v2 as imageio
-
-        out.mkdir(parents=True, exist_ok=True)
-        for t, frame in enumerate(frames):
-            imageio.imwrite(out / f"frame_{t:04d}.png", frame)
+    out = save_frames(args.out, frames, args.fps)
     print(f"{out}: {len(positions)} frames, {'success' if success else 'failure'} after {len(positions) - 1} steps "
           f"(lower bound {int(lower_bounds(instances)[0])})")
     return 0
