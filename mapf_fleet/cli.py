@@ -25,8 +25,6 @@ COMMANDS = {
     "record": ("mapf_fleet.ros.bag", "main", "record the fleet's topics into a rosbag2 (MCAP)"),
     "view": ("mapf_fleet.ros.live_view", "main", "live picture of a running fleet in a browser"),
     "node": ("mapf_fleet.ros.run", "main", "run one node, like `ros2 run mapf_fleet <node>`"),
-    "goal": ("mapf_fleet.ros.goal_cli", "main",
-             "send a robot a goal (navigate_to_pose, goal_pose, or tasks for any idle robot)"),
 }
 
 
