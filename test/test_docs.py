@@ -98,8 +98,10 @@ def commands_of(text: str) -> list[list[str]]:
 
 
 def path_candidates(text: str) -> list[str]:
-    """Words of `text` that name a path inside one of the repository's folders."""
-    out = []
+    """Words of `text` that name a path inside one of the repository's folders; a module run as
+    `python -m mapf_fleet.x.y` names its file (mapf_fleet/x/y.py, or a package's __main__.py)."""
+    out = [m.replace(".", "/") + "{.py,/__main__.py}"
+           for m in re.findall(r"python3? -m (mapf_fleet[\w.]*)", text)]
     for word in re.split(r"[\s=;()'\"]+", text):
         word = word.rstrip(".,:")
         if "/" not in word or word.startswith(("/", "..", "http")) or "<" in word or "$" in word:
@@ -118,6 +120,8 @@ def expand_braces(word: str) -> list[str]:
 
 
 def path_exists(word: str, base: Path) -> bool:
+    if word.endswith("{.py,/__main__.py}"):  # a module: either file will do
+        return any((base / w).is_file() for w in expand_braces(word))
     return all(list(base.glob(w.rstrip("/"))) if "*" in w else (base / w).exists()
                for w in expand_braces(word))
 
@@ -268,6 +272,10 @@ def test_placeholders_and_paths():
     assert path_exists("models/eval/dcc_4x25_cl_alpha1.0{,_pibt}.json", REPO)
     assert not path_exists("models/eval/dcc_4x25_cl_alpha1.0{,_nothing}.json", REPO)
     assert not path_exists("config/training/no_such_*.yaml", REPO)
+    assert path_candidates("python -m mapf_fleet.ros.stand_in_robot --instance F.yaml") == \
+        ["mapf_fleet/ros/stand_in_robot{.py,/__main__.py}"]
+    assert path_exists("mapf_fleet/evaluation/model_card{.py,/__main__.py}", REPO)
+    assert not path_exists("mapf_fleet/ros/no_such_node{.py,/__main__.py}", REPO)
 
 
 if __name__ == "__main__":  # the child of parse_in_child: commands on stdin, verdicts on stdout
