@@ -196,3 +196,25 @@ def test_cli_registered(tmp_path):
     assert exit_info.value.code == 0
     # no run to resume and no config: one error line, exit 2
     assert main(["dagger", "--run-dir", str(tmp_path / "none")]) == 2
+
+
+def test_labelling_backs_off_after_failed_states(small_checkpoint):
+    class Failing:
+        calls: list = []
+
+        def label(self, grid, positions, goals, distances, step_limit):
+            self.calls.append(len(self.calls))
+            return np.full(len(positions), -1, np.int64), "unsolved"
+
+    model, _ = load_checkpoint(small_checkpoint)
+    inst = generate_instance(12, 6, 0.2, 5)
+    labeller = Failing()
+    out = dagger.play_episode(model, inst, 40, "pibt_anchor", "q", torch.device("cpu"),
+                              labeller, label_interval=1, backoff_max=8)
+    steps, t, expected, wait = out["steps"], 0, [], 1
+    while t < steps:  # calls at 0, 2, 6, 14, 22, 30, ...
+        expected.append(t)
+        wait = min(wait * 2, 8)
+        t += wait
+    assert out["label_calls"] == len(expected) == out["unsolved"]
+    assert out["labels"] == 0 and (out["arrays"]["labels"] == -1).all()

@@ -9,7 +9,8 @@ Round k (k = 0, 1, ...):
      from round `late_tasks_from`), each played by the round's policy (the init checkpoint in
      round 0, else round k-1's weights) under `shield` (PIBT with the anchor by default, the
      fleet's arbiter) with its Q-values ranked by `preferences`. At every `label_interval`-th
-     step the expert labels the joint state: LaCAM (pymapf, `coordination.planners.
+     step (backing off after states it cannot label, `label_backoff_max`) the expert labels the
+     joint state: LaCAM (pymapf, `coordination.planners.
      ClassicalPlanner`, `label_time_limit` seconds per connected region) from the agents'
      current cells to their goals; the label of agent i is the first move of its plan. DAgger's
      mixing: with probability beta_k = `beta0` * `beta_decay`^k (per labelled step) the shield
@@ -129,6 +130,12 @@ class DaggerConfig:
     beta0: float = 0.5  # DAgger mixing: round k executes the expert with probability beta0 * decay^k
     beta_decay: float = 0.5
     label_interval: int = 1  # label every n-th step of a rollout (1 = every step)
+    # After a state LaCAM left mostly unlabelled (unsolved / too long for regions holding over
+    # half the agents), the next label waits twice as
+    # long as the last wait, up to this many steps; a labelled state resets it (1 = never
+    # wait). Why: a deadlocked crowd stays unsolvable for LaCAM for many steps (measured,
+    # round 0 of runs/dagger_dcc: 59-63 of 64 states of a dense 48/64-agent episode, ~0.5 s each).
+    label_backoff_max: int = 16
 
     # --- expert --------------------------------------------------------------------------------
     label_time_limit: float = 0.5  # seconds of LaCAM per connected region
@@ -179,7 +186,8 @@ class DaggerConfig:
             raise bad("preferences", f"must be one of {Q_MODES}")
         if self.loss not in LOSSES:
             raise bad("loss", f"must be one of {LOSSES}")
-        for name in ("rounds", "episodes_per_round", "label_interval", "num_cpus", "num_workers",
+        for name in ("rounds", "episodes_per_round", "label_interval", "label_backoff_max",
+                     "num_cpus", "num_workers",
                      "seq_len", "batch_windows", "threads", "heldout_count"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -345,7 +353,8 @@ def window_starts(length: int, seq_len: int, burn_in: int) -> np.ndarray:
 def play_episode(model, instance, max_steps: int, shield_rule: str, preferences: str,
                  device, labeller: LaCAMLabeller | None = None, beta: float = 0.0,
                  label_interval: int = 1, rng: np.random.Generator | None = None,
-                 seq_len: int = 16, burn_in: int = 8, record: bool = True) -> dict:
+                 seq_len: int = 16, burn_in: int = 8, record: bool = True,
+                 backoff_max: int = 1) -> dict:
     """One episode of `model` under the shield; with a labeller, the visited states are labelled
     (and the expert's ranking executed with probability `beta` at labelled steps). Returns the
     outcome and, with `record`, the arrays of a shard (see module docstring)."""
@@ -369,6 +378,7 @@ def play_episode(model, instance, max_steps: int, shield_rule: str, preferences:
              "expert_steps": 0, "label_seconds": 0.0, "disagree": 0, "disagree_off_goal": 0,
              "off_goal_labels": 0, "label_calls": 0}
     done, info = (env.on_goal().all(), {"success": bool(env.on_goal().all()), "steps": 0})
+    next_label, wait = 0, label_interval
     while not done:
         t = env.steps
         if record:
@@ -381,7 +391,7 @@ def play_episode(model, instance, max_steps: int, shield_rule: str, preferences:
         ties = tie_breakers(ties_agents, t)
         ranking = rank_actions(obs, q, preferences, ties=ties)
         label = np.full(n, -1, np.int8)
-        if labeller is not None and t % label_interval == 0:
+        if labeller is not None and t >= next_label:
             began = time.perf_counter()
             expert, status = labeller.label(instance.grid, env.positions, instance.goals,
                                             distances, max_steps)
@@ -389,6 +399,11 @@ def play_episode(model, instance, max_steps: int, shield_rule: str, preferences:
             stats["label_calls"] += 1
             if status != "ok":
                 stats[status] += 1
+            if 2 * int((expert >= 0).sum()) >= n:  # most agents labelled (a pocket may not be)
+                wait = label_interval
+            else:  # back off (config: label_backoff_max)
+                wait = min(max(wait, label_interval) * 2, max(backoff_max, label_interval))
+            next_label = t + wait
             have = expert >= 0
             if have.any():
                 label[have] = expert[have]
@@ -468,7 +483,8 @@ class DaggerWorker:
         out = play_episode(self.model, instance, job["task"]["max_steps"], cfg.shield,
                            cfg.preferences, self.device, self.labeller, job["beta"],
                            cfg.label_interval, np.random.default_rng(job["seed_words"] + [1]),
-                           cfg.seq_len, cfg.burn_in, record=True)
+                           cfg.seq_len, cfg.burn_in, record=True,
+                           backoff_max=cfg.label_backoff_max)
         return {**out, "job": job, "pid": os.getpid(),
                 "process_cpu_seconds": time.process_time()}
 
