@@ -122,6 +122,7 @@ class StateWatch:
                 f"aggregator) stopped or is unreachable; the robots wait")
 
 
+HEARTBEAT_ROBOTS = 32  # heartbeats per status_period the fleet sends, about (see _heartbeat)
 TIMING_EVERY = 50  # log the hub's per-tick time split every this many decisions
 
 
@@ -198,6 +199,7 @@ class PolicyHub:
         self.algo = model.config.algo
         self.radius = int(model.config.obs_radius)
         self.ids = np.array(ids, dtype=np.int64)
+        self._ids_array = array.array("I", ids)  # for the batched peer messages
         self.index_of = {int(r): m for m, r in enumerate(ids)}
         first = nodes[0]
         self.comm_timeout = first.comm_timeout
@@ -222,6 +224,8 @@ class PolicyHub:
         self._stop = threading.Event()
         self._hosts: dict[int, str] = {}  # robot id -> host, from heartbeats
         self.decisions = 0
+        self._beats = 0
+        self._last_beat = None  # (ready, episode) of the last heartbeats sent
         self.sent = {"local": 0, "service": 0, "batches": 0, "unsent": 0}
         self._hub_clients: dict[str, object] = {}  # remote host -> client of its batch service
         self._inflight: collections.deque = collections.deque()  # (tick, client, future)
@@ -236,11 +240,18 @@ class PolicyHub:
         self.node.create_subscription(RobotStatus, common.rel(common.STATUS_TOPIC),
                                       self._on_status,
                                       common.reliable_qos(1000), callback_group=group)
+        quiet = common.quiet_publisher_events()
         if self.algo == "dhc":
+            self.peer_pub = self.node.create_publisher(
+                DhcHidden, common.rel(common.DHC_HIDDEN_TOPIC), common.reliable_qos(100),
+                event_callbacks=quiet)
             self.node.create_subscription(DhcHidden, common.rel(common.DHC_HIDDEN_TOPIC),
                                           self._on_hidden,
-                                          common.reliable_qos(1000), callback_group=group)
+                                          common.reliable_qos(100), callback_group=group)
         else:
+            self.peer_pub = self.node.create_publisher(
+                DccAnnounce, common.rel(common.DCC_ANNOUNCE_TOPIC), common.reliable_qos(100),
+                event_callbacks=quiet)
             self.node.create_subscription(DccAnnounce, common.rel(common.DCC_ANNOUNCE_TOPIC),
                                           self._on_announce, common.reliable_qos(1000),
                                           callback_group=group)
@@ -288,16 +299,32 @@ class PolicyHub:
                 DccBatch, common.rel(dcc_hub_service(host)), callback_group=self._group)
 
     def _on_hidden(self, msg):
-        if int(msg.robot_id) in self.index_of:
-            return  # delivered locally already
-        self.mailbox.put(msg.episode, f"dhc{msg.round}", msg.tick, msg.robot_id,
-                         np.frombuffer(msg.hidden, dtype=np.float32))
+        """Another process's robots' vectors of one round (ours were delivered locally)."""
+        ids = np.frombuffer(msg.robot_ids, dtype=np.uint32)
+        dim = int(msg.dim)
+        hidden = np.frombuffer(msg.hidden, dtype=np.float32)
+        if dim <= 0 or len(hidden) != dim * len(ids):
+            self.node.get_logger().warning(f"ignored a malformed DhcHidden (dim {dim}, "
+                                           f"{len(ids)} robots, {len(hidden)} values)")
+            return
+        if len(ids) and int(ids[0]) in self.index_of:
+            return  # our own message: delivered locally already
+        self.mailbox.put_many(msg.episode, f"dhc{msg.round}", msg.tick,
+                              zip(ids.tolist(), hidden.reshape(-1, dim)))
 
     def _on_announce(self, msg):
-        if int(msg.robot_id) in self.index_of:
+        """Another process's robots' DCC targets of this tick."""
+        ids = list(msg.robot_ids)
+        counts, targets = list(msg.target_counts), list(msg.targets)
+        if len(counts) != len(ids) or sum(counts) != len(targets):
+            self.node.get_logger().warning(f"ignored a malformed DccAnnounce ({len(ids)} robots, "
+                                           f"{len(counts)} counts, {len(targets)} targets)")
             return
-        self.mailbox.put(msg.episode, "announce", msg.tick, msg.robot_id,
-                         [int(t) for t in msg.targets])
+        if ids and int(ids[0]) in self.index_of:
+            return
+        ends = np.cumsum(counts).tolist()
+        self.mailbox.put_many(msg.episode, "announce", msg.tick,
+                              ((r, targets[end - c:end]) for r, c, end in zip(ids, counts, ends)))
 
     def deliver(self, kind: str, receiver: int, request) -> bool:
         """A DCC service call reached robot `receiver` of this process."""
@@ -329,7 +356,7 @@ class PolicyHub:
         topic (so nothing we publish is lost) and, for DCC, serves the batch service our client
         of it sees; 0 otherwise."""
         hosts = set(self._hosts.values()) | {self.host}
-        matched = min(n.peer_pub.get_subscription_count() for n in self.nodes)
+        matched = self.peer_pub.get_subscription_count()
         if matched < len(hosts):
             return 0
         if self.algo == "dcc" and not all(self._hub_clients[h].service_is_ready()
@@ -339,13 +366,25 @@ class PolicyHub:
         return len(self._hosts)
 
     def _heartbeat(self):
+        """Every `status_period`: the hosted robots' heartbeats, when it is their turn. Up to
+        HEARTBEAT_ROBOTS robots heard, every period; in a larger fleet every
+        (robots heard / HEARTBEAT_ROBOTS) periods, so the whole fleet sends about
+        HEARTBEAT_ROBOTS heartbeats per period whatever its size (every hub and the simulator
+        take every heartbeat: 256 robots at 2 Hz were 4,600 callbacks a second, enough to delay
+        the fleet state by seconds). A change of readiness or episode goes out at once."""
         from mapf_fleet_interfaces.msg import RobotStatus
 
+        self._beats += 1
+        every = max(1, len(self._hosts) // HEARTBEAT_ROBOTS)
+        ready, episode = self.grid is not None, self.binding.reported
+        if (ready, episode) == self._last_beat and self._beats % every:
+            return
+        self._last_beat = (ready, episode)
         peers = self.peers_reachable()
         for node in self.nodes:
             node.status_pub.publish(RobotStatus(
-                episode=self.binding.reported, robot_id=node.robot_id, tick=max(self._tick, 0),
-                ready=self.grid is not None, peers=peers, host=self.host,
+                episode=episode, robot_id=node.robot_id, tick=max(self._tick, 0),
+                ready=ready, peers=peers, host=self.host,
                 detail=f"{self.algo}, {len(self.nodes)} robots on this host, "
                        f"{self.decisions} decisions, {self.mailbox.stale_dropped} stale "
                        f"messages ignored"))
@@ -458,11 +497,10 @@ class PolicyHub:
         received = [0] * m_count
         for r in range(model.config.comm_rounds):
             vectors = h.numpy().copy()
-            for m, node in enumerate(self.nodes):
-                self.mailbox.put(self._episode, f"dhc{r}", tick, node.robot_id, vectors[m])
-                node.peer_pub.publish(DhcHidden(episode=self._episode, tick=tick, round=r,
-                                                robot_id=node.robot_id,
-                                                hidden=array.array("f", vectors[m].tobytes())))
+            self.mailbox.put_many(self._episode, f"dhc{r}", tick, zip(self.ids.tolist(), vectors))
+            self.peer_pub.publish(DhcHidden(episode=self._episode, tick=tick, round=r,
+                                            dim=vectors.shape[1], robot_ids=self._ids_array,
+                                            hidden=array.array("f", vectors.tobytes())))
             self.timing.mark("send")
             box = self.mailbox.wait_for(f"dhc{r}", tick, wanted, self._deadline())
             self.timing.mark("wait")
@@ -509,11 +547,11 @@ class PolicyHub:
         received = [0] * m_count
         vectors = h.numpy().copy()
         self.timing.mark("network")
-        for m, node in enumerate(self.nodes):
-            self.mailbox.put(self._episode, "announce", tick, node.robot_id, targets[m])
-            node.peer_pub.publish(DccAnnounce(episode=self._episode, tick=tick,
-                                              robot_id=node.robot_id,
-                                              targets=array.array("I", targets[m])))
+        self.mailbox.put_many(self._episode, "announce", tick, zip(self.ids.tolist(), targets))
+        self.peer_pub.publish(DccAnnounce(
+            episode=self._episode, tick=tick, robot_ids=self._ids_array,
+            target_counts=array.array("I", [len(t) for t in targets]),
+            targets=array.array("I", [j for t in targets for j in t])))
         self._dispatch("request", tick, [(node.robot_id, j, vectors[m])
                                          for m, node in enumerate(self.nodes)
                                          for j in targets[m]])

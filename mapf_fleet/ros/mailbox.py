@@ -51,6 +51,21 @@ class Mailbox:
             self._cond.notify_all()
             return True
 
+    def put_many(self, episode: int, kind: str, tick: int, items) -> int:
+        """Store (sender, payload) pairs of one kind and tick at once (one lock, one notify: a
+        batched message of a whole process); how many were stored (0 when stale)."""
+        items = list(items)
+        with self._cond:
+            if (self._episode is not None and episode != self._episode) or \
+                    tick < self._current_tick:
+                self.stale_dropped += len(items)
+                return 0
+            box = self._boxes[(episode, kind, tick)]
+            for sender, payload in items:
+                box[int(sender)] = payload
+            self._cond.notify_all()
+            return len(items)
+
     def wait_for(self, kind: str, tick: int, senders, deadline: float,
                  count: int | None = None) -> dict[int, object]:
         """Messages of `kind` for `tick`: wait until every sender in `senders` (or, when

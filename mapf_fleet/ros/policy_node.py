@@ -18,7 +18,7 @@ import sys
 import time
 
 import rclpy
-from mapf_fleet_interfaces.msg import DccAnnounce, DhcHidden, RobotMove, RobotStatus
+from mapf_fleet_interfaces.msg import RobotMove, RobotStatus
 from mapf_fleet_interfaces.srv import DccMessage
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.callback_groups import ReentrantCallbackGroup
@@ -101,14 +101,10 @@ class PolicyNode(Node):
                                               event_callbacks=quiet)
         self.status_pub = self.create_publisher(RobotStatus, common.rel(common.STATUS_TOPIC),
                                                 common.reliable_qos(100), event_callbacks=quiet)
-        if self.algo == "dhc":
-            self.peer_pub = self.create_publisher(DhcHidden, common.rel(common.DHC_HIDDEN_TOPIC),
-                                                  common.reliable_qos(1000), event_callbacks=quiet)
-        else:
+        # the peer messages (DHC vectors, DCC announcements) are published by the process's hub,
+        # one message for all the robots it hosts
+        if self.algo == "dcc":
             group = ReentrantCallbackGroup()
-            self.peer_pub = self.create_publisher(DccAnnounce,
-                                                  common.rel(common.DCC_ANNOUNCE_TOPIC),
-                                                  common.reliable_qos(1000), event_callbacks=quiet)
             self.create_service(DccMessage, common.rel(common.dcc_request_service(self.robot_id)),
                                 self._on_dcc_request, callback_group=group)
             self.create_service(DccMessage, common.rel(common.dcc_reply_service(self.robot_id)),
@@ -153,7 +149,7 @@ def host_kwargs(count: int) -> dict:
 
 
 def spin_policy_nodes(nodes: list[PolicyNode], until=None, extra_nodes=(), on_started=None,
-                      signals=None, on_stop=None) -> int:
+                      signals=None, on_stop=None, side_nodes=()) -> int:
     """Spin policy nodes hosted in this process (one PolicyHub for all of them) plus
     `extra_nodes` (e.g. a simulator) until `until()` is true, a stop signal (`signals`, a
     `processes.StopSignals`) or a failed callback (logged by `SpinThread`). With `on_stop` (e.g.
@@ -174,7 +170,9 @@ def spin_policy_nodes(nodes: list[PolicyNode], until=None, extra_nodes=(), on_st
     spinner = common.SpinThread(executor).start()
     # the robots' own nodes (parameter services; DCC: the per-robot services): their own
     # executor and thread, off the decision path
+    # (and `side_nodes`: e.g. the simulator's goal inputs, `ros.goals`)
     parameter_nodes = [n for n in nodes if needs_spinning(n) or n.has_parameter_services]
+    parameter_nodes += list(side_nodes)
     parameter_spinner = None
     if parameter_nodes:
         parameter_executor = SingleThreadedExecutor()
@@ -205,7 +203,7 @@ def spin_policy_nodes(nodes: list[PolicyNode], until=None, extra_nodes=(), on_st
         spinner.stop()
         if parameter_spinner is not None:
             parameter_spinner.stop()
-        for node in list(extra_nodes) + hub.all_nodes:
+        for node in list(extra_nodes) + list(side_nodes) + hub.all_nodes:
             node.destroy_node()
     return code
 
