@@ -98,11 +98,13 @@ class Browser:
         return self._call("POST", f"/session/{self.session}/execute/sync",
                           {"script": script, "args": []})
 
-    def wait_for(self, script: str, timeout: float = 60.0):
+    def wait_for(self, script: str, timeout: float = 60.0, alive=None):
         """Poll `script` until it returns something truthy; that value (AssertionError after
-        `timeout` s)."""
+        `timeout` s). `alive()`, called at each poll, may raise to give up early."""
         deadline = time.monotonic() + timeout
         while True:
+            if alive is not None:
+                alive()
             value = self.run(script)
             if value:
                 return value

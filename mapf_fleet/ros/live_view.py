@@ -54,14 +54,24 @@ def subscribe(node, picture, namespace: str = "") -> None:
     def on_outcome(msg):
         picture.set_outcome(bool(msg.success), str(msg.summary), int(msg.episode))
 
-    topic = lambda name: common.in_namespace(name, namespace)  # noqa: E731
-    node.create_subscription(OccupancyGrid, topic(common.MAP_TOPIC), on_map, common.latched_qos())
-    node.create_subscription(FleetState, topic(common.STATE_TOPIC), on_state,
-                             common.reliable_qos(10))
-    node.create_subscription(FleetProgress, topic(common.PROGRESS_TOPIC), on_progress,
-                             common.reliable_qos(10))
-    node.create_subscription(FleetOutcome, topic(common.OUTCOME_TOPIC), on_outcome,
-                             common.latched_qos())
+    def guarded(name, callback):
+        """A malformed message is reported (at most every 5 s) and skipped: an exception in a
+        callback would stop the spin thread, and the view would freeze."""
+        def run(msg):
+            try:
+                callback(msg)
+            except (ValueError, TypeError, IndexError) as exc:
+                node.get_logger().warning(f"{name}: message skipped: {exc}",
+                                          throttle_duration_sec=5.0)
+        return run
+
+    for kind, name, callback, qos in (
+            (OccupancyGrid, common.MAP_TOPIC, on_map, common.latched_qos()),
+            (FleetState, common.STATE_TOPIC, on_state, common.reliable_qos(10)),
+            (FleetProgress, common.PROGRESS_TOPIC, on_progress, common.reliable_qos(10)),
+            (FleetOutcome, common.OUTCOME_TOPIC, on_outcome, common.latched_qos())):
+        topic = common.in_namespace(name, namespace)
+        node.create_subscription(kind, topic, guarded(topic, callback), qos)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,6 +1,7 @@
 """`mapf-fleet view` on a running simulated fleet (issue 24 item 1): the page, opened in headless
 chromium, shows the fleet's map and its robots where the fleet says they are, and follows the
-run; the Foxglove app's WebSocket server answers on loopback with the view's channels.
+run; the Foxglove app's WebSocket server answers on loopback with the view's channels. A run
+recorded with `up --record --bag` renders to a GIF from either file (`render --run`).
 
 How the screenshot is checked (test/headless_browser.check_picture): the map comes from the
 instance generator (`up --size 10 --seed 2`, not from the page), so every obstacle cell must be
@@ -32,31 +33,38 @@ CELL = 24
 pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.timeout(900)]
 
 
-def _start_view(env, *extra):
-    proc = subprocess.Popen(CLI + ["view", "--port", "0", "--foxglove-port", "0", *extra],
-                            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    url = foxglove = None
-    lines = []
-    for line in proc.stdout:  # the two lines come before anything else it prints
-        lines.append(line)
-        if line.startswith(READY_PREFIX):
-            url = line.split()[-1]
-        elif line.startswith("mapf-fleet view: Foxglove app: ws://"):
-            foxglove = int(line.split("ws://127.0.0.1:")[1].split()[0])
+def _start(command, env, log):
+    """A child whose output goes to the file `log` (a pipe nobody reads could fill and block
+    it)."""
+    with open(log, "w") as out:
+        return subprocess.Popen(command, env=env, stdout=out, stderr=subprocess.STDOUT, text=True)
+
+
+def _start_view(env, log, *extra, timeout=300.0):
+    proc = _start(CLI + ["view", "--port", "0", "--foxglove-port", "0", *extra], env, log)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and proc.poll() is None:
+        url = foxglove = None
+        for line in log.read_text().splitlines():
+            if line.startswith(READY_PREFIX):
+                url = line.split()[-1]
+            elif line.startswith("mapf-fleet view: Foxglove app: ws://"):
+                foxglove = int(line.split("ws://127.0.0.1:")[1].split()[0])
         if url and foxglove:
             return proc, url, foxglove
-    raise AssertionError("the view did not start:\n" + "".join(lines))
+        time.sleep(0.2)
+    raise AssertionError("the view did not start:\n" + log.read_text())
 
 
-def _stop(proc, sig=signal.SIGINT, timeout=60) -> str:
+def _stop(proc, log, sig=signal.SIGINT, timeout=60) -> str:
     if proc.poll() is None:
         proc.send_signal(sig)
     try:
-        out, _ = proc.communicate(timeout=timeout)
+        proc.wait(timeout)
     except subprocess.TimeoutExpired:
         proc.kill()
-        out, _ = proc.communicate()
-    return out or ""
+        proc.wait()
+    return log.read_text()
 
 
 def _foxglove_hello(port: int) -> list[dict]:
@@ -88,13 +96,14 @@ def _foxglove_hello(port: int) -> list[dict]:
 
 
 def _consistent_screenshot(browser):
-    """A screenshot and what the page says it drew, taken at the same tick."""
+    """A screenshot, what the page says it drew and its tick line, taken at the same tick."""
+    script = ("return [window.viewDrawn, document.getElementById('tick').textContent]")
     for _ in range(50):
-        before = browser.run("return window.viewDrawn")
+        before = browser.run(script)
         image = browser.screenshot()
-        after = browser.run("return window.viewDrawn")
+        after = browser.run(script)
         if before == after:
-            return image, after
+            return image, after[0], after[1]
     raise AssertionError("the page never held still for a screenshot")
 
 
@@ -108,24 +117,31 @@ def test_the_view_shows_a_running_fleet_in_a_browser(tmp_path, ros_env, checkpoi
     instance = generate_instance(SIZE, ROBOTS, 0.3, SEED)  # what `up` generates
     record = tmp_path / "run.json"
     in_ns = ["--namespace", namespace] if namespace else []
-    view, url, foxglove_port = _start_view(ros_env, *in_ns)
+    view_log, up_log = tmp_path / "view.log", tmp_path / "up.log"
+    view, url, foxglove_port = _start_view(ros_env, view_log, *in_ns)
     fleet = None
+
+    def running():  # a fleet or view that died fails the test at once, with its output
+        if fleet.poll() is not None or view.poll() is not None:
+            raise AssertionError(f"up exited {fleet.poll()}, view {view.poll()}:\n"
+                                 f"{up_log.read_text()}\n--- view:\n{view_log.read_text()}")
+        return True
+
     try:
-        fleet = subprocess.Popen(
+        fleet = _start(
             CLI + ["up", "--checkpoint", checkpoints["dhc"], "--num-robots", str(ROBOTS),
                    "--size", str(SIZE), "--seed", str(SEED), "--max-steps", "2000",
                    "--single-process", "--record", str(record), "--quiet", *in_ns,
-                   "--ros-args", "-p", "tick_period:=0.3"],
-            env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                   "--ros-args", "-p", "tick_period:=0.3"], ros_env, up_log)
         with Browser(width=SIZE * CELL + 420, height=SIZE * CELL + 300) as browser:
             browser.open(f"{url}?cell={CELL}")
             # live: the page follows the ticks as they come (no reload)
-            browser.wait_for("return window.viewDrawn && window.viewDrawn.tick >= 2", 300)
+            browser.wait_for("return window.viewDrawn && window.viewDrawn.tick >= 2", 300,
+                             running)
             first = browser.run("return window.viewDrawn.tick")
-            browser.wait_for(f"return window.viewDrawn.tick >= {first + 2}", 120)
-            image, drawn = _consistent_screenshot(browser)
+            browser.wait_for(f"return window.viewDrawn.tick >= {first + 2}", 120, running)
+            image, drawn, panel = _consistent_screenshot(browser)
             image.save(tmp_path / "view.png")
-            panel = browser.run("return document.getElementById('tick').textContent")
             assert browser.run("return document.body.dataset.map") == f"{SIZE}x{SIZE}"
         assert drawn["cell"] == CELL and drawn["goals"] == instance.goals.tolist()
         check_picture(image, instance.grid, drawn["robots"], drawn["colours"], CELL)
@@ -133,12 +149,12 @@ def test_the_view_shows_a_running_fleet_in_a_browser(tmp_path, ros_env, checkpoi
         assert hello[0]["op"] == "serverInfo", hello
         topics = {channel["topic"] for channel in hello[1]["channels"]}
         assert {"/view/scene", "/view/stats"} <= topics, hello
-        up_out = _stop(fleet)
+        up_out = _stop(fleet, up_log)
     finally:
         if fleet is not None and fleet.poll() is None:
             fleet.kill()
             fleet.wait()
-        view_out = _stop(view)
+        view_out = _stop(view, view_log)
     assert fleet.returncode == 130, up_out
     assert view.returncode == 0 and "Traceback" not in view_out, view_out
     run = json.loads(record.read_text())
@@ -146,3 +162,36 @@ def test_the_view_shows_a_running_fleet_in_a_browser(tmp_path, ros_env, checkpoi
     assert drawn["episode"] == str(run["episode"])
     assert drawn["robots"] == run["positions"][drawn["tick"]], (drawn, panel)
     assert panel.startswith(f"{drawn['tick']} / 2000")
+
+
+def test_a_recorded_run_renders_from_its_record_and_from_its_bag(tmp_path, ros_env, checkpoints):
+    """No view here: `up --bag` starts tick 0 once /fleet/state has as many matched subscribers
+    as the policy processes and the recorder, and a view's subscription would count as one (the
+    bag then misses the first ticks; reported to the lead)."""
+    from PIL import Image
+
+    from mapf_fleet.cli import main as mapf_fleet
+    from mapf_fleet.view.replay import load_bag
+
+    record, bag, log = tmp_path / "run.json", tmp_path / "bag", tmp_path / "up.log"
+    fleet = _start(CLI + ["up", "--checkpoint", checkpoints["dhc"], "--num-robots", str(ROBOTS),
+                          "--size", str(SIZE), "--seed", str(SEED), "--max-steps", "12",
+                          "--single-process", "--record", str(record), "--bag", str(bag),
+                          "--quiet"], ros_env, log)
+    try:
+        fleet.wait(600)
+    finally:
+        if fleet.poll() is None:
+            fleet.kill()
+            fleet.wait()
+    assert (bag / "metadata.yaml").exists(), log.read_text()
+    run = json.loads(record.read_text())
+    recorded = load_bag(bag)
+    assert recorded.episode == run["episode"], log.read_text()
+    assert recorded.ticks == list(range(len(run["positions"])))
+    assert recorded.positions.tolist() == run["positions"]
+    for source, extra in ((record, ["--size", str(SIZE), "--seed", str(SEED)]), (bag, [])):
+        gif = tmp_path / f"{source.name}.gif"
+        assert mapf_fleet(["render", "--run", str(source), "--out", str(gif), *extra]) == 0
+        with Image.open(gif) as image:
+            assert image.n_frames == len(run["positions"])
