@@ -200,3 +200,87 @@ def test_the_page_draws_map_robots_and_follows_the_stream(served):
     # a check that can fail: the first picture does not show the robots where they went
     with pytest.raises(AssertionError, match="robot"):
         check_picture(image, instance.grid, moved, colours, cell)
+
+
+# ---- the Foxglove side ------------------------------------------------------------------------
+class _FoxgloveClient:
+    """The smallest Foxglove WebSocket protocol client: handshake, JSON ops, binary messages."""
+
+    def __init__(self, port: int):
+        import base64
+        import os
+
+        self.sock = socket.create_connection(("127.0.0.1", port), timeout=30)
+        key = base64.b64encode(os.urandom(16)).decode()
+        self.sock.sendall((f"GET / HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\n"
+                           f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\n"
+                           "Sec-WebSocket-Version: 13\r\n"
+                           "Sec-WebSocket-Protocol: foxglove.sdk.v1\r\n\r\n").encode())
+        self.stream = self.sock.makefile("rb")
+        assert b" 101 " in self.stream.readline()
+        while self.stream.readline() not in (b"\r\n", b""):
+            pass
+
+    def frame(self):
+        """(opcode, payload) of the next frame."""
+        head = self.stream.read(2)
+        length = head[1] & 0x7F
+        if length == 126:
+            length = int.from_bytes(self.stream.read(2), "big")
+        elif length == 127:
+            length = int.from_bytes(self.stream.read(8), "big")
+        return head[0] & 0x0F, self.stream.read(length)
+
+    def send_json(self, data: dict):
+        import os
+
+        payload = json.dumps(data).encode()
+        mask = os.urandom(4)
+        head = bytes([0x81]) + (bytes([0x80 | len(payload)]) if len(payload) < 126 else
+                                bytes([0x80 | 126]) + len(payload).to_bytes(2, "big"))
+        self.sock.sendall(head + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(payload)))
+
+    def close(self):
+        self.sock.close()
+
+
+def test_the_foxglove_app_gets_the_scene_and_the_stats():
+    from mapf_fleet.view.foxglove_out import FoxgloveOut
+
+    picture = FleetPicture()
+    picture.set_map(GRID)
+    picture.set_state(4, 0, [(0, 0), (2, 0)], [(0, 2), (2, 3)])
+    out = FoxgloveOut(port=0)
+    client = None
+    try:
+        out.publish(picture)  # nobody listens yet: the map goes again on subscription
+        client = _FoxgloveClient(out.port)
+        channels = {}
+        while len(channels) < 2:
+            opcode, payload = client.frame()
+            if opcode == 1:
+                message = json.loads(payload)
+                for channel in message.get("channels", []) if message["op"] == "advertise" else []:
+                    channels[channel["topic"]] = channel
+        assert channels["/view/scene"]["schemaName"] == "foxglove.SceneUpdate"
+        assert channels["/view/stats"]["encoding"] == "json"
+        client.send_json({"op": "subscribe", "subscriptions": [
+            {"id": 1, "channelId": channels["/view/scene"]["id"]},
+            {"id": 2, "channelId": channels["/view/stats"]["id"]}]})
+        got = {}
+        deadline = __import__("time").monotonic() + 30
+        while len(got) < 2 and __import__("time").monotonic() < deadline:
+            out.republish_if_asked(picture)
+            picture.set_state(4, 1 + len(got), [(0, 1), (2, 1)], [(0, 2), (2, 3)])
+            out.publish(picture)
+            opcode, payload = client.frame()
+            if opcode == 2 and payload[0] == 1:  # message data: op, subscription id, time, data
+                got.setdefault(int.from_bytes(payload[1:5], "little"), payload[13:])
+        stats = json.loads(got[2])
+        assert stats["episode"] == "4" and stats["reached"] == 0 and "throughput" in stats
+        # the scene is protobuf; its entity ids are plain strings in it
+        assert all(name in got[1] for name in (b"robots", b"goals", b"paths"))
+    finally:
+        if client is not None:
+            client.close()
+        out.stop()

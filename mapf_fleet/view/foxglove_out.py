@@ -24,10 +24,11 @@ class FoxgloveOut:
     def __init__(self, port: int = 8765, name: str = "mapf-fleet view"):
         import foxglove
         from foxglove.channels import SceneUpdateChannel
+        from foxglove.websocket import ServerListener
 
         out = self
 
-        class Listener:  # a newly subscribed app gets the map at once (entities persist there)
+        class Listener(ServerListener):  # a newly subscribed app gets the map at once
             def on_subscribe(self, client, channel):
                 if channel.topic == "/view/scene":
                     out._map_sent = -1
