@@ -284,3 +284,16 @@ def test_the_foxglove_app_gets_the_scene_and_the_stats():
         if client is not None:
             client.close()
         out.stop()
+
+
+def test_the_view_package_never_imports_rclpy():
+    """mapf_fleet/view is read by the renderer and the tests without ROS; only
+    mapf_fleet/ros/live_view.py talks to the fleet (checked like test_layering does)."""
+    from pathlib import Path
+
+    from test_layering import imports_of
+
+    folder = Path(__file__).resolve().parents[1] / "mapf_fleet" / "view"
+    bad = [f"{path.name}:{line} imports {module}" for path in sorted(folder.rglob("*.py"))
+           for line, module in imports_of(path) if module.split(".")[0] == "rclpy"]
+    assert not bad and len(list(folder.rglob("*.py"))) >= 5, bad
