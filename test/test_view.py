@@ -297,3 +297,14 @@ def test_the_view_package_never_imports_rclpy():
     bad = [f"{path.name}:{line} imports {module}" for path in sorted(folder.rglob("*.py"))
            for line, module in imports_of(path) if module.split(".")[0] == "rclpy"]
     assert not bad and len(list(folder.rglob("*.py"))) >= 5, bad
+
+
+def test_idle_robots_and_robots_starting_on_their_goal_reach_nothing():
+    """An idle robot's goal is its own cell, updated every tick (mapf_fleet.fleet.run)."""
+    p = FleetPicture()
+    p.set_state(6, 0, [(0, 0), (2, 2)], [(0, 0), (2, 3)])  # robot 0 starts on its goal
+    p.set_state(6, 1, [(0, 1), (2, 3)], [(0, 1), (2, 3)])  # robot 0 idle, moving; 1 arrives
+    p.set_state(6, 2, [(1, 1), (2, 3)], [(1, 1), (2, 3)])
+    p.set_state(6, 3, [(1, 1), (2, 3)], [(0, 3), (2, 3)])  # robot 0 gets a task
+    p.set_state(6, 4, [(0, 3), (2, 3)], [(0, 3), (2, 3)])  # and reaches it
+    assert p.reached == 2

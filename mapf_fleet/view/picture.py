@@ -16,7 +16,9 @@ throughput = goals_reached / tick, as the fleet defines it, right even for a vie
 middle of a run); else counted here from the states: a goal counts once per (robot, goal cell),
 when the robot stands on its current goal or its goal changes while it stands on the old one
 (the new goal was given in the tick it arrived), and the throughput runs from the first tick
-this picture saw. A robot pushed off its goal and back does not count twice.
+this picture saw. A robot pushed off its goal and back does not count twice. Not counted: a
+goal the robot already stands on when the picture first sees it, and a goal that becomes the
+robot's own cell (an idle robot's goal is the cell it is in, updated every tick).
 
 Thread safety: ROS callbacks write, the web server's threads read `snapshot()` / wait in
 `wait_change`; one lock guards everything.
@@ -103,16 +105,20 @@ class FleetPicture:
                 self.first_tick = int(tick)
                 self.trails = [deque(maxlen=self.trail) for _ in range(len(positions))]
                 self._counted = [None] * len(positions)
-            old_goals = self.goals if len(self.goals) == len(goals) else goals
+            first = len(self.goals) != len(goals)
+            old_goals = goals if first else self.goals
             for i, (cell, goal, old) in enumerate(zip(positions.tolist(), goals.tolist(),
                                                       old_goals.tolist())):
                 if not self.trails[i] or list(self.trails[i][-1]) != cell:
                     self.trails[i].append(tuple(cell))
-                # arrived on the old goal as it was replaced, or standing on the current one
-                for target in ([old] if old != goal else []) + [goal]:
-                    if cell == target and self._counted[i] != tuple(target):
-                        self._counted[i] = tuple(target)
-                        self.reached_here += 1
+                if old != goal and cell == old and self._counted[i] != tuple(old):
+                    self._counted[i] = tuple(old)  # arrived as its next goal was given
+                    self.reached_here += 1
+                if cell == goal and (first or old != goal):
+                    self._counted[i] = tuple(goal)  # already there, or idle: not a reach
+                elif cell == goal and self._counted[i] != tuple(goal):
+                    self._counted[i] = tuple(goal)
+                    self.reached_here += 1
             self.tick = int(tick)
             self.done = bool(done)
             self.positions, self.goals = positions, goals
