@@ -1,10 +1,24 @@
-"""Fleet throughput: lockstep ticks/s of `mapf-fleet up` for 8, 32 and 64 robots (separate
-processes: one per robot up to 32, 64 as 8 processes x 8 nodes; and all in one process), beside
-the batched evaluator's steps/s (MAPFEnv + network.step, one thread) on the same instance and
-checkpoint, the compute limit. Startup (imports, discovery) is excluded: the simulator times
-the ticks themselves.
+"""Fleet throughput and where a tick goes: `mapf-fleet up` at 32 / 64 / 128 / 256 robots in the
+recommended layouts (32: 24x24, 4 processes x 8 robots; 64: 32x32, 4 x 16; 128: 40x40, 4 x 32;
+256: 56x56, 8 x 32), DHC and DCC, beside the batched evaluator (MAPFEnv + network.step, one
+thread) on the same instance and checkpoint.
 
-    python benchmarks/bench_fleet.py [--checkpoint F] [--robots 8 32 64] [--steps 30]
+Per run: ticks/s from the first tick (the record's run_seconds; start-up excluded), the time per
+tick over the first and the last quarter of the run (flat or growing), missed decisions, and the
+split of a tick from the hubs' own timing (`hub.TickTiming`, logged by every policy process, kept
+with --log-dir), averaged over the hubs, in ms per tick:
+  latency  fleet state stamped by the simulator -> the hub's callback (publish + DDS),
+  wake     callback -> the hub's decision thread,
+  observe  FOV observations, network (torch), send (peer messages, DCC batch calls),
+  wait     for the other processes' messages, moves (ranking, publishing the moves),
+  sim+rest the tick minus what the hubs account for: the simulator taking the moves,
+           arbitrating (PIBT), publishing waypoints / poses / markers / the next state.
+DCC message counts: requests + replies to other processes per tick, and the service calls that
+carried them (one DccBatch per pair of processes and phase).
+
+    python benchmarks/bench_fleet.py [--robots 32 64 128 256] [--algos dcc dhc] [--steps 60]
+
+On the 2-core development machine one core was busy with a training job: figures are as measured.
 """
 
 from __future__ import annotations
@@ -12,14 +26,26 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import subprocess
 import sys
 import tempfile
 import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+CHECKPOINTS = {"dcc": REPO / "models" / "default.pt",
+               "dhc": REPO / "models" / "dhc_5x30_cl_alpha1.0.pt"}
+# robots -> (map side, robots per process)
+LAYOUTS = {32: (24, 8), 64: (32, 16), 128: (40, 32), 256: (56, 32)}
+PHASES = ("latency", "wake", "observe", "network", "send", "wait", "moves")
+TICK_LINE = re.compile(r"\[(\d+\.\d+)\] \[[^\]]*mapf_simulator\]: tick (\d+): ")
+HUB_LINE = re.compile(r"hub timing over (\d+) ticks, ms per tick: (.*?); last")
+SENT = re.compile(r"to other processes (\d+) in (\d+) batch calls")
 
 
-def batched_steps_per_second(checkpoint, instance, steps):
-    """Steps/s of the evaluator's own rollout (MAPFEnv + LearnedPolicy, one thread)."""
+def batched_ms_per_step(checkpoint, instance, steps):
+    """ms per step of the evaluator's own rollout (MAPFEnv + LearnedPolicy, one thread)."""
     import torch
 
     from mapf_fleet.grid.env import MAPFEnv
@@ -27,7 +53,7 @@ def batched_steps_per_second(checkpoint, instance, steps):
     from mapf_fleet.models.policy import LearnedPolicy
 
     torch.set_num_threads(1)
-    model, _ = load_checkpoint(checkpoint)
+    model, _ = load_checkpoint(str(checkpoint))
     policy = LearnedPolicy(model, device="cpu")
     env = MAPFEnv(instance)
     obs, done, count = env.reset(), False, 0
@@ -37,48 +63,94 @@ def batched_steps_per_second(checkpoint, instance, steps):
         actions = policy.act(obs[None], env.positions[None])
         obs, _, done, _ = env.step(actions[0])
         count += 1
-    return count / (time.perf_counter() - start)
+    return 1000 * (time.perf_counter() - start) / max(1, count)
 
 
-def fleet_ticks_per_second(checkpoint, robots, size, seed, steps, layout, domain):
-    record = os.path.join(tempfile.mkdtemp(prefix="bench_fleet_"), "run.json")
-    cmd = [sys.executable, "-m", "mapf_fleet.cli", "up", "--checkpoint", checkpoint,
+def tick_times(output: str) -> list[float]:
+    """Seconds per tick from the simulator's progress lines (`progress_every` 1)."""
+    stamps = [(int(m[2]), float(m[1])) for m in TICK_LINE.finditer(output)]
+    return [(b[1] - a[1]) / (b[0] - a[0]) for a, b in zip(stamps, stamps[1:]) if b[0] > a[0]]
+
+
+def hub_split(log_dir: str) -> tuple[dict, float, float]:
+    """Mean ms per tick of each phase over the hubs (their last timing line), and the DCC
+    messages / batch calls to other processes per tick (summed over the hubs)."""
+    phases, messages, calls = [], 0.0, 0.0
+    for log in sorted(Path(log_dir).glob("*.log")):
+        lines = [m for m in HUB_LINE.finditer(log.read_text())]
+        if not lines:
+            continue
+        last = lines[-1]
+        ticks = int(last[1])
+        phases.append({p: float(v) for p, v in
+                       (part.split() for part in last[2].split(", "))})
+        sent = SENT.findall(log.read_text())
+        if sent and ticks:
+            messages += int(sent[-1][0]) / ticks
+            calls += int(sent[-1][1]) / ticks
+    mean = {p: sum(h.get(p, 0.0) for h in phases) / max(1, len(phases)) for p in PHASES}
+    return mean, messages, calls
+
+
+def run_fleet(checkpoint, robots, size, per_process, seed, steps, domain):
+    work = tempfile.mkdtemp(prefix="bench_fleet_")
+    record, logs = os.path.join(work, "run.json"), os.path.join(work, "logs")
+    cmd = [sys.executable, "-m", "mapf_fleet.cli", "up", "--checkpoint", str(checkpoint),
            "--num-robots", str(robots), "--size", str(size), "--seed", str(seed),
-           "--max-steps", str(steps), "--record", record, "--quiet", "--domain-id", str(domain)]
-    cmd += ["--single-process"] if layout == "one process" else [
-        "--nodes-per-process", str(1 if robots <= 32 else 8)]
+           "--max-steps", str(steps), "--record", record, "--domain-id", str(domain),
+           "--nodes-per-process", str(per_process), "--log-dir", logs,
+           "--ros-args", "-p", "progress_every:=1"]
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-    subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
-    with open(record) as handle:
-        run = json.load(handle)
-    return run["steps"] / run["run_seconds"], run["missed_decisions"]
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=1800)
+    try:
+        run = json.loads(Path(record).read_text())
+    except (OSError, ValueError):
+        sys.exit(f"bench_fleet: no record from {' '.join(cmd)}:\n{done.stdout[-2000:]}"
+                 f"{done.stderr[-2000:]}")
+    return run, tick_times(done.stdout), hub_split(logs)
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--checkpoint", required=True)
-    parser.add_argument("--robots", type=int, nargs="+", default=[8, 32, 64])
-    parser.add_argument("--size", type=int, default=40)
-    parser.add_argument("--steps", type=int, default=30)
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--robots", type=int, nargs="+", default=sorted(LAYOUTS),
+                        choices=sorted(LAYOUTS))
+    parser.add_argument("--algos", nargs="+", default=["dcc", "dhc"], choices=sorted(CHECKPOINTS))
+    parser.add_argument("--steps", type=int, default=60, help="ticks per run (default: 60)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--layouts", nargs="+", default=["processes", "one process"])
+    parser.add_argument("--domain-id", type=int, default=150,
+                        help="first ROS_DOMAIN_ID used (one per run; default: 150)")
     args = parser.parse_args()
     from mapf_fleet.grid.instance import generate_instance
 
-    print(f"{'robots':>6} {'layout':<22} {'fleet ticks/s':>13} {'missed':>6} "
-          f"{'batched steps/s':>15} {'ratio':>6}")
-    domain = 120
+    head = (f"{'robots':>6} {'algo':<4} {'layout':<14} {'ticks/s':>7} {'ms/tick':>13} "
+            f"{'missed':>6} | " + " ".join(f"{p:>7}" for p in PHASES)
+            + f" {'sim+rest':>8} | {'msgs/calls':>10} | {'batched':>7} {'x':>5}")
+    print(head)
+    print("-" * len(head))
+    domain = args.domain_id
     for robots in args.robots:
-        instance = generate_instance(args.size, robots, 0.3, args.seed)
-        limit = batched_steps_per_second(args.checkpoint, instance, args.steps)
-        for layout in args.layouts:
+        size, per_process = LAYOUTS[robots]
+        instance = generate_instance(size, robots, 0.3, args.seed)
+        for algo in args.algos:
+            checkpoint = CHECKPOINTS[algo]
+            batched = batched_ms_per_step(checkpoint, instance, args.steps)
+            run, ticks, (split, messages, calls) = run_fleet(
+                checkpoint, robots, size, per_process, args.seed, args.steps, domain)
             domain += 1
-            name = layout if layout == "one process" else (
-                f"{robots} processes" if robots <= 32 else f"{robots // 8} processes x 8")
-            rate, missed = fleet_ticks_per_second(args.checkpoint, robots, args.size, args.seed,
-                                                  args.steps, layout, domain)
-            print(f"{robots:>6} {name:<22} {rate:>13.2f} {missed:>6} {limit:>15.1f} "
-                  f"{rate / limit:>6.3f}", flush=True)
+            rate = run["steps"] / run["run_seconds"] if run["run_seconds"] > 0 else 0.0
+            quarter = max(1, len(ticks) // 4)
+            start_ms = 1000 * sum(ticks[:quarter]) / quarter if ticks else 0.0
+            end_ms = 1000 * sum(ticks[-quarter:]) / quarter if ticks else 0.0
+            per_tick = 1000 / rate if rate else 0.0
+            rest = per_tick - sum(split[p] for p in PHASES)
+            layout = f"{-(-robots // per_process)} x {per_process}, {size}x{size}"
+            comm = f"{messages:.0f}/{calls:.1f}" if algo == "dcc" else "-"
+            print(f"{robots:>6} {algo:<4} {layout:<14} {rate:>7.2f} "
+                  f"{f'{start_ms:.0f}->{end_ms:.0f}':>13} {run['missed_decisions']:>6} | "
+                  + " ".join(f"{split[p]:>7.1f}" for p in PHASES)
+                  + f" {rest:>8.1f} | {comm:>10} | {batched:>7.1f} {per_tick / batched:>5.0f}",
+                  flush=True)
 
 
 if __name__ == "__main__":

@@ -10,15 +10,14 @@ Conventions (see docs/architecture.md):
 
 from __future__ import annotations
 
-import os
 import threading
 from dataclasses import dataclass
 
 import numpy as np
 
-# Environment every process of the fleet runs with (DESIGN.md section 2): nothing leaves loopback,
-# and the venv is the ROS prefix so ament lookups work.
-FLEET_ENV = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+# The environment every fleet process runs with lives with the process plumbing (plain Python)
+# and is re-exported here: common imports processes, never the other way round.
+from mapf_fleet.ros.processes import FLEET_ENV, prepare_environment  # noqa: F401
 
 # The fleet's names in the default namespace (what viewers, echo and bag see there). The nodes
 # create their topics and services under the RELATIVE names (`rel(...)`), resolved in the node's
@@ -76,19 +75,6 @@ def dcc_request_service(robot_id: int) -> str:
 
 def dcc_reply_service(robot_id: int) -> str:
     return f"{robot_ns(robot_id)}/dcc_reply"
-
-
-def prepare_environment(env: dict | None = None) -> dict:
-    """Return (and apply to os.environ when env is None) the variables every fleet process needs.
-    The discovery range is always LOCALHOST, whatever the caller's environment says: no process
-    of the project sends DDS traffic off this machine."""
-    target = os.environ if env is None else env
-    target.update(FLEET_ENV)
-    if "AMENT_PREFIX_PATH" not in target:
-        import sys
-
-        target["AMENT_PREFIX_PATH"] = sys.prefix
-    return target
 
 
 def init_process(args: list[str]):

@@ -62,44 +62,105 @@ def default_checkpoint() -> str:
     return preferred[0] if preferred else ""
 
 
+class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """The module docstring as written, and every option's default after its help text (unless
+    the text already says its default, or there is none to state)."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        default = action.default
+        if ("default" in text or default is None or default is False or default == ""
+                or default is argparse.SUPPRESS or not action.option_strings):
+            return text
+        return f"{text} (default: %(default)s)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="mapf-fleet up", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+                                     formatter_class=_HelpFormatter)
     parser.add_argument("--checkpoint", default=None,
                         help="policy checkpoint (default: models/default.pt, else the first DHC "
                              "checkpoint in models/)")
-    parser.add_argument("--num-robots", type=int, default=8)
+    parser.add_argument("--num-robots", type=int, default=None,
+                        help="robots of a generated instance, or the first N entries of --scen "
+                             "(default: 8 generated, every entry of --scen)")
     parser.add_argument("--size", type=int, default=16, help="side of a generated map")
-    parser.add_argument("--density", type=float, default=0.3)
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--density", type=float, default=0.3,
+                        help="obstacle density of a generated map, in [0, 1)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of a generated instance")
     parser.add_argument("--instance", default="", help="instance YAML (grid, starts, goals)")
-    parser.add_argument("--map", default="", help="MovingAI .map (with --scen)")
+    parser.add_argument("--map", default="",
+                        help="the map: a MovingAI .map (with --scen for starts and goals), or a "
+                             "building's Nav2 map_server YAML (image, resolution, origin, ...; "
+                             "see --cell-size); without --scen, starts and goals are drawn from "
+                             "--seed")
+    parser.add_argument("--cell-size", type=float, default=None, metavar="M",
+                        help="Nav2 map YAML: metres per grid cell, a whole number of image "
+                             "pixels (default: one pixel per cell); a cell is blocked when any "
+                             "of its pixels is occupied or unknown")
+    parser.add_argument("--task-source", nargs="+", default=["instance"],
+                        metavar="SOURCE [FILE]",
+                        help="where goals come from: instance (the one-shot episode: every "
+                             "robot to its goal, then the run ends), lifelong (a new random goal "
+                             "on arrival, POGEMA's lifelong MAPF), tasks FILE (a YAML list of "
+                             "goals or pickup/dropoff pairs for the nearest idle robot), "
+                             "external (robots idle until goals come over ROS: goal_pose, "
+                             "navigate_to_pose, mapf-fleet goal); goals given at run time work "
+                             "with every source")
+    parser.add_argument("--goal-seed", type=int, default=None,
+                        help="seed of the lifelong goal stream (default: --seed)")
     parser.add_argument("--scen", default="", help="MovingAI .scen (with --map)")
-    parser.add_argument("--max-steps", type=int, default=256)
-    parser.add_argument("--decision-timeout", type=float, default=10.0)
-    parser.add_argument("--comm-timeout", type=float, default=5.0)
-    parser.add_argument("--startup-timeout", type=float, default=120.0)
+    parser.add_argument("--max-steps", type=int, default=None,
+                        help="tick limit (>= 1): a one-shot run fails when the robots are not "
+                             "all on goal by then; a continuous one ends there (default: 256; "
+                             "with --task-source external: none, 0, the run goes on until "
+                             "Ctrl-C)")
+    parser.add_argument("--decision-timeout", type=float, default=10.0,
+                        help="seconds the simulator waits for a robot's move; a missing one is "
+                             "stay, reported (> 0)")
+    parser.add_argument("--comm-timeout", type=float, default=5.0,
+                        help="seconds a robot waits for a peer's message before leaving it out "
+                             "(> 0)")
+    parser.add_argument("--startup-timeout", type=float, default=120.0,
+                        help="seconds to wait for every robot to report ready before tick 0 "
+                             "(> 0)")
     parser.add_argument("--conflict-rule", choices=CONFLICT_RULES, default=DEFAULT_CONFLICT_RULE,
                         help="how the arbiter resolves a tick: pibt (PIBT over the robots' "
                              "ranked actions), pibt_anchor (the same, the top-priority robot on "
                              "its distance order) or revert (the paper's rules on first choices)")
     parser.add_argument("--preference-mode", default=None,
                         help="how policy nodes rank their actions from Q-values (default: "
-                             "the policy node's preference_mode, i.e. the evaluator's default)")
-    parser.add_argument("--nodes-per-process", type=int, default=1)
+                             "the policy nodes' preference_mode if a params file sets it, else "
+                             "the conflict rule's: q_then_distance under pibt_anchor, q under "
+                             "pibt and revert)")
+    parser.add_argument("--nodes-per-process", type=int, default=1,
+                        help="robots' policy nodes hosted per process (one hub each; 32 for "
+                             "large fleets)")
     parser.add_argument("--single-process", action="store_true",
                         help="simulator and all policy nodes in this process")
     parser.add_argument("--real-robots", action="store_true",
                         help="real-robot mode: the aggregator (robots' own /robot_<i>/pose "
                         "feeds) instead of the simulator")
     parser.add_argument("--arrival-timeout", type=float, default=10.0,
-                        help="real-robot mode: seconds for robots to reach their waypoints")
+                        help="real-robot mode: seconds for robots to reach their waypoints "
+                             "(> 0)")
+    parser.add_argument("--resolution", type=float, default=None,
+                        help="metres per cell of the map and the poses (default: 1.0, or the "
+                             "nodes' resolution parameter)")
+    parser.add_argument("--origin", type=float, nargs=2, default=None, metavar=("X", "Y"),
+                        help="real-robot mode: x, y (metres) of the map's corner, where cell "
+                             "(0, 0) starts (default: 0 0)")
     parser.add_argument("--record", default="", help="write trajectory and outcome JSON here")
     parser.add_argument("--bag", default="", metavar="DIR",
                         help="also record the fleet's topics into the new rosbag2 DIR (MCAP; "
                              "`mapf-fleet record DIR` started beside the fleet, closed at the "
                              "end)")
-    parser.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID to use")
+    parser.add_argument("--log-dir", default="", metavar="DIR",
+                        help="keep the policy processes' logs in DIR (created if needed; "
+                             "default: a temporary directory, removed after a successful run "
+                             "and kept, with its path printed, after a failed one)")
+    parser.add_argument("--domain-id", type=int, default=None,
+                        help="ROS_DOMAIN_ID to use, 0-232 (default: the environment's)")
     parser.add_argument("--params-file", default="", help="ROS parameters YAML for all nodes")
     parser.add_argument("--namespace", default="",
                         help="ROS namespace of the whole fleet (e.g. /fleet_a: topics "
@@ -116,7 +177,9 @@ SIM_OPTION_PARAMS = {"instance": "instance_file", "map": "map_file", "scen": "sc
                      "seed": "seed", "max_steps": "max_steps",
                      "decision_timeout": "decision_timeout", "startup_timeout": "startup_timeout",
                      "conflict_rule": "conflict_rule", "arrival_timeout": "arrival_timeout",
-                     "record": "record_file"}
+                     "record": "record_file", "resolution": "resolution",
+                     "task_source": "task_source", "goal_seed": "goal_seed",
+                     "cell_size": "cell_size"}
 POLICY_OPTION_PARAMS = {"checkpoint": "checkpoint", "comm_timeout": "comm_timeout",
                         "preference_mode": "preference_mode"}
 
@@ -144,6 +207,7 @@ def apply_parameter_sources(own: list[str], args, ros_args: list[str]) -> None:
     args.explicit_params = {param for table in (SIM_OPTION_PARAMS, POLICY_OPTION_PARAMS)
                             for option, param in table.items() if option in explicit}
     args.fixed_params = {}
+    args.node_values = {}  # kind -> {parameter: value} from the params files, options and -p
     for kind, table, names in (("sim", SIM_OPTION_PARAMS, [sim_name]),
                                ("policy", POLICY_OPTION_PARAMS,
                                 [f"mapf_policy_{i}" for i in range(1024)])):
@@ -163,6 +227,7 @@ def apply_parameter_sources(own: list[str], args, ros_args: list[str]) -> None:
             elif arg in ("-p", "--param"):
                 values.update(rp.command_line_values(rp.ros_arg_rules(
                     ["-p", ros_args[index + 1]])[0], names[0]))
+        args.node_values[kind] = values
         for option, param in table.items():
             if param in values:
                 value = values[param]
@@ -173,6 +238,72 @@ def apply_parameter_sources(own: list[str], args, ros_args: list[str]) -> None:
                                      f"got {value!r}") from None
                 setattr(args, option, value)
     args.fixed_params["both"] = args.fixed_params["sim"] | args.fixed_params["policy"]
+
+
+# What a node refuses at start-up (or, for the simulator's runtime parameters, at its first
+# tick), checked by `up` before anything starts: (node kind, parameter, check, condition)
+VALUE_CHECKS = [
+    ("sim", "max_steps", lambda v: v >= 0, ">= 1 (0: no limit, continuous task sources)"),
+    ("sim", "cell_size", lambda v: v >= 0, "> 0"),
+    ("sim", "decision_timeout", lambda v: v > 0, "> 0"),
+    ("sim", "startup_timeout", lambda v: v > 0, "> 0"),
+    ("sim", "arrival_timeout", lambda v: v > 0, "> 0"),
+    ("sim", "resolution", lambda v: v > 0, "> 0"),
+    ("sim", "tick_period", lambda v: v >= 0, ">= 0"),
+    ("sim", "progress_every", lambda v: v >= 1, ">= 1"),
+    ("sim", "start_tick", lambda v: v >= 0, ">= 0"),
+    ("sim", "state_subscribers", lambda v: v >= 0, ">= 0"),
+    ("policy", "comm_timeout", lambda v: v > 0, "> 0"),
+    ("policy", "service_timeout", lambda v: v > 0, "> 0"),
+    ("policy", "status_period", lambda v: v > 0, "> 0"),
+    ("policy", "episode_timeout", lambda v: v > 0, "> 0"),
+]
+MAX_DOMAIN_ID = 232  # the largest ROS_DOMAIN_ID whose Fast DDS ports are valid
+
+
+def value_problem(args) -> str:
+    """The first value a node of this fleet would refuse ("" when none), as one line naming the
+    option (or the parameter and where it came from) and the value: every value is checked
+    before anything starts (issue 23, defect 5)."""
+    options = {param: option for table in (SIM_OPTION_PARAMS, POLICY_OPTION_PARAMS)
+               for option, param in table.items()}
+    for kind, param, check, condition in VALUE_CHECKS:
+        values = dict(getattr(args, "node_values", {}).get(kind, {}))
+        table = SIM_OPTION_PARAMS if kind == "sim" else POLICY_OPTION_PARAMS
+        values.update({p: getattr(args, o) for o, p in table.items()
+                       if getattr(args, o, None) is not None})
+        if param not in values:
+            continue
+        value = values[param]
+        option = options.get(param)
+        name = (f"--{option.replace('_', '-')}" if option and param in args.explicit_params
+                else f"parameter {param}" + ("" if option else " (params file or -p)"))
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            return f"{name} must be a number {condition}, got {value!r}"
+        if not check(value):
+            return f"{name} must be {condition}, got {value!r}"
+    source = getattr(args, "task_source", "instance")
+    if args.max_steps == 0 and source == "instance":
+        name = "--max-steps" if "max_steps" in args.explicit_params else "parameter max_steps"
+        return (f"{name} must be >= 1 with --task-source instance (0, no limit, is for the "
+                f"continuous sources lifelong, tasks, external), got 0")
+    if args.domain_id is not None and not 0 <= args.domain_id <= MAX_DOMAIN_ID:
+        return f"--domain-id must be in 0-{MAX_DOMAIN_ID}, got {args.domain_id}"
+    if args.nodes_per_process < 1:
+        return f"--nodes-per-process must be >= 1, got {args.nodes_per_process}"
+    if args.origin is not None and not args.real_robots:
+        return ("--origin applies to --real-robots (the simulator's map has its corner at "
+                "0, 0)")
+    return ""
+
+
+def default_robot_count(args) -> int:
+    """--num-robots when not given: every entry of --scen, else 8 (a generated instance)."""
+    if args.map and args.scen and not args.instance:
+        from mapf_fleet.grid.movingai import read_scen
+
+        return len(read_scen(args.scen))
+    return 8
 
 
 def _ros_args(params: dict, args, kind: str) -> list[str]:
@@ -191,6 +322,25 @@ def _ros_args(params: dict, args, kind: str) -> list[str]:
     return out + list(args.ros_args)
 
 
+def task_source_problem(args) -> str:
+    """Split `--task-source SOURCE [FILE]` into args.task_source / args.task_file; the problem
+    ("" when none)."""
+    from mapf_fleet.fleet.tasks import TASK_SOURCES
+
+    source, rest = args.task_source[0], args.task_source[1:]
+    args.task_source, args.task_file = source, rest[0] if rest else ""
+    if source not in TASK_SOURCES:
+        return f"--task-source must be one of {', '.join(TASK_SOURCES)}, got {source!r}"
+    if source == "tasks":
+        if len(rest) != 1:
+            return "--task-source tasks needs exactly one task file: --task-source tasks FILE"
+        if not Path(rest[0]).is_file():
+            return f"--task-source tasks: task file not found: {rest[0]}"
+    elif rest:
+        return f"--task-source {source} takes no file (got {' '.join(rest)})"
+    return ""
+
+
 def main(argv: list[str] | None = None) -> int:
     from mapf_fleet.ros.processes import stop_signals
 
@@ -199,7 +349,17 @@ def main(argv: list[str] | None = None) -> int:
     own, ros_args = common.split_ros_args(argv)
     parser = build_parser()
     args = parser.parse_args(own)
+    problem = task_source_problem(args)
+    if problem:
+        print(f"mapf-fleet up: {problem}", file=sys.stderr)
+        return 2
     apply_parameter_sources(own, args, ros_args)
+    if args.max_steps is None:  # external goals come when they come: no tick limit
+        args.max_steps = 0 if args.task_source == "external" else 256
+    problem = value_problem(args)
+    if problem:  # before anything starts (a node would refuse it, some only after seconds)
+        print(f"mapf-fleet up: {problem}", file=sys.stderr)
+        return 2
     checkpoint = args.checkpoint or default_checkpoint()
     if not checkpoint or not Path(checkpoint).is_file():
         if args.checkpoint:
@@ -221,14 +381,13 @@ def main(argv: list[str] | None = None) -> int:
             print(f"mapf-fleet up: --preference-mode must be one of "
                   f"{', '.join(PREFERENCE_MODES)}", file=sys.stderr)
             return 2
-    if args.nodes_per_process < 1:
-        print("mapf-fleet up: --nodes-per-process must be >= 1", file=sys.stderr)
-        return 2
     problem = checkpoint_problem(checkpoint)
     if problem:  # before anything starts: the policy processes would die one by one
         print(f"mapf-fleet up: {problem}", file=sys.stderr)
         return 2
     try:
+        if args.num_robots is None:
+            args.num_robots = default_robot_count(args)
         source = InstanceSource(args.instance, args.map, args.scen, args.num_robots, args.size,
                                 args.density, args.seed)
         num_robots = source.load().num_agents
@@ -250,26 +409,21 @@ def main(argv: list[str] | None = None) -> int:
     env = common.prepare_environment(dict(os.environ))
     if args.domain_id is not None:
         env["ROS_DOMAIN_ID"] = str(args.domain_id)
-    # the default record and the policy processes' logs; removed when `up` ends
-    args.work_dir = work = tempfile.mkdtemp(prefix="mapf_fleet_")
+    # the default record and the policy processes' logs (in --log-dir when given); removed when
+    # `up` ends after a successful run, kept after a failed one
+    work = tempfile.mkdtemp(prefix="mapf_fleet_")
+    args.work_dir = args.log_dir or work
+    if args.log_dir:
+        try:
+            os.makedirs(args.log_dir, exist_ok=True)
+        except OSError as exc:
+            print(f"mapf-fleet up: --log-dir {args.log_dir}: {exc.strerror or exc}",
+                  file=sys.stderr)
+            return 2
     record = args.record or os.path.join(work, "run.json")
-    sim_params = {"instance_file": args.instance, "map_file": args.map, "scen_file": args.scen,
-                  "num_robots": args.num_robots, "size": args.size, "density": args.density,
-                  "seed": args.seed, "max_steps": args.max_steps,
-                  "decision_timeout": args.decision_timeout,
-                  "startup_timeout": args.startup_timeout, "record_file": record,
-                  "conflict_rule": args.conflict_rule}
-    sim_params = {k: v for k, v in sim_params.items() if v != ""}
-    if args.real_robots:
-        sim_params = {k: v for k, v in sim_params.items() if k in _aggregator_parameters()}
-        sim_params["arrival_timeout"] = args.arrival_timeout
-    if args.bag:  # tick 0 waits until the hubs and the recorder hear the state: no tick missed
-        sim_params["state_subscribers"] = (
-            policy_processes(num_robots, args.single_process, args.nodes_per_process) + 1)
-    policy_params = {"checkpoint": checkpoint, "comm_timeout": args.comm_timeout}
-    if args.preference_mode is not None:
-        policy_params["preference_mode"] = args.preference_mode
+    sim_params, policy_params = node_parameters(args, checkpoint, record, num_robots)
     started = time.monotonic()
+    result = 1
     try:
         if args.single_process:
             os.environ.update(env)
@@ -277,10 +431,57 @@ def main(argv: list[str] | None = None) -> int:
         else:
             code, problem = run_processes(num_robots, sim_params, policy_params, args, env)
         elapsed = time.monotonic() - started
-        return finish(code, problem, record, elapsed, bool(args.record))
+        result = finish(code, problem, record, elapsed, bool(args.record))
+        return result
     finally:
-        shutil.rmtree(work, ignore_errors=True)
+        keep_logs(work, args.log_dir, failed=result != 0)
         signals.restore()
+
+
+def keep_logs(work: str, log_dir: str, failed: bool) -> None:
+    """The temporary work directory goes, unless the run failed and the policy processes' logs
+    are in it (no --log-dir): then its path is printed, so a user can see why a hub stalled."""
+    logs = sorted(glob.glob(os.path.join(work, "*.log")))
+    if failed and logs and not log_dir:
+        print(f"mapf-fleet up: the policy processes' logs are kept in {work}", file=sys.stderr)
+        return
+    if log_dir and glob.glob(os.path.join(log_dir, "*.log")):
+        print(f"mapf-fleet up: the policy processes' logs are in {log_dir}", file=sys.stderr)
+    shutil.rmtree(work, ignore_errors=True)
+
+
+def node_parameters(args, checkpoint: str, record: str, num_robots: int) -> tuple[dict, dict]:
+    """The parameters `up` gives the simulator (or aggregator) and the policy nodes, from its
+    options (`_ros_args` leaves out those a params file or -p rule sets, unless the option was
+    given)."""
+    sim_params = {"instance_file": args.instance, "map_file": args.map, "scen_file": args.scen,
+                  "num_robots": args.num_robots, "size": args.size, "density": args.density,
+                  "seed": args.seed, "max_steps": args.max_steps,
+                  "task_source": args.task_source, "task_file": args.task_file,
+                  "decision_timeout": args.decision_timeout,
+                  "startup_timeout": args.startup_timeout, "record_file": record,
+                  "conflict_rule": args.conflict_rule}
+    sim_params = {k: v for k, v in sim_params.items() if v != ""}
+    if args.resolution is not None:
+        sim_params["resolution"] = args.resolution
+    for option in ("goal_seed", "cell_size"):
+        if getattr(args, option) is not None:
+            sim_params[option] = getattr(args, option)
+    if args.real_robots:
+        sim_params = {k: v for k, v in sim_params.items() if k in _aggregator_parameters()}
+        sim_params["arrival_timeout"] = args.arrival_timeout
+        if args.origin is not None:
+            sim_params["origin_x"], sim_params["origin_y"] = args.origin
+    if args.bag:  # tick 0 waits until the hubs and the recorder hear the state: no tick missed
+        sim_params["state_subscribers"] = (
+            policy_processes(num_robots, args.single_process, args.nodes_per_process) + 1)
+    # the policy nodes' default preference_mode follows the arbiter's rule (a params file's or
+    # the command line's preference_mode still wins: up passes none unless --preference-mode)
+    policy_params = {"checkpoint": checkpoint, "comm_timeout": args.comm_timeout,
+                     "conflict_rule": args.conflict_rule}
+    if args.preference_mode is not None:
+        policy_params["preference_mode"] = args.preference_mode
+    return sim_params, policy_params
 
 
 def checkpoint_problem(path: str) -> str:
@@ -466,7 +667,8 @@ def _run_in_this_process(num_robots, sim_params, policy_params, args) -> tuple[i
                               for i in range(1, num_robots)]
         # one hub drives every robot of this process; the simulator shares the executor
         code = spin_policy_nodes(policies, until=simulator.finished.is_set,
-                                 extra_nodes=[simulator], on_started=simulator.start,
+                                 extra_nodes=[simulator], side_nodes=simulator.extra_nodes,
+                                 on_started=simulator.start,
                                  signals=signals, on_stop=simulator.ticker.stop)
         if code:
             return code, ("" if signals.requested else "a callback failed (logged above)")

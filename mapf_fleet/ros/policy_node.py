@@ -25,8 +25,10 @@ from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
-from mapf_fleet.coordination.preferences import DEFAULT_Q_MODE, PREFERENCE_MODES
+from mapf_fleet.coordination.preferences import (DEFAULT_Q_MODE_BY_RULE, PREFERENCE_MODES,
+                                                 default_q_mode)
 from mapf_fleet.entry import one_line_errors
+from mapf_fleet.fleet.arbiter import CONFLICT_RULES, DEFAULT_CONFLICT_RULE
 from mapf_fleet.ros import common
 
 PARAMETERS = {
@@ -37,8 +39,14 @@ PARAMETERS = {
     "status_period": (0.5, "seconds between readiness heartbeats"),
     "episode_timeout": (30.0, "seconds without a fleet state of the run this robot serves "
                               "after which another simulator's run may take it over"),
-    "preference_mode": (DEFAULT_Q_MODE, "how a robot ranks its five actions from its Q-values "
-                                        f"for the arbiter: one of {', '.join(PREFERENCE_MODES)}"),
+    "conflict_rule": (DEFAULT_CONFLICT_RULE, "the arbiter's conflict rule (the simulator's or "
+                                             "aggregator's; `up` passes its own): it sets the "
+                                             "default preference_mode"),
+    "preference_mode": ("", "how a robot ranks its five actions from its Q-values for the "
+                            f"arbiter: one of {', '.join(PREFERENCE_MODES)}; empty: the "
+                            "conflict rule's default ("
+                            + ", ".join(f"{m} under {r}" for r, m in DEFAULT_Q_MODE_BY_RULE.items())
+                            + f", {default_q_mode('revert')} otherwise)"),
 }
 
 
@@ -82,7 +90,14 @@ class PolicyNode(Node):
         for pname in ("comm_timeout", "service_timeout", "status_period", "episode_timeout"):
             if not getattr(self, pname) > 0:
                 raise ValueError(f"parameter {pname} must be > 0, got {getattr(self, pname)}")
-        self.preference_mode = str(self.get_parameter("preference_mode").value)
+        self.conflict_rule = str(self.get_parameter("conflict_rule").value)
+        if self.conflict_rule not in CONFLICT_RULES:
+            raise ValueError(f"parameter conflict_rule must be one of {CONFLICT_RULES}, "
+                             f"got {self.conflict_rule!r}")
+        # a preference_mode given (params file, -p, `up --preference-mode`) always wins; else
+        # the ranking measured best under the rule (issue 25 item 3)
+        self.preference_mode = (str(self.get_parameter("preference_mode").value)
+                                or default_q_mode(self.conflict_rule))
         if self.preference_mode not in PREFERENCE_MODES:
             raise ValueError(f"parameter preference_mode must be one of {PREFERENCE_MODES}, "
                              f"got {self.preference_mode!r}")

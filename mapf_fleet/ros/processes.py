@@ -22,9 +22,23 @@ import sys
 import threading
 import time
 
-from mapf_fleet.ros.common import prepare_environment
-
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+# Environment every process of the fleet runs with (DESIGN.md section 2): nothing leaves loopback,
+# and the venv is the ROS prefix so ament lookups work. (Here, below `common`, which re-exports
+# it: the two modules used to import each other.)
+FLEET_ENV = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+
+
+def prepare_environment(env: dict | None = None) -> dict:
+    """Return (and apply to os.environ when env is None) the variables every fleet process needs.
+    The discovery range is always LOCALHOST, whatever the caller's environment says: no process
+    of the project sends DDS traffic off this machine."""
+    target = os.environ if env is None else env
+    target.update(FLEET_ENV)
+    if "AMENT_PREFIX_PATH" not in target:
+        target["AMENT_PREFIX_PATH"] = sys.prefix
+    return target
 
 
 def signal_name(signum: int) -> str:

@@ -44,11 +44,12 @@ def batched_rollout(checkpoint: str, instance, max_steps: int, comm=None):
 def batched_shielded_rollout(checkpoint: str, instance, max_steps: int, comm=None, anchor=False):
     """The batched evaluator's shielded path (`evaluation.runner.run_decentralized(...,
     shield="pibt")` with `CheckpointBatchPolicy`): each step the policy's Q-values ranked by
-    `rank_actions` (default mode, ties `tie_breakers(agent ids, step)`), one `PIBTShield` for
+    `rank_actions` (the rule's default mode, `default_q_mode`: the fleet's policy nodes follow
+    the conflict rule too; ties `tie_breakers(agent ids, step)`), one `PIBTShield` for
     the episode, the executed actions fed back as DCC's last action. Returns (first choices,
     executed actions, positions, overridden robot ids per step)."""
     from mapf_fleet.coordination.pibt import PIBTShield
-    from mapf_fleet.coordination.preferences import DEFAULT_Q_MODE, rank_actions, tie_breakers
+    from mapf_fleet.coordination.preferences import default_q_mode, rank_actions, tie_breakers
 
     torch.set_num_threads(1)
     model, _ = load_checkpoint(checkpoint)
@@ -58,13 +59,14 @@ def batched_shielded_rollout(checkpoint: str, instance, max_steps: int, comm=Non
     n = env.num_agents
     policy.reset(1, n)
     shield = PIBTShield(instance.grid, instance.goals, anchor=anchor)
+    mode = default_q_mode("pibt_anchor" if anchor else "pibt")
     choices, executed, overridden = [], [], []
     positions = [env.positions.tolist()]
     for tick in range(max_steps):
         policy.act(obs, env.positions[None])
         if comm is not None:
             comm.append([np.flatnonzero(row).tolist() for row in policy.comm_mask[0]])
-        prefs = rank_actions(obs, policy.q_values, DEFAULT_Q_MODE,
+        prefs = rank_actions(obs, policy.q_values, mode,
                              ties=tie_breakers(np.arange(n), tick)[None])[0]
         step = shield.step(env.positions, prefs)
         policy.set_last_actions(step.actions[None])

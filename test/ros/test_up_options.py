@@ -1,0 +1,193 @@
+"""`mapf-fleet up` as a new user meets it (issue 23 section 2): every option has help and its
+default stated (defect 8), --resolution / --origin for real robots, a .scen's own robot count
+(defect 8), --log-dir and the logs of a failed run kept (defect 10), `mapf-fleet param`
+(defect 9), --single-process with 128 robots ready without waiting out the start-up timeout
+(defect 3), and the policy nodes' default preference_mode following the conflict rule (issue 25
+item 3). The bad values refused up front (defect 5) are in test_cli_errors.py."""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from mapf_fleet.ros import launcher
+
+CLI = [sys.executable, "-m", "mapf_fleet.cli"]
+RUN = [sys.executable, "-m", "mapf_fleet.ros.run"]
+
+
+def _args(argv: list[str], ros_args: list[str] = ()):
+    """`up`'s options as its main() prepares them, before it starts anything."""
+    args = launcher.build_parser().parse_args(argv)
+    assert launcher.task_source_problem(args) == ""
+    launcher.apply_parameter_sources(argv, args, list(ros_args))
+    return args
+
+
+def test_every_up_option_has_help_and_states_its_default():
+    parser = launcher.build_parser()
+    formatter = parser._get_formatter()
+    for action in parser._actions:
+        if not action.option_strings or isinstance(action, argparse._HelpAction):
+            continue
+        assert action.help, f"{action.option_strings[0]} has no help text"
+        text = formatter._get_help_string(action)
+        number = isinstance(action.default, (int, float)) and not isinstance(action.default,
+                                                                              bool)
+        if number or action.type in (int, float):
+            assert "default" in text, f"{action.option_strings[0]}: no default in {text!r}"
+    shown = " ".join(parser.format_help().split())
+    for stated in ("default: 256", "(default: 10.0)", "(default: 5.0)", "(default: 120.0)",
+                   "(default: 0.3)", "seed of a generated instance (default: 0)",
+                   "(default: 1)", "default: 8 generated"):
+        assert stated in shown, stated
+
+
+def test_resolution_and_origin_reach_the_aggregator():
+    args = _args(["--real-robots", "--resolution", "0.05", "--origin", "1.5", "-2",
+                  "--num-robots", "2"])
+    assert launcher.value_problem(args) == ""
+    sim, _ = launcher.node_parameters(args, "c.pt", "r.json", 2)
+    assert (sim["resolution"], sim["origin_x"], sim["origin_y"]) == (0.05, 1.5, -2.0)
+    command = launcher._ros_args(sim, args, "sim")
+    assert "resolution:=0.05" in command and "origin_x:=1.5" in command
+    # the simulator takes --resolution; it has no origin (its map's corner is 0, 0)
+    sim, _ = launcher.node_parameters(_args(["--resolution", "0.5"]), "c.pt", "r.json", 8)
+    assert sim["resolution"] == 0.5 and "origin_x" not in sim
+    assert "--origin applies to --real-robots" in launcher.value_problem(
+        _args(["--origin", "1", "2"]))
+    assert "--resolution must be > 0" in launcher.value_problem(_args(["--resolution", "0"]))
+
+
+def test_map_and_scen_without_num_robots_take_the_files_count(tmp_path):
+    (tmp_path / "room.map").write_text("type octile\nheight 3\nwidth 4\nmap\n....\n.@..\n....\n")
+    lines = ["version 1"] + [f"0\troom.map\t4\t3\t{c}\t0\t{c}\t2\t2" for c in (0, 1, 2, 3)]
+    (tmp_path / "room.scen").write_text("\n".join(lines) + "\n")
+    files = ["--map", str(tmp_path / "room.map"), "--scen", str(tmp_path / "room.scen")]
+    args = _args(files)
+    assert args.num_robots is None  # not given: up takes the file's count
+    assert launcher.default_robot_count(args) == 4
+    assert launcher.default_robot_count(_args([])) == 8  # a generated instance
+    assert launcher.default_robot_count(_args(files + ["--num-robots", "2"])) == 4
+    assert _args(files + ["--num-robots", "2"]).num_robots == 2  # given: kept
+
+
+@pytest.mark.ros
+def test_default_preference_mode_follows_the_rule_and_yields_to_a_params_file(
+        tmp_path, checkpoints, ros_env):
+    """No preference_mode given: the rule's default (q_then_distance under pibt_anchor, q under
+    pibt and revert). A params file's (or the command line's) preference_mode wins whatever the
+    rule: `up` passes the policy nodes its conflict rule, never a preference_mode of its own."""
+    import rclpy
+
+    from mapf_fleet.ros.policy_node import PolicyNode
+
+    params = tmp_path / "p.yaml"
+    params.write_text("/**:\n  ros__parameters:\n    preference_mode: confidence\n")
+    cases = [([], "q_then_distance"), (["--conflict-rule", "pibt"], "q"),
+             (["--conflict-rule", "revert"], "q"),
+             (["--params-file", str(params)], "confidence"),
+             (["--params-file", str(params), "--conflict-rule", "pibt"], "confidence"),
+             (["--preference-mode", "distance", "--params-file", str(params)], "distance")]
+    for own, expected in cases:
+        args = _args(own)
+        _, policy = launcher.node_parameters(args, checkpoints["dhc"], "r.json", 2)
+        context = rclpy.Context()
+        rclpy.init(args=["policy"] + launcher._ros_args(policy, args, "policy"),
+                   context=context)
+        try:
+            node = PolicyNode(robot_id=0, context=context)
+            assert node.preference_mode == expected, (own, node.preference_mode)
+            node.destroy_node()
+        finally:
+            rclpy.try_shutdown(context=context)
+
+
+def _up(ros_env, *argv, timeout=240):
+    env = dict(ros_env)  # test/conftest.py: own ROS_DOMAIN_ID, LOCALHOST discovery
+    assert env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
+    return subprocess.run(CLI + ["up", *argv], env=env, capture_output=True, text=True,
+                          timeout=timeout)
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_log_dir_keeps_the_policy_logs_and_a_failed_run_keeps_them_too(tmp_path, ros_env,
+                                                                      checkpoints):
+    small = ["--checkpoint", checkpoints["dhc"], "--num-robots", "2", "--size", "8",
+             "--max-steps", "1", "--quiet"]
+    logs = tmp_path / "logs"
+    done = _up(ros_env, *small, "--log-dir", str(logs))
+    kept = sorted(Path(p).name for p in glob.glob(str(logs / "*.log")))
+    assert kept == ["policy_0-0.log", "policy_1-1.log"], (kept, done.stdout, done.stderr)
+    assert "hub timing" in (logs / "policy_0-0.log").read_text()  # what the hub said
+    # no --log-dir: one tick of random weights fails (robots not on goal), the logs stay
+    done = _up(ros_env, *small)
+    assert done.returncode == 1, done.stdout + done.stderr
+    line = [x for x in done.stderr.splitlines() if "logs are kept in" in x]
+    assert line, done.stderr
+    folder = line[0].split("logs are kept in ")[1].strip()
+    try:
+        assert sorted(Path(p).name for p in glob.glob(os.path.join(folder, "*.log"))) == kept
+    finally:
+        import shutil
+
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_single_process_128_robots_are_ready_without_the_startup_timeout(ros_env, checkpoints):
+    """Before issue 23 the one executor spun every robot's node: the heartbeats of 128 robots
+    were not taken in time and `up` waited out the whole start-up timeout."""
+    done = _up(ros_env, "--single-process", "--checkpoint", checkpoints["dcc"],
+               "--num-robots", "128", "--size", "40", "--max-steps", "1",
+               "--startup-timeout", "90", timeout=400)
+    assert "all 128 robots ready" in done.stdout + done.stderr, done.stdout[-3000:] + done.stderr
+    assert "starting without ready robots" not in done.stdout + done.stderr
+
+
+@pytest.mark.ros
+def test_param_get_set_list_on_a_running_simulator(ros_env):
+    env = dict(ros_env)
+    assert env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
+    sim = subprocess.Popen(RUN + ["simulator", "--ros-args", "-p", "num_robots:=2", "-p",
+                                  "size:=8", "-p", "startup_timeout:=120.0"], env=env,
+                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+    def param(*argv):
+        return subprocess.run(CLI + ["param", *argv, "--timeout", "30"], env=env,
+                              capture_output=True, text=True, timeout=120)
+
+    try:
+        listed = param("list", "mapf_simulator")
+        assert listed.returncode == 0, listed.stderr
+        assert "tick_period: 0.0" in listed.stdout and "num_robots: 2" in listed.stdout
+        assert param("get", "mapf_simulator", "tick_period").stdout.strip() == "0.0"
+        done = param("set", "mapf_simulator", "tick_period", "1")  # an int, sent as a double
+        assert done.returncode == 0 and "set tick_period = 1.0" in done.stdout, done.stderr
+        assert param("get", "/mapf_simulator", "tick_period").stdout.strip() == "1.0"
+        refused = param("set", "mapf_simulator", "max_steps", "5")
+        assert refused.returncode == 1
+        assert "read at start-up, cannot change during a run" in refused.stderr
+        refused = param("set", "mapf_simulator", "tick_period", "-1")
+        assert refused.returncode == 1 and "must be >= 0" in refused.stderr
+        missing = param("get", "mapf_simulator", "no_such_parameter")
+        assert missing.returncode == 1 and "no parameter 'no_such_parameter'" in missing.stderr
+    finally:
+        sim.terminate()
+        try:
+            sim.wait(20)
+        except subprocess.TimeoutExpired:
+            sim.kill()
+            sim.wait()
+    gone = subprocess.run(CLI + ["param", "get", "mapf_simulator", "tick_period", "--timeout",
+                                 "1"], env=env, capture_output=True, text=True, timeout=60)
+    assert gone.returncode == 1 and "no parameter services of node /mapf_simulator" in \
+        gone.stderr
