@@ -27,6 +27,8 @@ COMMANDS = {
     "node": ("mapf_fleet.ros.run", "main", "run one node, like `ros2 run mapf_fleet <node>`"),
     "param": ("mapf_fleet.ros.param_cli", "main",
               "get, set or list a running node's parameters, like `ros2 param`"),
+    "goal": ("mapf_fleet.ros.goal_cli", "main",
+             "send a robot a goal (navigate_to_pose, goal_pose, or tasks for any idle robot)"),
 }
 
 

@@ -219,3 +219,21 @@ def test_lifelong_rollout_is_deterministic_and_the_same_for_every_policy_goal_st
                         if e["robot"] == 0 and e["event"] == "assigned"])
     shortest = min(len(s) for s in streams)
     assert shortest >= 2 and streams[0][:shortest] == streams[1][:shortest]
+
+
+@pytest.mark.parametrize("rule", ["pibt", "pibt_anchor"])
+def test_an_idle_robot_in_a_dead_end_clears_a_busy_robots_goal(rule):
+    """Goal (0, 0) is a dead end whose only way in is (1, 0), and an idle robot stands on it:
+    plain PIBT would push it deeper forever (a dead end is on no cycle); the idle robot is sent
+    out to the nearest free cell first, with the top priority."""
+    grid = np.array([[0, 1, 1, 1],
+                     [0, 1, 0, 0],
+                     [0, 0, 0, 0]], dtype=np.uint8)
+    run = FleetRun(grid, np.array([[0, 0], [2, 0]]), ExternalTasks(), rule=rule, max_steps=0)
+    assert run.request_goal(1, (0, 0), "test", "corner").event == "accepted"
+    for _ in range(20):
+        run.step(distance_decisions(run))
+        if not run.active[1]:
+            break
+    assert run.tasks_done[1] == 1 and tuple(run.positions[1]) == (0, 0)
+    assert not run.active[0] and tuple(run.positions[0]) != (0, 0)

@@ -115,6 +115,14 @@ class TickArbiter:
         if self.shield is not None:
             self.shield.set_goals(self.goals)
 
+    def boost(self, robots) -> None:
+        """Put `robots` above every other robot in PIBT's priority (an idle robot clearing a
+        busy robot's goal, `FleetRun`); no effect under "revert"."""
+        if self.shield is not None and len(robots):
+            shield = self.shield
+            top = float(shield.priorities.max()) + 1.0
+            shield.priorities[list(robots)] = top + shield.base_priority[list(robots)]
+
     def resolve(self, positions, preferences, held=None, reserved=()) -> Resolution:
         """Arbitrate one tick. positions (N, 2) the robots' cells; preferences (N, 5) each row a
         ranking (best first; a held robot's row is ignored); held (N,) bool; reserved: cells

@@ -77,16 +77,21 @@ class FleetRun:
         self._requests: dict[int, tuple[tuple[int, int] | None, str, str]] = {}  # robot -> req
         self._distances: dict[tuple[int, int], np.ndarray] = {}
         self._counted: set[str] = set()  # one-shot goals whose arrival was counted
+        self._evacuating: dict[int, tuple[int, int]] = {}  # idle robot -> cell it clears to
+        padded = np.pad(~self.grid, 1)
+        self._free_neighbours = (padded[:-2, 1:-1].astype(int) + padded[2:, 1:-1]
+                                 + padded[1:-1, :-2] + padded[1:-1, 2:])
         self.arbiter = TickArbiter(self.grid, self.goals, rule)
         self.recorder = RunRecorder(episode, self.num_robots, self.max_steps, series=series,
                                     conflict_rule=rule, task_source=tasks.name)
-        self.pending_events: list[GoalEvent] = []  # since the adapter last took them
+        # goal changes of the tick boundaries since the adapter last took them (`advance`,
+        # `apply_requests`); a request's own answer is returned to its caller instead
+        self.pending_events: list[GoalEvent] = []
         self._emit([GoalEvent(self.tick, i, "assigned", tuple(self.goals[i].tolist()),
                               tasks.name, self.goal_ids[i])
                     for i in range(self.num_robots) if self.active[i]])
         self._assign_queued()
-        self._follow_idle()
-        self.arbiter.set_goals(self.goals)
+        self._sync_goals()
         self.recorder.start(self.positions, self.goals)
 
     # ---- state ---------------------------------------------------------------------------------
@@ -169,15 +174,15 @@ class FleetRun:
 
     def request_goal(self, robot: int, cell, source: str, goal_id: str = "") -> GoalEvent:
         """Send `robot` to `cell` from the next tick on (preempting its goal); the event says
-        "accepted" or "rejected" with the reason. The goal's `reached` / `preempted` / ... events
-        follow in `pending_events`."""
+        "accepted" or "rejected" with the reason (recorded; the caller publishes it). The goal's
+        `assigned` / `reached` / `preempted` / ... events follow from `advance`."""
         problem = self.goal_problem(robot, cell)
         cell_t = None if cell is None else (int(cell[0]), int(cell[1]))
         if problem:
             event = GoalEvent(self.tick, int(robot) if isinstance(robot, (int, np.integer))
                               and 0 <= int(robot) < self.num_robots else -1,
                               "rejected", cell_t, source, goal_id, problem)
-            self._emit([event])
+            self.recorder.add_events([event])
             return event
         self._requests[int(robot)] = (cell_t, source, goal_id)
         return GoalEvent(self.tick, int(robot), "accepted", cell_t, source, goal_id)
@@ -205,27 +210,25 @@ class FleetRun:
                 event = GoalEvent(self.tick, -1 if task.robot is None else task.robot,
                                   "rejected", cell, task.source, task.task_id,
                                   f"goal {k}: {problem}")
-                self._emit([event])
+                self.recorder.add_events([event])
                 return event
         if task.robot is not None and not 0 <= task.robot < self.num_robots:
             event = GoalEvent(self.tick, -1, "rejected", task.goals[0], task.source, task.task_id,
                               f"unknown robot {task.robot} (robots 0..{self.num_robots - 1})")
-            self._emit([event])
+            self.recorder.add_events([event])
             return event
         self.queue.append(task)
         event = GoalEvent(self.tick, -1 if task.robot is None else task.robot, "queued",
                           task.goals[0], task.source, task.task_id)
-        self._emit([event])
+        self.recorder.add_events([event])
         return event
 
     def apply_requests(self) -> list[GoalEvent]:
         """Apply the goal requests and queued tasks now (between ticks); the new events."""
-        start = len(self.pending_events)
         self._apply_requests()
         self._assign_queued()
-        self._follow_idle()
-        self.arbiter.set_goals(self.goals)
-        return self.pending_events[start:]
+        self._sync_goals()
+        return self.take_events()
 
     def take_events(self) -> list[GoalEvent]:
         events, self.pending_events = self.pending_events, []
@@ -258,7 +261,6 @@ class FleetRun:
                 **series) -> list[GoalEvent]:
         """The robots are in `positions` after the tick of `decisions`: record it, count the
         arrivals, hand out next goals and apply the requests; the events of this tick."""
-        start = len(self.pending_events)
         self.positions = np.asarray(positions, dtype=np.int64).copy()
         self.last_actions = np.asarray(last_actions, dtype=np.int64).copy()
         self.tick += 1
@@ -267,10 +269,8 @@ class FleetRun:
         self._arrivals()
         self._apply_requests()
         self._assign_queued()
-        self._follow_idle()
-        self.arbiter.set_goals(self.goals)
-        events = self.pending_events[start:]
-        return events
+        self._sync_goals()
+        return self.take_events()
 
     def _arrivals(self) -> None:
         """Active robots on their goals: count the arrival and move each on (its task's next
@@ -367,6 +367,7 @@ class FleetRun:
                                   f"preempted by {goal_id or 'a new goal'} ({source})")])
         self.goals[robot] = (int(cell[0]), int(cell[1]))
         self.active[robot] = True
+        self._evacuating.pop(robot, None)
         self.goal_sources[robot] = source
         self.goal_ids[robot] = goal_id
         self._emit([GoalEvent(self.tick, robot, "assigned", (int(cell[0]), int(cell[1])), source,
@@ -377,9 +378,57 @@ class FleetRun:
         self.goal_sources[robot] = ""
         self.goal_ids[robot] = ""
 
-    def _follow_idle(self) -> None:
-        idle = ~self.active
-        self.goals[idle] = self.positions[idle]
+    def _sync_goals(self) -> None:
+        """Idle robots' goals, then the arbiter's goals (and the evacuating robots' priority)."""
+        boost = self._follow_idle()
+        self.arbiter.set_goals(self.goals)
+        self.arbiter.boost(boost)
+
+    def _follow_idle(self) -> list[int]:
+        """An idle robot's goal is the cell it stands in: it stays, and yields when a busy robot
+        needs its cell. An idle robot standing on a busy robot's goal is sent instead to the
+        nearest free cell that is neither a busy robot's goal nor a robot's cell (sticky until
+        it gets there) with the top PIBT priority: in a dead end the busy robot could otherwise
+        never get in (PIBT's reachability needs every cell on a cycle; a dead end has none, and
+        the robot heading in would push the idle one deeper). Returns the robots to boost."""
+        boost = []
+        idle = np.flatnonzero(~self.active).tolist()
+        if not idle:
+            return boost
+        busy_goals = {tuple(g) for g in self.goals[self.active].tolist()}
+        occupied = {tuple(p) for p in self.positions.tolist()}
+        for i in idle:
+            here = tuple(self.positions[i].tolist())
+            target = self._evacuating.get(i)
+            if target is not None and (target == here or target in busy_goals):
+                target = None
+                del self._evacuating[i]
+            if target is None and here in busy_goals:
+                target = self._parking_cell(here, busy_goals | occupied)
+                if target is not None:
+                    self._evacuating[i] = target
+                    boost.append(i)
+            self.goals[i] = target if target is not None else here
+        return boost
+
+    def _parking_cell(self, here, avoid) -> tuple[int, int] | None:
+        """The nearest reachable free cell off `avoid`, at a junction (3+ free neighbours)
+        where there is one: a corridor or dead-end cell would be on the busy robot's way in."""
+        dist = self.distance_to(here)
+        free = (dist > 0)
+        for cell in avoid:
+            free[cell] = False
+        if not free.any():
+            return None
+        if (free & (self._free_neighbours >= 3)).any():
+            free &= self._free_neighbours >= 3
+        flat = np.flatnonzero(free.ravel())
+        best = flat[np.argmin(dist.ravel()[flat])]  # the nearest; ties: the first in row order
+        return int(best // dist.shape[1]), int(best % dist.shape[1])
+
+    def note(self, events) -> None:
+        """Record events decided outside the run (a goal the ROS side refused before asking)."""
+        self.recorder.add_events(events)
 
     def _emit(self, events) -> None:
         events = list(events)

@@ -109,6 +109,9 @@ class FleetChannels:
         return stamp
 
 
+IDLE_STATE_PERIOD_S = 1.0  # an idle fleet republishes its state this often
+
+
 def run_lockstep(node, channels: FleetChannels, run, step, publish_state, *, lock,
                  goals=None, decision_timeout: float, tick_period: float = 0.0,
                  progress_every: int = 10, record_file: str = "",
@@ -128,24 +131,30 @@ def run_lockstep(node, channels: FleetChannels, run, step, publish_state, *, loc
     """
     logger = node.get_logger()
     ticker = channels.ticker
-    idle_logged = False
+    published, published_at = None, 0.0  # the tick whose state is out, and when
     while not run.finished() and rclpy.ok() and not ticker.stopped:
         if run.waiting and goals is not None:
-            if not idle_logged:
-                logger.info(f"tick {run.tick}: every robot idle: waiting for goals")
-                idle_logged = True
+            if published != run.tick or time.monotonic() - published_at > IDLE_STATE_PERIOD_S:
+                # the state of this tick goes out (viewers and clients see the fleet; the robots
+                # decide it once, their moves wait in the ticker until a goal comes; the same
+                # tick again is ignored by the hubs and keeps their episode binding alive)
+                if published != run.tick:
+                    logger.info(f"tick {run.tick}: every robot idle: waiting for goals")
+                publish_state(done=False)
+                published, published_at = run.tick, time.monotonic()
             goals.request_signal.wait(0.2)
             with lock:
                 events = run.apply_requests()
                 goals.on_tick(events)
             continue
-        idle_logged = False
         started = time.monotonic()
         if settings is not None:  # the node's parameters, changed at runtime (lockstep)
             decision_timeout = float(settings.get("decision_timeout", decision_timeout))
             tick_period = float(settings.get("tick_period", tick_period))
             progress_every = int(settings.get("progress_every", progress_every))
-        publish_state(done=False)
+        if published != run.tick:
+            publish_state(done=False)
+            published = run.tick
         decisions = ticker.collect(decision_timeout)
         if ticker.stopped:
             break  # this tick is not played: the record stays consistent

@@ -23,6 +23,7 @@ executor (which handles every robot's move each tick).
 
 from __future__ import annotations
 
+import functools
 import math
 import threading
 import time
@@ -101,7 +102,9 @@ class GoalServer:
                                           lambda msg, i=i: self._on_goal_pose(i, msg),
                                           common.reliable_qos(5))
         self.servers = [ActionServer(self.node, NavigateToPose, common.rel(navigate_action(i)),
-                                     execute_callback=lambda h, i=i: self._execute(i, h),
+                                     # a coroutine function (rclpy awaits it): the result
+                                     # comes when the tick thread ends the goal
+                                     execute_callback=functools.partial(self._execute, i),
                                      goal_callback=lambda req, i=i: self._on_action_goal(i, req),
                                      cancel_callback=lambda h, i=i: self._on_cancel(i, h))
                         for i in range(n)]
@@ -120,11 +123,13 @@ class GoalServer:
         where = f"x={msg.pose.position.x!r} y={msg.pose.position.y!r}"
         if self.run is None:
             self._log_rejection(robot, f"goal_pose {where}: {self.NOT_STARTED}")
+            self.publish([GoalEvent(0, robot, "rejected", cell, "goal_pose", "",
+                                    self.NOT_STARTED)])
             return
         with self.lock:
             if problem:
                 event = GoalEvent(self.run.tick, robot, "rejected", None, "goal_pose", "", problem)
-                self.run._emit([event])
+                self.run.note([event])
             else:
                 event = self.run.request_goal(robot, cell, "goal_pose",
                                               f"goal_pose-{robot}-{self.run.tick}")
@@ -139,15 +144,19 @@ class GoalServer:
         cell, problem = pose_goal_cell(request.pose, self.geometry)
         if self.run is None:
             self._log_rejection(robot, f"navigate_to_pose: {self.NOT_STARTED}")
+            self.publish([GoalEvent(0, robot, "rejected", cell, "navigate_to_pose", "",
+                                    self.NOT_STARTED)])
             return GoalResponse.REJECT
         with self.lock:
             problem = problem or self.run.goal_problem(robot, cell)
-            tick = self.run.tick
+            event = GoalEvent(self.run.tick, robot, "rejected", cell, "navigate_to_pose", "",
+                              problem)
+            if problem:
+                self.run.note([event])
         if problem:
             where = f"x={request.pose.pose.position.x!r} y={request.pose.pose.position.y!r}"
             self._log_rejection(robot, f"navigate_to_pose {where}: {problem}")
-            self.publish([GoalEvent(tick, robot, "rejected", cell, "navigate_to_pose", "",
-                                    problem)])
+            self.publish([event])
             return GoalResponse.REJECT
         return GoalResponse.ACCEPT
 
@@ -203,6 +212,7 @@ class GoalServer:
             if e.event == "rejected":
                 self._log_rejection(t.robot if t.robot is not None else "any",
                                     f"task {t.task_id}: {e.reason}")
+        self.publish(events)  # queued / rejected; assignments follow at the tick boundary
         response.accepted = all(e.event != "rejected" for e in events)
         self.on_request()
         return response

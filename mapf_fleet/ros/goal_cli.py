@@ -1,0 +1,320 @@
+"""`mapf-fleet goal`: send a running fleet's robots somewhere (PyPI has no `ros2 action
+send_goal` and no `ros2 topic pub`).
+
+    mapf-fleet goal 3 --cell 5 7 --wait          # navigate_to_pose; feedback per tick
+    mapf-fleet goal 3 --xy 5.5 7.5               # metres in the map frame; returns once accepted
+    mapf-fleet goal 3 --cell 5 7 --topic         # publish on /robot_3/goal_pose (RViz's way)
+    mapf-fleet goal any --cell 5 7               # the nearest idle robot (fleet/submit_tasks)
+    mapf-fleet goal --tasks tasks.yaml           # many goals / pickup-dropoff tasks at once
+    mapf-fleet goal 3 --cancel                   # hold robot 3 on its cell (cancels its goal)
+
+Exit codes: 0 accepted (with --wait: reached), 1 aborted or cancelled (--wait), 2 rejected (the
+reason printed, from fleet/goal_events) or bad input, 3 no fleet answered within --timeout.
+A cell is turned into metres with the fleet's own map (`/fleet/map`: resolution and origin).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+import time
+
+from mapf_fleet.ros import common
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="mapf-fleet goal", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("robot", nargs="?", help="robot id, or `any` for the nearest idle robot")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--cell", nargs=2, type=int, metavar=("ROW", "COL"), help="goal cell")
+    where.add_argument("--xy", nargs=2, type=float, metavar=("X", "Y"),
+                       help="goal in metres, map frame")
+    where.add_argument("--tasks", metavar="FILE",
+                       help="a task file (YAML list of goals / pickup-dropoff tasks) for "
+                            "fleet/submit_tasks")
+    where.add_argument("--cancel", action="store_true",
+                       help="cancel the robot's goal: it holds its cell")
+    p.add_argument("--wait", action="store_true",
+                   help="wait for the result, printing feedback (exit 0 reached, 1 not)")
+    p.add_argument("--topic", action="store_true",
+                   help="publish a PoseStamped on /robot_<i>/goal_pose instead of the action "
+                        "(no result to wait for)")
+    p.add_argument("--namespace", default="", help="the fleet's namespace (up --namespace)")
+    p.add_argument("--timeout", type=float, default=20.0,
+                   help="seconds to wait for the fleet to answer (default 20; --wait: no limit "
+                        "on the navigation itself)")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(sys.argv[1:] if argv is None else argv)
+    problem = _problem(args)
+    if problem:
+        print(f"mapf-fleet goal: {problem}", file=sys.stderr)
+        return 2
+    common.prepare_environment()
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+
+    from mapf_fleet.ros.processes import stop_signals
+
+    signals = stop_signals()
+    rclpy.init(args=["mapf_goal"] + (["--ros-args", "-r", f"__ns:=/{args.namespace.strip('/')}"]
+                                     if args.namespace.strip("/") else []))
+    node = rclpy.create_node(f"mapf_goal_{int(time.time() * 1000) % 100000}")
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    spinner = common.SpinThread(executor).start()
+    try:
+        client = GoalClient(node, args)
+        return client.run(signals)
+    finally:
+        spinner.stop()
+        node.destroy_node()
+        rclpy.try_shutdown()
+        signals.restore()
+
+
+def _problem(args) -> str:
+    if args.tasks:
+        if args.robot is not None:
+            return "--tasks names its robots in the file: give no ROBOT"
+        return ""
+    if args.robot is None:
+        return "give a ROBOT id (or `any`) and --cell ROW COL / --xy X Y, or --tasks FILE"
+    if args.robot != "any":
+        try:
+            if int(args.robot) < 0:
+                raise ValueError
+        except ValueError:
+            return f"ROBOT must be a robot id (0, 1, ...) or `any`, got {args.robot!r}"
+    if args.cancel:
+        if args.robot == "any" or args.topic:
+            return "--cancel needs one robot id and the action (no --topic)"
+        return ""
+    if args.cell is None and args.xy is None:
+        return "give the goal: --cell ROW COL or --xy X Y"
+    if args.robot == "any" and (args.topic or args.wait):
+        return "`any` goes through fleet/submit_tasks: no --topic, no --wait"
+    if args.topic and args.wait:
+        return "--topic has no result to --wait for (use the action: drop --topic)"
+    return ""
+
+
+class GoalClient:
+    def __init__(self, node, args):
+        from mapf_fleet_interfaces.msg import GoalEvent
+        from nav_msgs.msg import OccupancyGrid
+
+        self.node = node
+        self.args = args
+        self.map_msg = None
+        self.events: list = []
+        self.cond = threading.Condition()
+        node.create_subscription(OccupancyGrid, common.rel(common.MAP_TOPIC), self._on_map,
+                                 common.latched_qos())
+        from mapf_fleet.ros.goals import GOAL_EVENTS_TOPIC
+
+        self.events_sub = node.create_subscription(GoalEvent, common.rel(GOAL_EVENTS_TOPIC),
+                                                   self._on_event, common.reliable_qos(200))
+
+    def _on_map(self, msg):
+        with self.cond:
+            self.map_msg = msg
+            self.cond.notify_all()
+
+    def _on_event(self, msg):
+        with self.cond:
+            self.events.append(msg)
+            self.cond.notify_all()
+
+    def _wait(self, predicate, timeout: float, signals) -> bool:
+        deadline = time.monotonic() + timeout
+        with self.cond:
+            while not predicate():
+                left = deadline - time.monotonic()
+                if left <= 0 or signals.requested:
+                    return False
+                self.cond.wait(min(left, 0.2))
+        return True
+
+    def _pose(self, signals):
+        from geometry_msgs.msg import PoseStamped
+
+        msg = PoseStamped()
+        msg.header.frame_id = common.FRAME_ID
+        msg.header.stamp = self.node.get_clock().now().to_msg()
+        msg.pose.orientation.w = 1.0
+        if self.args.xy is not None:
+            msg.pose.position.x, msg.pose.position.y = self.args.xy
+            return msg
+        if not self._wait(lambda: self.map_msg is not None, self.args.timeout, signals):
+            return None
+        _, geometry = common.occupancy_to_grid(self.map_msg)
+        msg.pose.position.x, msg.pose.position.y = geometry.cell_to_xy(*self.args.cell)
+        return msg
+
+    def _rejection(self, robot: int, since: int, signals) -> str:
+        """The reason of the fleet's last rejection for `robot` (from goal events)."""
+        found = lambda: [e for e in self.events[since:]  # noqa: E731
+                         if e.event == "rejected" and e.robot_id == robot]
+        self._wait(lambda: bool(found()), 3.0, signals)
+        hits = found()
+        return hits[-1].reason if hits else "(no reason received on fleet/goal_events)"
+
+    def run(self, signals) -> int:
+        args = self.args
+        # goal events are volatile: hear the fleet's publisher first, so a rejection's reason
+        # is not missed (a fleet without goal events still gets the goal)
+        _wait_for(lambda: self.events_sub.get_publisher_count() > 0, min(args.timeout, 5.0),
+                  signals)
+        if args.tasks:
+            from pathlib import Path
+
+            return self._submit(Path(args.tasks).read_text(), signals)
+        if args.robot == "any":
+            pose = self._pose(signals) if args.cell is None else None
+            goal = ({"goal": list(args.cell)} if args.cell is not None
+                    else {"xy": [pose.pose.position.x, pose.pose.position.y]})
+            import json
+
+            return self._submit(json.dumps([goal]), signals)
+        robot = int(args.robot)
+        if args.cancel:
+            return self._cancel(robot, signals)
+        pose = self._pose(signals)
+        if pose is None:
+            print(f"mapf-fleet goal: no fleet map on {common.MAP_TOPIC} within {args.timeout} s "
+                  f"(is the fleet up, in this namespace?)", file=sys.stderr)
+            return 3
+        where = f"x={pose.pose.position.x:.3f} y={pose.pose.position.y:.3f}"
+        if args.topic:
+            return self._publish(robot, pose, where, signals)
+        return self._navigate(robot, pose, where, signals)
+
+    def _publish(self, robot, pose, where, signals) -> int:
+        from geometry_msgs.msg import PoseStamped
+
+        from mapf_fleet.ros.goals import goal_pose_topic
+
+        pub = self.node.create_publisher(PoseStamped, common.rel(goal_pose_topic(robot)),
+                                         common.reliable_qos(5))
+        if not _wait_for(lambda: pub.get_subscription_count() > 0, self.args.timeout, signals):
+            print(f"mapf-fleet goal: nobody subscribes to {goal_pose_topic(robot)} within "
+                  f"{self.args.timeout} s", file=sys.stderr)
+            return 3
+        since = len(self.events)
+        pub.publish(pose)
+        # the fleet answers every goal with an event: assigned-on-accept comes at the next tick,
+        # a rejection at once
+        if self._wait(lambda: any(e.robot_id == robot and e.event == "rejected"
+                                  for e in self.events[since:]), 1.5, signals):
+            print(f"robot {robot}: goal {where} rejected: {self._rejection(robot, since, signals)}")
+            return 2
+        print(f"robot {robot}: goal {where} published on {goal_pose_topic(robot)}")
+        return 0
+
+    def _navigate(self, robot, pose, where, signals) -> int:
+        from mapf_fleet_interfaces.action import NavigateToPose
+        from rclpy.action import ActionClient
+
+        from mapf_fleet.ros.goals import navigate_action
+
+        client = ActionClient(self.node, NavigateToPose, common.rel(navigate_action(robot)))
+        if not client.wait_for_server(timeout_sec=self.args.timeout):
+            print(f"mapf-fleet goal: no action server {navigate_action(robot)} within "
+                  f"{self.args.timeout} s (is the fleet up, does robot {robot} exist?)",
+                  file=sys.stderr)
+            return 3
+        since = len(self.events)
+
+        def feedback(msg):
+            fb = msg.feedback
+            p = fb.current_pose.pose.position
+            print(f"robot {robot}: at x={p.x:.2f} y={p.y:.2f}, {fb.distance_remaining:.2f} m "
+                  f"to go, about {fb.estimated_time_remaining.sec + fb.estimated_time_remaining.nanosec * 1e-9:.1f} s, "
+                  f"{fb.number_of_recoveries} overridden moves", flush=True)
+
+        sent = client.send_goal_async(NavigateToPose.Goal(pose=pose),
+                                      feedback_callback=feedback if self.args.wait else None)
+        if not _wait_for(sent.done, self.args.timeout, signals):
+            print("mapf-fleet goal: the goal was not answered", file=sys.stderr)
+            return 3
+        handle = sent.result()
+        if not handle.accepted:
+            print(f"robot {robot}: goal {where} rejected: {self._rejection(robot, since, signals)}")
+            return 2
+        print(f"robot {robot}: goal {where} accepted", flush=True)
+        if not self.args.wait:
+            return 0
+        result = handle.get_result_async()
+        while not _wait_for(result.done, 1.0, signals):
+            if signals.requested:
+                handle.cancel_goal_async()
+                _wait_for(result.done, 5.0, None)
+                print(f"robot {robot}: cancelled (Ctrl-C)")
+                return signals.exit_code
+        res = result.result().result
+        if res.reached:
+            print(f"robot {robot}: reached {where} after {res.ticks} ticks")
+            return 0
+        print(f"robot {robot}: not reached ({'cancelled' if res.error_code == 2 else 'aborted'}): "
+              f"{res.error_msg}")
+        return 1
+
+    def _cancel(self, robot, signals) -> int:
+        # cancelling every goal of the robot's action server holds it where it is
+        from action_msgs.srv import CancelGoal
+
+        from mapf_fleet.ros.goals import navigate_action
+
+        client = self.node.create_client(
+            CancelGoal, common.rel(navigate_action(robot)) + "/_action/cancel_goal")
+        if not client.wait_for_service(timeout_sec=self.args.timeout):
+            print(f"mapf-fleet goal: no action server {navigate_action(robot)}", file=sys.stderr)
+            return 3
+        future = client.call_async(CancelGoal.Request())
+        if not _wait_for(future.done, self.args.timeout, signals):
+            return 3
+        cancelled = len(future.result().goals_canceling)
+        if cancelled:
+            print(f"robot {robot}: cancelling {cancelled} goal(s): it holds its cell")
+            return 0
+        print(f"robot {robot}: no navigate_to_pose goal to cancel (goals from goal_pose or "
+              f"tasks are replaced by sending a new goal)")
+        return 1
+
+    def _submit(self, text: str, signals) -> int:
+        from mapf_fleet_interfaces.srv import SubmitTasks
+
+        from mapf_fleet.ros.goals import SUBMIT_TASKS_SERVICE
+
+        client = self.node.create_client(SubmitTasks, common.rel(SUBMIT_TASKS_SERVICE))
+        if not client.wait_for_service(timeout_sec=self.args.timeout):
+            print(f"mapf-fleet goal: no service {SUBMIT_TASKS_SERVICE} within "
+                  f"{self.args.timeout} s (is the fleet up?)", file=sys.stderr)
+            return 3
+        future = client.call_async(SubmitTasks.Request(tasks=text))
+        if not _wait_for(future.done, self.args.timeout, signals):
+            return 3
+        res = future.result()
+        for k, event in enumerate(res.events):
+            ident = res.task_ids[k] if k < len(res.task_ids) else str(k)
+            reason = res.reasons[k] if k < len(res.reasons) else ""
+            print(f"task {ident}: {event}" + (f": {reason}" if reason else ""))
+        return 0 if res.accepted else 2
+
+
+def _wait_for(predicate, timeout: float, signals) -> bool:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline or (signals is not None and signals.requested):
+            return False
+        time.sleep(0.05)
+    return True
+
+
+if __name__ == "__main__":
+    sys.exit(main())

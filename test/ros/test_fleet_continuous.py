@@ -1,0 +1,272 @@
+"""A fleet that runs continuously (issue 22): a lifelong fleet over ROS equals the evaluator's
+lifelong rollout on the same core; goals at run time from a plain rclpy `goal_pose` publisher,
+the `navigate_to_pose` action (feedback, result, preempt, cancel, rejection with the reason) and
+the task service, in the simulator and with stand-in robots (real-robot mode)."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from mapf_fleet.ros.instances import InstanceSource
+
+UP = [sys.executable, "-m", "mapf_fleet.cli", "up", "--quiet"]
+
+
+def _lifelong_rollout(checkpoint, instance, steps, seed):
+    import torch
+
+    from mapf_fleet.evaluation.lifelong import rollout
+    from mapf_fleet.evaluation.policies import CheckpointBatchPolicy
+    from mapf_fleet.fleet.run import FleetRun
+    from mapf_fleet.fleet.tasks import LifelongTasks
+
+    torch.set_num_threads(1)
+    run = FleetRun(instance.grid, instance.starts, LifelongTasks(grid=instance.grid, seed=seed),
+                   instance.goals, rule="pibt_anchor", max_steps=steps)
+    rollout(CheckpointBatchPolicy(checkpoint, preference_mode="q"), [run], shielded=True)
+    return run
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+@pytest.mark.parametrize("algo", ["dhc", "dcc_sensitive"])
+def test_lifelong_fleet_equals_the_evaluators_lifelong_rollout(tmp_path, ros_env, checkpoints,
+                                                               algo):
+    """16 robots, 200 ticks, two policy processes of 8: every cell of every tick and every goal
+    change equal `evaluate --lifelong`'s rollout (`evaluation.lifelong.rollout` over the same
+    `FleetRun`), goal stream seeded alike."""
+    seed, steps = 5, 200
+    instance = InstanceSource(num_robots=16, size=16, density=0.2, seed=seed).load()
+    expected = _lifelong_rollout(checkpoints[algo], instance, steps, seed)
+    assert expected.goals_reached > 16  # robots really got new goals
+    record_path = tmp_path / "lifelong.json"
+    proc = subprocess.run(UP + ["--checkpoint", checkpoints[algo], "--num-robots", "16",
+                                "--size", "16", "--density", "0.2", "--seed", str(seed),
+                                "--task-source", "lifelong", "--max-steps", str(steps),
+                                "--nodes-per-process", "8", "--preference-mode", "q",
+                                "--record", str(record_path)],
+                          env=ros_env, capture_output=True, text=True, timeout=900)
+    assert record_path.exists(), proc.stdout + proc.stderr
+    record = json.loads(record_path.read_text())
+    want = expected.recorder.record
+    assert record["missed_decisions"] == 0, record["summary"]
+    assert record["positions"] == want["positions"], record["summary"]
+    assert record["goal_events"] == want["goal_events"]
+    assert record["goals_reached"] == expected.goals_reached
+    assert "throughput" in record["summary"] and proc.returncode == 0, proc.stdout + proc.stderr
+
+
+class FleetClient:
+    """An rclpy client of a running fleet in this test process: goal_pose publishers, the
+    navigate_to_pose action, goal events."""
+
+    def __init__(self, num_robots):
+        import rclpy
+        from geometry_msgs.msg import PoseStamped
+        from mapf_fleet_interfaces.action import NavigateToPose
+        from mapf_fleet_interfaces.msg import FleetState, GoalEvent
+        from rclpy.action import ActionClient
+        from rclpy.executors import SingleThreadedExecutor
+
+        from mapf_fleet.ros import common
+
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node("continuous_test_client", context=self.context)
+        self.events, self.states = [], []
+        self.lock = threading.Lock()
+        self.events_sub = self.node.create_subscription(
+            GoalEvent, "fleet/goal_events", lambda m: self._add(self.events, m),
+            common.reliable_qos(500))
+        self.node.create_subscription(FleetState, "fleet/state",
+                                      lambda m: self._add(self.states, m), common.reliable_qos(50))
+        self.goal_pubs = [self.node.create_publisher(PoseStamped, f"robot_{i}/goal_pose",
+                                                     common.reliable_qos(5))
+                          for i in range(num_robots)]
+        self.actions = [ActionClient(self.node, NavigateToPose, f"robot_{i}/navigate_to_pose")
+                        for i in range(num_robots)]
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.spinner = common.SpinThread(self.executor).start()
+
+    def _add(self, items, msg):
+        with self.lock:
+            items.append(msg)
+
+    def close(self):
+        import rclpy
+
+        self.spinner.stop()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+    def pose(self, row, col, frame="map"):
+        from geometry_msgs.msg import PoseStamped
+
+        msg = PoseStamped()
+        msg.header.frame_id = frame
+        msg.pose.position.x, msg.pose.position.y = col + 0.5, row + 0.5  # resolution 1, origin 0
+        msg.pose.orientation.w = 1.0
+        return msg
+
+    def wait(self, predicate, timeout=120.0, what=""):
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            with self.lock:
+                if predicate():
+                    return
+            time.sleep(0.05)
+        raise AssertionError(f"timed out waiting for {what}")
+
+    def event(self, robot, kind):
+        return [e for e in self.events if e.robot_id == robot and e.event == kind]
+
+    def send(self, robot, row, col, feedback=None):
+        from mapf_fleet_interfaces.action import NavigateToPose
+
+        assert self.actions[robot].wait_for_server(timeout_sec=60.0)
+        future = self.actions[robot].send_goal_async(NavigateToPose.Goal(pose=self.pose(row, col)),
+                                                     feedback_callback=feedback)
+        self.wait(future.done, 30.0, "the goal response")
+        return future.result()
+
+
+def _far_free_cells(instance, count):
+    """Free cells of the instance's region far from every start (goal candidates)."""
+    from mapf_fleet.grid.heuristic import bfs_distances
+
+    starts = {tuple(s) for s in np.asarray(instance.starts).tolist()}
+    dist = bfs_distances(instance.grid, tuple(instance.starts[0]))
+    cells = [tuple(map(int, c)) for c in np.argwhere(dist >= 0)
+             if tuple(map(int, c)) not in starts]
+    cells.sort(key=lambda c: -int(dist[c]))
+    return cells[:count]
+
+
+def _far_from(instance, cell, count):
+    from mapf_fleet.grid.heuristic import bfs_distances
+
+    dist = bfs_distances(instance.grid, cell)
+    order = np.argsort(-dist.ravel(), kind="stable")
+    return [divmod(int(k), dist.shape[1]) for k in order[:count]]
+
+
+def _start_fleet(tmp_path, ros_env, checkpoint, extra, name):
+    record = tmp_path / f"{name}.json"
+    log = open(tmp_path / f"{name}.log", "w")
+    proc = subprocess.Popen(UP + ["--checkpoint", checkpoint, "--record", str(record),
+                                  "--task-source", "external", *extra],
+                            env=ros_env, stdout=log, stderr=subprocess.STDOUT, text=True)
+    return proc, record, tmp_path / f"{name}.log"
+
+
+def _exercise_goals(client, instance, robots):
+    """goal_pose (plain publisher), the action (feedback decreasing, reached), preempt, cancel
+    and a rejection with its reason; returns the cells the action goals were sent to."""
+    # goal events are volatile: hear the fleet's publisher before anything is sent, and wait
+    # for the fleet's first state (real robots: once every robot has posed)
+    client.wait(lambda: client.events_sub.get_publisher_count() > 0, 60, "fleet/goal_events")
+    client.wait(lambda: client.states, 120, "the fleet's first state")
+    a, b, c, d = _far_free_cells(instance, 4)
+    r0, r1 = robots
+    # a goal on an obstacle: rejected, the reason on fleet/goal_events
+    wall = tuple(map(int, np.argwhere(np.asarray(instance.grid) != 0)[0]))
+    handle = client.send(r1, *wall)
+    assert not handle.accepted
+    client.wait(lambda: client.event(r1, "rejected"), 30, "the rejection event")
+    assert "obstacle" in client.event(r1, "rejected")[-1].reason
+    # a plain rclpy publisher on /robot_<r0>/goal_pose
+    client.wait(lambda: client.goal_pubs[r0].get_subscription_count() > 0, 60, "goal_pose sub")
+    client.goal_pubs[r0].publish(client.pose(*a))
+    client.wait(lambda: client.event(r0, "reached"), 240, f"robot {r0} reaching {a}")
+    assert (client.event(r0, "reached")[-1].row, client.event(r0, "reached")[-1].col) == a
+    # the action: feedback every tick, distance going down, result reached
+    distances = []
+    handle = client.send(r1, *b, feedback=lambda m: distances.append(m.feedback.distance_remaining))
+    assert handle.accepted
+    result = handle.get_result_async()
+    client.wait(result.done, 240, f"robot {r1} reaching {b}")
+    assert result.result().result.reached and result.result().result.error_msg == ""
+    assert len(distances) >= 2 and distances[-1] < distances[0] and min(distances) <= 1.0
+    # preempt: a second goal ends the first one aborted, naming the new goal (both far from b)
+    c, d = _far_from(instance, b, 2)
+    first = client.send(r1, *c)
+    assert first.accepted
+    first_result = first.get_result_async()
+    client.wait(lambda: [e for e in client.events if e.robot_id == r1 and e.event == "assigned"
+                         and (e.row, e.col) == c], 30, "the first goal assigned")
+    second = client.send(r1, *d)
+    client.wait(first_result.done, 60, "the preempted result")
+    res = first_result.result().result
+    assert not res.reached and "preempted" in res.error_msg
+    # cancel the second: the robot holds its cell
+    cancel = second.cancel_goal_async()
+    client.wait(cancel.done, 30, "the cancel response")
+    second_result = second.get_result_async()
+    client.wait(second_result.done, 60, "the cancelled result")
+    assert second_result.result().result.error_code == 2  # CANCELED
+    client.wait(lambda: client.event(r1, "cancelled"), 30, "the cancelled event")
+    return [b]
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_simulated_fleet_takes_goals_at_run_time(tmp_path, ros_env, checkpoints):
+    seed = 3
+    instance = InstanceSource(num_robots=4, size=12, density=0.2, seed=seed).load()
+    proc, record_path, log = _start_fleet(
+        tmp_path, ros_env, checkpoints["dcc"],
+        ["--num-robots", "4", "--size", "12", "--density", "0.2", "--seed", str(seed),
+         "--nodes-per-process", "2"], "sim")
+    client = FleetClient(4)
+    try:
+        _exercise_goals(client, instance, (0, 1))
+    finally:
+        client.close()
+        proc.send_signal(signal.SIGINT)
+        code = proc.wait(120)
+    record = json.loads(record_path.read_text())
+    assert code == 130, log.read_text()[-3000:]
+    kinds = {e["event"] for e in record["goal_events"]}
+    assert {"assigned", "reached", "preempted", "cancelled", "rejected"} <= kinds
+    assert record["summary"].startswith("stopped at tick")
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_real_robot_mode_takes_goals_at_run_time_and_robots_never_share_a_cell(
+        tmp_path, ros_env, checkpoints):
+    from mapf_fleet.ros.instances import dump_instance_yaml
+
+    instance = InstanceSource(num_robots=4, size=12, density=0.2, seed=3).load()
+    path = tmp_path / "instance.yaml"
+    dump_instance_yaml(instance, path)
+    stand_ins = subprocess.Popen([sys.executable, "-m", "mapf_fleet.ros.stand_in_robot",
+                                  "--instance", str(path), "--max-delay", "0.2"],
+                                 env=ros_env, stdout=subprocess.DEVNULL,
+                                 stderr=subprocess.DEVNULL)
+    proc, record_path, log = _start_fleet(
+        tmp_path, ros_env, checkpoints["dcc"],
+        ["--instance", str(path), "--real-robots", "--nodes-per-process", "2"], "real")
+    client = FleetClient(4)
+    try:
+        _exercise_goals(client, instance, (2, 3))
+    finally:
+        client.close()
+        proc.send_signal(signal.SIGINT)
+        code = proc.wait(120)
+        stand_ins.send_signal(signal.SIGINT)
+        stand_ins.wait(60)
+    record = json.loads(record_path.read_text())
+    assert code == 130, log.read_text()[-3000:]
+    assert record["goal_events"] and record["steps"] > 0
+    for tick, cells in enumerate(record["positions"]):
+        assert len({tuple(c) for c in cells}) == len(cells), f"two robots in one cell at {tick}"
