@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-import conftest
+TEST_DIR = Path(__file__).resolve().parent  # (`import conftest` may give test/ros/conftest.py)
 
 PROBE = '''
 import pytest
@@ -30,7 +30,7 @@ def test_skips_for_another_reason():
 
 
 def _run(tmp_path: Path, ci: str | None) -> str:
-    shutil.copy(Path(conftest.__file__), tmp_path / "conftest.py")
+    shutil.copy(TEST_DIR / "conftest.py", tmp_path / "conftest.py")
     (tmp_path / "test_probe.py").write_text(PROBE)
     env = {k: v for k, v in __import__("os").environ.items() if k != "CI"}
     if ci is not None:
@@ -56,5 +56,5 @@ def test_elsewhere_they_skip(tmp_path, ci):
 
 
 def test_ci_run_sets_ci():
-    text = (Path(conftest.__file__).parents[1] / ".ci" / "run").read_text()
+    text = (TEST_DIR.parent / ".ci" / "run").read_text()
     assert 'export CI="${CI:-true}"' in text
