@@ -437,11 +437,13 @@ class FleetRun:
 
     # ---- the end ------------------------------------------------------------------------------
     def abort_active(self, reason: str) -> list[GoalEvent]:
-        """The run ends: every active goal given at run time is aborted (events)."""
+        """The run ends: every active goal given at run time (a request, a task) is aborted
+        (events); the source's own endless stream (lifelong) just stops."""
         events = [GoalEvent(self.tick, i, "aborted", tuple(self.goals[i].tolist()),
                             self.goal_sources[i], self.goal_ids[i], reason)
                   for i in np.flatnonzero(self.active).tolist()
-                  if not self.on_goal()[i]]
+                  if not self.on_goal()[i] and (self.goal_sources[i] != self.tasks.name
+                                                or self._task_of[i] is not None)]
         self._emit(events)
         return events
 

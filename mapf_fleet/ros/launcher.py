@@ -389,11 +389,21 @@ def main(argv: list[str] | None = None) -> int:
         if args.num_robots is None:
             args.num_robots = default_robot_count(args)
         source = InstanceSource(args.instance, args.map, args.scen, args.num_robots, args.size,
-                                args.density, args.seed)
+                                args.density, args.seed, args.cell_size or 0.0)
         num_robots = source.load().num_agents
     except (ValueError, OSError) as exc:
         print(f"mapf-fleet up: bad instance: {exc}", file=sys.stderr)
         return 2
+    if args.task_file:  # a bad task file: one line naming file, task and field, before anything
+        from mapf_fleet.fleet.tasks import TaskFileError, load_task_file
+
+        geometry = common.MapGeometry(*(source.geometry() or (
+            args.resolution or 1.0, *(args.origin or (0.0, 0.0)))))
+        try:
+            load_task_file(args.task_file, num_robots=num_robots, cell_of=geometry.xy_to_cell)
+        except TaskFileError as exc:
+            print(f"mapf-fleet up: {exc}", file=sys.stderr)
+            return 2
     problem = layout_problem(num_robots, args.single_process, args.nodes_per_process)
     if problem:
         print(f"mapf-fleet up: {problem}", file=sys.stderr)

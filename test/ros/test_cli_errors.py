@@ -26,6 +26,10 @@ def bad_files(tmp_path_factory, checkpoints):
     (folder / "bad.map").write_text("type octile\nheight 2\nwidth 3\nmap\n...\n.@\n")
     (folder / "bad.scen").write_text("version 1\n")
     (folder / "no_goals.yaml").write_text('grid: ["...."]\nstarts: [[0, 0]]\n')
+    # issue 22: a building map without its resolution, a task list with a bad task
+    (folder / "building.yaml").write_text("image: map.pgm\norigin: [0, 0, 0]\nnegate: 0\n"
+                                          "occupied_thresh: 0.65\nfree_thresh: 0.196\n")
+    (folder / "tasks.yaml").write_text("tasks:\n  - goal: [1, 1]\n  - {goal: [2]}\n")
     return folder
 
 
@@ -76,6 +80,21 @@ CASES = [
                                       "{dhc}", "--quiet"], "missing.yaml"),
     ("echo-bogus-type", CLI + ["echo", "/fleet/map", "--type", "bogus", "--timeout", "1"],
      "bogus"),
+    # issue 22: continuous operation
+    ("up-map-yaml-missing-field", CLI + ["up", "--map", "{d}/building.yaml", "--checkpoint",
+                                         "{dhc}", "--quiet"], "building.yaml: field 'resolution'"),
+    ("up-task-file-bad-task", CLI + ["up", "--task-source", "tasks", "{d}/tasks.yaml",
+                                     "--checkpoint", "{dhc}", "--quiet"],
+     "tasks.yaml: task 1: field 'goal'"),
+    ("up-task-source-unknown", CLI + ["up", "--task-source", "forever", "--checkpoint", "{dhc}",
+                                      "--quiet"], "--task-source must be one of"),
+    ("up-task-source-tasks-no-file", CLI + ["up", "--task-source", "tasks", "--checkpoint",
+                                            "{dhc}", "--quiet"], "needs exactly one task file"),
+    ("goal-bad-robot", CLI + ["goal", "three", "--cell", "1", "1"], "ROBOT must be a robot id"),
+    ("simulator-task-file-missing", CLI + ["node", "simulator", "--ros-args", "-p",
+                                           "task_source:=tasks", "-p",
+                                           "task_file:={d}/missing_tasks.yaml"],
+     "missing_tasks.yaml: cannot read the task file"),
 ]
 
 

@@ -46,7 +46,8 @@ def test_lifelong_fleet_equals_the_evaluators_lifelong_rollout(tmp_path, ros_env
     seed, steps = 5, 200
     instance = InstanceSource(num_robots=16, size=16, density=0.2, seed=seed).load()
     expected = _lifelong_rollout(checkpoints[algo], instance, steps, seed)
-    assert expected.goals_reached > 16  # robots really got new goals
+    assigned = [e for e in expected.recorder.record["goal_events"] if e["event"] == "assigned"]
+    assert len(assigned) > 16 + 4  # robots really got new goals on arrival
     record_path = tmp_path / "lifelong.json"
     proc = subprocess.run(UP + ["--checkpoint", checkpoints[algo], "--num-robots", "16",
                                 "--size", "16", "--density", "0.2", "--seed", str(seed),
@@ -270,3 +271,56 @@ def test_real_robot_mode_takes_goals_at_run_time_and_robots_never_share_a_cell(
     assert record["goal_events"] and record["steps"] > 0
     for tick, cells in enumerate(record["positions"]):
         assert len({tuple(c) for c in cells}) == len(cells), f"two robots in one cell at {tick}"
+
+
+@pytest.mark.ros
+def test_a_building_map_yaml_sets_the_fleet_map_its_resolution_and_origin(tmp_path, ros_env):
+    """`map_file: F.yaml` (Nav2 map_server) in the simulator: the grid downsampled to
+    `cell_size`, /fleet/map with that resolution and the map's origin, poses in its metres."""
+    import rclpy
+    from nav_msgs.msg import OccupancyGrid
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+
+    from mapf_fleet.grid.nav2_map import read_nav2_map, write_nav2_map
+    from mapf_fleet.ros import common
+    from mapf_fleet.ros.simulator_node import SimulatorNode
+
+    grid = np.zeros((12, 16), dtype=np.int8)
+    grid[4, 2:12] = 1
+    grid[9, 6] = -1  # unknown: blocked
+    path = tmp_path / "building.yaml"
+    write_nav2_map(path, grid, 0.05, origin=(-2.0, 3.0, 0.0))
+    expected = read_nav2_map(path, 0.1)
+    assert expected.grid.shape == (6, 8) and expected.grid[2, 1:6].all() and expected.grid[4, 3]
+    rclpy.init(args=["test"])
+    try:
+        sim = SimulatorNode(parameter_overrides=[
+            Parameter("map_file", value=str(path)), Parameter("cell_size", value=0.1),
+            Parameter("num_robots", value=3), Parameter("task_source", value="external"),
+            Parameter("max_steps", value=0)])
+        listener = rclpy.create_node("map_listener")
+        maps = []
+        listener.create_subscription(OccupancyGrid, "fleet/map", maps.append,
+                                     common.latched_qos())
+        executor = SingleThreadedExecutor()
+        executor.add_node(listener)
+        executor.add_node(sim)
+        deadline = time.monotonic() + 30
+        while not maps and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.1)
+        assert maps, "no /fleet/map"
+        info = maps[0].info
+        assert (info.height, info.width) == (6, 8)
+        assert info.resolution == pytest.approx(0.1)
+        assert (info.origin.position.x, info.origin.position.y) == pytest.approx((-2.0, 3.0))
+        got = (np.asarray(maps[0].data).reshape(6, 8) == 100)
+        assert (got == (expected.grid != 0)).all()
+        # robots start on free cells of that map, their poses in its metres
+        for r, c in sim.run.positions:
+            assert not expected.grid[r, c]
+            assert sim.geometry.xy_to_cell(*expected.cell_to_xy(r, c)) == (r, c)
+        sim.destroy_node()
+        listener.destroy_node()
+    finally:
+        rclpy.try_shutdown()
