@@ -481,10 +481,11 @@ class FleetRun:
         verdict = ('success' if success else 'failure') if stopped_at is None else \
             f"stopped at tick {stopped_at}"
         if self.tasks.continuous:
+            done = int(self.tasks_done.sum())
+            tasks = (f", {done} tasks done" if done or self.tasks.name in ("tasks", "external")
+                     else "") + (f", {len(self.queue)} queued" if self.queue else "")
             body = (f"{self.goals_reached} goals reached in {rec.steps} steps (throughput "
-                    f"{self.throughput:.3f} goals/step, {int(self.tasks_done.sum())} tasks done"
-                    f"{', ' + str(len(self.queue)) + ' queued' if self.queue else ''}; "
-                    f"task source {self.tasks.name}")
+                    f"{self.throughput:.3f} goals/step{tasks}; task source {self.tasks.name}")
             body += f", {reason})" if reason else ")"
         else:
             body = (f"{int(self.on_goal().sum())}/{self.num_robots} robots on goal after "

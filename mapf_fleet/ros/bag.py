@@ -44,6 +44,7 @@ FLEET_TOPICS = {
     common.MOVES_TOPIC: f"{INTERFACES_PACKAGE}/msg/RobotMove",
     common.PROGRESS_TOPIC: f"{INTERFACES_PACKAGE}/msg/FleetProgress",
     common.OUTCOME_TOPIC: f"{INTERFACES_PACKAGE}/msg/FleetOutcome",
+    common.GOAL_EVENTS_TOPIC: f"{INTERFACES_PACKAGE}/msg/GoalEvent",  # every goal change
 }
 
 
@@ -51,7 +52,8 @@ def default_topic_re(namespace: str = "") -> re.Pattern:
     """The topics recorded by default when discovered: the fleet's, in `namespace`."""
     prefix = re.escape("/" + namespace.strip("/")) if namespace.strip("/") else ""
     return re.compile(
-        prefix + r"/(fleet/(map|state|moves|progress|outcome)|robot_\d+/(pose|goal|waypoint))$")
+        prefix + r"/(fleet/(map|state|moves|progress|outcome|goal_events)"
+        r"|robot_\d+/(pose|goal|goal_pose|waypoint))$")
 
 
 DEFAULT_TOPIC_RE = default_topic_re()

@@ -33,6 +33,7 @@ MARKERS_TOPIC = "/fleet/markers"
 STATUS_TOPIC = "/fleet/robot_status"
 DHC_HIDDEN_TOPIC = "/fleet/dhc/hidden"
 DCC_ANNOUNCE_TOPIC = "/fleet/dcc/announce"
+GOAL_EVENTS_TOPIC = "/fleet/goal_events"  # every goal change (ros.goals, msg GoalEvent)
 FRAME_ID = "map"
 
 

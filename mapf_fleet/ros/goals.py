@@ -41,7 +41,7 @@ from mapf_fleet.fleet.record import GoalEvent
 from mapf_fleet.fleet.tasks import TaskFileError, parse_tasks
 from mapf_fleet.ros import common
 
-GOAL_EVENTS_TOPIC = "/fleet/goal_events"
+GOAL_EVENTS_TOPIC = common.GOAL_EVENTS_TOPIC
 SUBMIT_TASKS_SERVICE = "/fleet/submit_tasks"
 ACCEPTED_FRAMES = ("", common.FRAME_ID)  # an empty frame is read as the map frame (RViz sets it)
 
