@@ -34,3 +34,15 @@ def checkpoints(tmp_path_factory):
     paths = {algo: _save(folder, algo, False) for algo in ("dhc", "dcc")}
     paths["dcc_sensitive"] = _save(folder, "dcc", True)
     return paths
+
+
+@pytest.fixture
+def rclpy_context(ros_env):
+    """rclpy initialised in this test process (the test's own domain, loopback: ros_env)."""
+    import rclpy
+
+    rclpy.init(args=["test"])
+    try:
+        yield rclpy
+    finally:
+        rclpy.try_shutdown()

@@ -16,17 +16,6 @@ REPO = Path(__file__).resolve().parents[2]
 INSTANCE = REPO / "config" / "fleet" / "instance_small.yaml"
 
 
-@pytest.fixture
-def rclpy_context(ros_env):
-    import rclpy
-
-    rclpy.init(args=["test"])
-    try:
-        yield rclpy
-    finally:
-        rclpy.try_shutdown()
-
-
 def _pose(x, y):
     from geometry_msgs.msg import PoseStamped
 

@@ -26,17 +26,6 @@ UP = [sys.executable, "-m", "mapf_fleet.cli", "up"]
 STAND_IN = [sys.executable, "-m", "mapf_fleet.ros.stand_in_robot"]
 
 
-@pytest.fixture
-def rclpy_context(ros_env):
-    import rclpy
-
-    rclpy.init(args=["test"])
-    try:
-        yield rclpy
-    finally:
-        rclpy.try_shutdown()
-
-
 def _pose(x, y):
     from geometry_msgs.msg import PoseStamped
 
