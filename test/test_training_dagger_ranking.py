@@ -32,7 +32,7 @@ def test_confidence_puts_the_argmax_first_only_when_it_leads():
 def test_default_ranking_follows_the_shield_rule():
     from mapf_fleet.evaluation.policies import parse_policy, with_shield
 
-    assert default_q_mode("pibt_anchor") == "q_then_distance" and default_q_mode("pibt") == "q"
+    assert default_q_mode("pibt_anchor") == "confidence" and default_q_mode("pibt") == "q"
     spec = parse_policy("heuristic")
     assert with_shield(spec, "pibt_anchor").preference_mode == "distance"
     from mapf_fleet.evaluation.policies import PolicySpec

@@ -24,8 +24,8 @@ Modes (`PREFERENCE_MODES`):
   distance        the distance order, ties by action order: plain PIBT (no learning); also the
                   non-learned heuristic's ranking (it follows a closer move, else stays)
 The learned default is `DEFAULT_Q_MODE` (chosen by measurement; README "Coordination layer");
-`default_q_mode(rule)` is the default of each shield rule (measured: `q_then_distance` under
-`pibt_anchor`, `q` under `pibt`, issue 25), which the evaluator follows.
+`default_q_mode(rule)` is the default of each shield rule (measured: `confidence` under
+`pibt_anchor`, `q` under `pibt`, issue 25; `DEFAULT_Q_MODE_BY_RULE`), which the evaluator follows.
 """
 
 from __future__ import annotations
@@ -37,11 +37,24 @@ from mapf_fleet.grid.actions import ACTION_DELTAS, NUM_ACTIONS, STAY
 PREFERENCE_MODES = ("q", "q_demote_stay", "q_then_distance", "confidence", "distance")
 Q_MODES = ("q", "q_demote_stay", "q_then_distance", "confidence")
 DEFAULT_Q_MODE = "q"
-# the ranking each shield rule uses by default (coordination.pibt.SHIELD_RULES)
-DEFAULT_Q_MODE_BY_RULE = {"pibt": "q", "pibt_anchor": "q_then_distance"}
+# The ranking each shield rule uses by default (coordination.pibt.SHIELD_RULES). Measured with
+# models/default.pt under pibt_anchor (issue 25; JSONs models/eval/dagger_ranking_*.json):
+#   published 40x40/64, first 50: q 0.58 (187 steps), q_then_distance 0.76 (168),
+#     confidence 0.78 (124), plain PIBT 0.70 (135);
+#   generated dense 17-21 maps (seed 0, 50 each), 48 / 64 agents: q_then_distance 0.02 / 0.00,
+#     confidence 0.44 / 0.24 (94 / 111 steps), plain PIBT 0.44 / 0.24 (89 / 107);
+#   generated 40x40/64 (seed 101, 50; where the margin was chosen): q_then_distance 0.74 (164),
+#     confidence 0.72 (135).
+# So `confidence` under pibt_anchor; `q` under plain pibt (measured there before; confidence
+# not measured under pibt).
+DEFAULT_Q_MODE_BY_RULE = {"pibt": "q", "pibt_anchor": "confidence"}
 # `confidence`: the Q lead of the argmax over the runner-up above which the network's choice
-# goes first (Q units: one step costs 0.075)
-CONFIDENCE_MARGIN = 0.05
+# goes first (Q units: one step costs 0.075). Chosen on generated 40x40 maps (density 0.3, seed
+# 101, 50 instances, 64 agents, pibt_anchor; never the published sets), models/default.pt:
+# margin 0.1 / 0.3 / 0.6 solved 0.70 / 0.72 / 0.66 in 149 / 135 / 140 average steps, beside
+# q_then_distance 0.74 / 164, q 0.64 / 175, plain PIBT 0.70 / 134. The default shipped
+# default.pt's Q leads (top minus runner-up, agents off their goal): median 0.72, quartile 0.28.
+CONFIDENCE_MARGIN = 0.3
 
 
 def default_q_mode(rule: str) -> str:
