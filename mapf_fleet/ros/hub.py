@@ -472,6 +472,7 @@ class PolicyHub:
         self._beats = 0
         self._last_beat = None  # (ready, episode) of the last heartbeats sent
         self._hub_clients: dict[str, object] = {}  # remote host -> client of its batch service
+        self._ready_hosts: set[str] = set()  # hosts whose batch service our client has seen
         self._inflight: collections.deque = collections.deque()  # (tick, client, future)
         for node in nodes:
             node.hub = self
@@ -725,7 +726,12 @@ class PolicyHub:
         sent = calls = 0
         for host, batch in by_host.items():
             client = self._hub_clients.get(host)
-            if client is None or not client.service_is_ready():
+            # a graph query, milliseconds in a large fleet's DDS graph: asked until it is
+            # ready once (a restarted hub comes back under a new host name and client)
+            if client is not None and host not in self._ready_hosts and \
+                    client.service_is_ready():
+                self._ready_hosts.add(host)
+            if client is None or host not in self._ready_hosts:
                 self.warn(f"tick {tick}: no DCC service for robots {[e[1] for e in batch]} "
                           f"({'no heartbeat heard' if not host else host}): {kind}s not sent")
                 continue

@@ -1,10 +1,12 @@
 """PolicyNode: one robot's learned policy as a ROS node: its parameters (robot_id, checkpoint,
-timeouts, preference_mode), its move and heartbeat publishers, its peer publisher (DHC: hidden vectors
-on a shared topic, two rounds; DCC: announcements) and, for DCC, its request and reply services.
+timeouts, conflict_rule, preference_mode), its move and heartbeat publishers and, for DCC, its
+request and reply services.
 
 The robots hosted in one process are driven by one `mapf_fleet.ros.hub.PolicyHub` (shared
-subscriptions, batched inference, see docs/architecture.md): `spin_policy_nodes` sets it up for
-one robot (`ros2 run mapf_fleet policy`) or many (`mapf-fleet node policy --robots 0-7`).
+subscriptions, batched inference, one peer message per process and round: DHC hidden vectors,
+DCC announcements; DCC requests/replies to other processes as one DccBatch call per process
+pair; see docs/architecture.md): `spin_policy_nodes` sets it up for one robot (`ros2 run
+mapf_fleet policy`) or many (`mapf-fleet node policy --robots 0-7`).
 Every peer message carries (episode, tick); a message of an older tick is stale and ignored. A
 peer missing after `comm_timeout` is left out and reported in the move (missing_peers). A node
 started mid-run joins at the newest tick it receives (with a fresh recurrent state).
@@ -61,8 +63,8 @@ def load_policy_model(path: str):
 
 
 class PolicyNode(Node):
-    """One robot: its parameters, its publishers (move, heartbeat, peer messages) and,
-    for DCC, its request and reply services. The decisions are made by the process's
+    """One robot: its parameters, its publishers (move, heartbeat) and, for DCC, its request
+    and reply services. The decisions are made by the process's
     `PolicyHub` (mapf_fleet.ros.hub), which batches the robots hosted in one process."""
 
     def __init__(self, robot_id: int | None = None, checkpoint: str | None = None, model=None,

@@ -20,7 +20,8 @@ TICK_LINE = re.compile(r"\[(\d+\.\d+)\] \[[^\]]*mapf_simulator\]: tick (\d+): ")
 
 
 def tick_seconds(output: str) -> list[float]:
-    """Seconds per tick from the simulator's progress lines (one per tick: progress_every 1)."""
+    """Seconds per tick between the simulator's progress lines (every 10 ticks: each also
+    checkpoints the run's record, which would dominate if it were every tick)."""
     stamps = [(int(m[2]), float(m[1])) for m in TICK_LINE.finditer(output)]
     return [(b[1] - a[1]) / (b[0] - a[0]) for a, b in zip(stamps, stamps[1:]) if b[0] > a[0]]
 
@@ -35,7 +36,7 @@ def test_64_robots_320_ticks_flat_and_no_missed_decision(tmp_path, ros_env, chec
         [sys.executable, "-m", "mapf_fleet.cli", "up", "--checkpoint",
          checkpoints["dcc_sensitive"], "--num-robots", "64", "--size", "32", "--seed", "4",
          "--nodes-per-process", "16", "--max-steps", str(TICKS), "--record", str(record),
-         "--log-dir", str(tmp_path / "logs"), "--ros-args", "-p", "progress_every:=1"],
+         "--log-dir", str(tmp_path / "logs"), "--ros-args", "-p", "progress_every:=10"],
         env=env, capture_output=True, text=True, timeout=1500)
     assert record.exists(), done.stdout[-3000:] + done.stderr[-3000:]
     run = json.loads(record.read_text())
@@ -45,9 +46,9 @@ def test_64_robots_320_ticks_flat_and_no_missed_decision(tmp_path, ros_env, chec
     assert sum(len(r) for tick in run["requested"] for r in tick) > 0
     logs = "".join(p.read_text() for p in (tmp_path / "logs").glob("*.log"))
     assert re.search(r"to other processes [1-9]\d* in [1-9]\d* batch calls", logs), logs[-2000:]
-    ticks = tick_seconds(done.stdout)
-    assert len(ticks) >= TICKS - 2, done.stdout[-2000:]
-    start = statistics.median(ticks[10:60])  # after the first ticks' warm-up
-    end = statistics.median(ticks[-50:])
+    ticks = tick_seconds(done.stdout)  # one per 10 ticks
+    assert len(ticks) >= TICKS // 10 - 2, done.stdout[-2000:]
+    start = statistics.median(ticks[:5])  # ticks 10-60
+    end = statistics.median(ticks[-5:])  # the last 50
     assert end <= 3 * start, (f"tick time grew over the run: median {1000 * start:.0f} ms at "
                               f"ticks 10-60, {1000 * end:.0f} ms over the last 50")
