@@ -72,6 +72,7 @@ class LifelongResult:
     collisions: list = field(default_factory=list)
     overridden: list = field(default_factory=list)
     fallbacks: int = 0  # lacam: agent-ticks whose move came from PIBT (no plan in time)
+    preferences: str | None = None  # the ranking mode under a shield (None: planners, none)
     seconds: float = 0.0
 
     @property
@@ -83,7 +84,8 @@ class LifelongResult:
         return float(np.std(np.asarray(self.goals) / self.steps)) if self.goals else 0.0
 
     def row(self) -> dict:
-        return {"policy": self.policy, "scenario": self.scenario, "agents": self.num_agents,
+        return {"policy": self.policy, "preferences": self.preferences,
+                "scenario": self.scenario, "agents": self.num_agents,
                 "steps": self.steps, "episodes": len(self.goals),
                 "throughput": round(self.throughput, 4),
                 "throughput_std": round(self.throughput_std, 4),
@@ -274,6 +276,8 @@ def evaluate_lifelong(args) -> list[LifelongResult]:
                 runs = lifelong_runs(instances, args.steps, rule_of_run, args.seed)
                 result = LifelongResult(spec.name, label.rsplit(" ", 1)[0],
                                         instances.starts.shape[1], args.steps)
+                if not base.is_planner and rule != "none":
+                    result.preferences = spec.preference_mode
                 if base.is_planner:
                     result.fallbacks = lacam_rollout(runs, args.planner_time_limit)
                 else:
@@ -292,11 +296,13 @@ def evaluate_lifelong(args) -> list[LifelongResult]:
 
 
 def markdown(results: list[LifelongResult]) -> str:
-    lines = ["| policy | maps | agents | steps | episodes | throughput (goals/step) | goals per "
-             "agent | collisions | overridden |", "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = ["| policy | ranking | maps | agents | steps | episodes | throughput (goals/step) | "
+             "goals per agent | collisions | overridden |",
+             "|---|---|---|---:|---:|---:|---:|---:|---:|---:|"]
     for r in results:
         row = r.row()
-        lines.append(f"| {row['policy']} | {row['scenario']} | {row['agents']} | {row['steps']} "
+        lines.append(f"| {row['policy']} | {row['preferences'] or '-'} | {row['scenario']} "
+                     f"| {row['agents']} | {row['steps']} "
                      f"| {row['episodes']} | {row['throughput']:.3f} ± {row['throughput_std']:.3f}"
                      f" | {row['goals_per_agent']:.2f} | {row['collisions']:.1f} | "
                      f"{row['overridden']:.1f} |")

@@ -110,6 +110,7 @@ class FleetChannels:
 
 
 IDLE_STATE_PERIOD_S = 1.0  # an idle fleet republishes its state this often
+RECORD_CHECKPOINT_S = 5.0  # a running fleet rewrites its record at most this often
 
 
 def run_lockstep(node, channels: FleetChannels, run, step, publish_state, *, lock,
@@ -122,8 +123,8 @@ def run_lockstep(node, channels: FleetChannels, run, step, publish_state, *, loc
     Each tick: `publish_state(done=False)`, collect the moves, then `step(decisions) ->
     (events, overridden robot ids)` makes the next tick (it must call `ticker.advance()` and
     `run.advance`, under `lock`); the goal events go to `goals` (`ros.goals.GoalServer`, also
-    the action feedback), progress is published and logged, and the record is rewritten every
-    `progress_every` ticks (a killed process leaves what it ran). A continuous fleet with nothing
+    the action feedback), progress is published and logged every `progress_every` ticks, and
+    the record is rewritten every RECORD_CHECKPOINT_S (a killed process leaves what it ran). A continuous fleet with nothing
     to do (`run.waiting`: every robot idle) does not tick: it waits for a goal. At the end: the
     final state, the outcome (published, latched; `summary_extra()` is appended to its summary)
     and the record. `ticker.stop()` (a signal, a failed callback) ends the run before the next
@@ -132,6 +133,7 @@ def run_lockstep(node, channels: FleetChannels, run, step, publish_state, *, loc
     logger = node.get_logger()
     ticker = channels.ticker
     published, published_at = None, 0.0  # the tick whose state is out, and when
+    checkpointed = -float("inf")  # the first tick is written at once
     while not run.finished() and rclpy.ok() and not ticker.stopped:
         if run.waiting and goals is not None:
             if published != run.tick or time.monotonic() - published_at > IDLE_STATE_PERIOD_S:
@@ -171,8 +173,11 @@ def run_lockstep(node, channels: FleetChannels, run, step, publish_state, *, loc
         channels.progress_pub.publish(FleetProgress(**progress))
         if run.steps % progress_every == 0:
             logger.info(run.progress_text())
-            if record_file:
-                run.recorder.checkpoint(record_file, run.tick)
+        # the record so far, for a process that dies before the end; it is rewritten whole, so
+        # not more often than every RECORD_CHECKPOINT_S (a cost that grows with the run)
+        if record_file and time.monotonic() - checkpointed > RECORD_CHECKPOINT_S:
+            run.recorder.checkpoint(record_file, run.tick)
+            checkpointed = -float("inf")  # the first tick is written at once
         if tick_period > 0:
             time.sleep(max(0.0, tick_period - (time.monotonic() - started)))
     publish_state(done=True)

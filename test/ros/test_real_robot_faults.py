@@ -184,6 +184,7 @@ def test_a_killed_simulator_leaves_the_ticks_it_ran_in_the_record(tmp_path, ros_
                           text=True)
     try:
         _wait_for_line(up, "tick 20:", 240)
+        time.sleep(7.0)  # > fleet_io.RECORD_CHECKPOINT_S: the record was rewritten since
         # this run's simulator only (a child of this `up`), never another test's
         sim = subprocess.run(["pgrep", "-P", str(up.pid), "-f", "mapf_fleet.ros.run simulator"],
                              capture_output=True, text=True).stdout.split()
