@@ -19,6 +19,7 @@ DCC message counts: requests + replies to other processes per tick, and the serv
 carried them (one DccBatch per pair of processes and phase).
 
     python benchmarks/bench_fleet.py [--robots 32 64 128 256] [--algos dcc dhc] [--steps 60]
+        [--task-source lifelong]   (a continuous run: a new goal on arrival, every tick played)
 
 On the 2-core development machine one core was busy with a training job: figures are as measured.
 """
@@ -97,13 +98,15 @@ def hub_split(log_dir: str) -> tuple[dict, float, float]:
     return mean, messages, calls
 
 
-def run_fleet(checkpoint, robots, size, per_process, seed, steps, domain):
+def run_fleet(checkpoint, robots, size, per_process, seed, steps, domain,
+              task_source="instance"):
     work = tempfile.mkdtemp(prefix="bench_fleet_")
     record, logs = os.path.join(work, "run.json"), os.path.join(work, "logs")
     cmd = [sys.executable, "-m", "mapf_fleet.cli", "up", "--checkpoint", str(checkpoint),
            "--num-robots", str(robots), "--size", str(size), "--seed", str(seed),
            "--max-steps", str(steps), "--record", record, "--domain-id", str(domain),
            "--nodes-per-process", str(per_process), "--log-dir", logs,
+           "--task-source", task_source,
            "--ros-args", "-p", "progress_every:=5"]
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=1800)
@@ -123,6 +126,10 @@ def main():
     parser.add_argument("--algos", nargs="+", default=["dcc", "dhc"], choices=sorted(CHECKPOINTS))
     parser.add_argument("--steps", type=int, default=60, help="ticks per run (default: 60)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--task-source", choices=["instance", "lifelong"], default="instance",
+                        help="instance: the one-shot episode (ends when all are on goal); "
+                             "lifelong: a continuous run, a new goal on arrival, all --steps "
+                             "ticks (issue 22 item 8)")
     parser.add_argument("--domain-id", type=int, default=150,
                         help="first ROS_DOMAIN_ID used (one per run; default: 150)")
     args = parser.parse_args()
@@ -141,7 +148,8 @@ def main():
             checkpoint = CHECKPOINTS[algo]
             batched = batched_ms_per_step(checkpoint, instance, args.steps)
             run, ticks, (split, messages, calls) = run_fleet(
-                checkpoint, robots, size, per_process, args.seed, args.steps, domain)
+                checkpoint, robots, size, per_process, args.seed, args.steps, domain,
+                args.task_source)
             domain += 1
             ticks, rate = ticks
             quarter = max(1, len(ticks) // 4)
