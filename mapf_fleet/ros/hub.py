@@ -499,8 +499,12 @@ class PolicyHub:
             self.node.create_subscription(DccAnnounce, common.rel(common.DCC_ANNOUNCE_TOPIC),
                                           self._on_announce, common.reliable_qos(1000),
                                           callback_group=group)
+            # every other process may call it twice a tick: the services' default queue (10,
+            # keep last) dropped requests with 12 processes (384 robots), and each cost a
+            # comm_timeout wait
             self.node.create_service(DccBatch, common.rel(dcc_hub_service(self.host)),
-                                     self._on_batch, callback_group=group)
+                                     self._on_batch, qos_profile=common.reliable_qos(1000),
+                                     callback_group=group)
         self.node.create_timer(first.status_period, self._heartbeat, callback_group=group)
         self._thread = threading.Thread(target=self._loop, name=f"policy-hub-{ids[0]}",
                                         daemon=True)
@@ -540,7 +544,8 @@ class PolicyHub:
             from mapf_fleet_interfaces.srv import DccBatch
 
             self._hub_clients[host] = self.node.create_client(
-                DccBatch, common.rel(dcc_hub_service(host)), callback_group=self._group)
+                DccBatch, common.rel(dcc_hub_service(host)),
+                qos_profile=common.reliable_qos(1000), callback_group=self._group)
 
     def _on_hidden(self, msg):
         """Another process's robots' vectors of one round (ours were delivered locally)."""
