@@ -131,7 +131,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--preference-mode", default=None,
                         help="how policy nodes rank their actions from Q-values (default: "
                              "the policy nodes' preference_mode if a params file sets it, else "
-                             "the conflict rule's: q_then_distance under pibt_anchor, q under "
+                             "the conflict rule's, coordination.preferences.default_q_mode: "
+                             "confidence under pibt_anchor, q under "
                              "pibt and revert)")
     parser.add_argument("--nodes-per-process", type=int, default=1,
                         help="robots' policy nodes hosted per process (one hub each; 32 for "

@@ -81,19 +81,21 @@ def test_map_and_scen_without_num_robots_take_the_files_count(tmp_path):
 @pytest.mark.ros
 def test_default_preference_mode_follows_the_rule_and_yields_to_a_params_file(
         tmp_path, checkpoints, ros_env):
-    """No preference_mode given: the rule's default (q_then_distance under pibt_anchor, q under
-    pibt and revert). A params file's (or the command line's) preference_mode wins whatever the
+    """No preference_mode given: the rule's default (`default_q_mode`: today confidence under
+    pibt_anchor, q under pibt and revert). A params file's (or the command line's) preference_mode wins whatever the
     rule: `up` passes the policy nodes its conflict rule, never a preference_mode of its own."""
     import rclpy
 
+    from mapf_fleet.coordination.preferences import default_q_mode
     from mapf_fleet.ros.policy_node import PolicyNode
 
     params = tmp_path / "p.yaml"
-    params.write_text("/**:\n  ros__parameters:\n    preference_mode: confidence\n")
-    cases = [([], "q_then_distance"), (["--conflict-rule", "pibt"], "q"),
+    params.write_text("/**:\n  ros__parameters:\n    preference_mode: q_demote_stay\n")
+    assert default_q_mode("pibt_anchor") != default_q_mode("pibt")  # the rule matters
+    cases = [([], default_q_mode("pibt_anchor")), (["--conflict-rule", "pibt"], "q"),
              (["--conflict-rule", "revert"], "q"),
-             (["--params-file", str(params)], "confidence"),
-             (["--params-file", str(params), "--conflict-rule", "pibt"], "confidence"),
+             (["--params-file", str(params)], "q_demote_stay"),  # no rule's default
+             (["--params-file", str(params), "--conflict-rule", "pibt"], "q_demote_stay"),
              (["--preference-mode", "distance", "--params-file", str(params)], "distance")]
     for own, expected in cases:
         args = _args(own)
