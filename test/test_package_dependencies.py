@@ -18,7 +18,10 @@ ROSDEP_KEYS = {
     "numpy": "python3-numpy", "PyYAML": "python3-yaml", "scipy": "python3-scipy", "torch": "python3-torch",
     "tqdm": "python3-tqdm", "matplotlib": "python3-matplotlib", "ImageIO": "python3-imageio",
     "tensorboard": "python3-tensorboard-pip", "rosbags": "python3-rosbags-pip", "ray": None, "pymapf": None,
+    "foxglove-sdk": None,
 }
+# optional extras, imported only to say they are missing (render: MP4 needs imageio-ffmpeg)
+OPTIONAL = {"imageio_ffmpeg"}
 # imported only on a full ROS install (not installed here): ROS packages by their own names
 ROS_ONLY = {"launch", "launch_ros"}
 
@@ -59,7 +62,7 @@ def test_every_imported_library_is_declared():
     for module, files in sorted(_imports().items()):
         where = f"{module} (imported by {', '.join(sorted(files)[:2])})"
         dists = distributions.get(module, [])
-        if module in depends:  # a ROS package (rclpy, nav_msgs, mapf_fleet_interfaces, ...)
+        if module in depends or module in OPTIONAL:  # a ROS package (rclpy, nav_msgs, ...)
             continue
         if module in ROS_ONLY or any(d.startswith("ros-") for d in dists):
             problems.append(f"{where}: ROS package, no <exec_depend>{module}</exec_depend>")

@@ -105,7 +105,8 @@ class FleetChannels:
         msg.header.stamp = stamp
         msg.header.frame_id = common.FRAME_ID
         self.state_pub.publish(msg)
-        self.markers_pub.publish(fleet_markers(positions, goals, self.geometry, stamp))
+        if self.markers_pub.get_subscription_count():  # built only for a viewer (RViz)
+            self.markers_pub.publish(fleet_markers(positions, goals, self.geometry, stamp))
         return stamp
 
 
@@ -134,6 +135,7 @@ def run_lockstep(node, channels: FleetChannels, run, step, publish_state, *, loc
     ticker = channels.ticker
     published, published_at = None, 0.0  # the tick whose state is out, and when
     checkpointed = -float("inf")  # the first tick is written at once
+    run.recorder.started = time.monotonic()  # run_seconds count from the first tick, not start-up
     while not run.finished() and rclpy.ok() and not ticker.stopped:
         if run.waiting and goals is not None:
             if published != run.tick or time.monotonic() - published_at > IDLE_STATE_PERIOD_S:
@@ -177,7 +179,7 @@ def run_lockstep(node, channels: FleetChannels, run, step, publish_state, *, loc
         # not more often than every RECORD_CHECKPOINT_S (a cost that grows with the run)
         if record_file and time.monotonic() - checkpointed > RECORD_CHECKPOINT_S:
             run.recorder.checkpoint(record_file, run.tick)
-            checkpointed = -float("inf")  # the first tick is written at once
+            checkpointed = time.monotonic()
         if tick_period > 0:
             time.sleep(max(0.0, tick_period - (time.monotonic() - started)))
     publish_state(done=True)

@@ -236,14 +236,17 @@ class GoalServer:
         self.publish(events)
         ends = {"reached": "reached", "preempted": "aborted", "aborted": "aborted",
                 "cancelled": "cancelled", "rejected": "aborted"}
+        finished = False
         for e in events:
             if e.goal_id in self._goals and e.event in ends:
                 self._finish(e.goal_id, ends[e.event], e.reason)
+                finished = True
         for goal in list(self._goals.values()):
             if goal.robot in overridden:
                 goal.recoveries += 1
             self._feedback(goal)
-        self._guard.trigger()
+        if finished:  # wake the goal executor for the results only: each wake rebuilds the
+            self._guard.trigger()  # wait set of every robot's action server
 
     def _feedback(self, goal: _ActionGoal) -> None:
         run = self.run

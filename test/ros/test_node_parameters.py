@@ -131,7 +131,7 @@ def test_simulator_applies_runtime_parameters_and_refuses_the_rest(ros_env):
             assert simulator.params["max_steps"] == 25
             _wait(client.set_parameters([Parameter("tick_period", value=0.0)]))
             assert simulator.finished.wait(30.0)
-            assert simulator.recorder.steps == 25
+            assert simulator.run.steps == 25
         finally:
             spinner.stop()
             simulator.destroy_node()
