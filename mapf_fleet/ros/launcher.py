@@ -445,7 +445,8 @@ def main(argv: list[str] | None = None) -> int:
         result = finish(code, problem, record, elapsed, bool(args.record))
         return result
     finally:
-        keep_logs(work, args.log_dir, failed=result != 0)
+        # a run stopped by the user (Ctrl-C, SIGTERM: 130 / 143) did not fail: nothing to keep
+        keep_logs(work, args.log_dir, failed=result not in (0, 130, 143))
         signals.restore()
 
 
