@@ -1,7 +1,7 @@
 """What `models/` ships: every checkpoint loads with this code, stays under the issue's 10 MB, has
 its model card naming its exact bytes (SHA-256) and the evaluation files the card was built from,
 and `models/default.pt` (the main job's policy) points at one of them. Superseded checkpoints live
-in `models/archive/` under the same rules, so the evidence behind the README's tables still loads."""
+in `models/archive/` under the same rules, so the evidence behind the tables of README.md and docs/results.md still loads."""
 
 from __future__ import annotations
 

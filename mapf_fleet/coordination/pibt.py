@@ -22,7 +22,7 @@ distance to its goal (BFS on the map; ties by `preferences.tie_breakers`, as pla
 rankings), whatever it asked for. PIBT's reachability argument (the top agent takes a shortest-path
 step, its priority only rises until it arrives, so every agent in turn reaches its goal) needs
 the top agent's ranking to be a distance order; a learned ranking (CS-PIBT) can stall it, which is
-where learned rankings lose to plain PIBT in crowds. Measured in the README ("Coordination layer").
+where learned rankings lose to plain PIBT in crowds. Measured in docs/results.md.
 
 numpy only (no torch, no rclpy): the evaluator, the trainer's actors, the simulator and the
 real-robot aggregator all call this one implementation.

@@ -23,7 +23,7 @@ Modes (`PREFERENCE_MODES`):
                   then Q): the network overrides plain PIBT only where it is sure (issue 25)
   distance        the distance order, ties by action order: plain PIBT (no learning); also the
                   non-learned heuristic's ranking (it follows a closer move, else stays)
-The learned default is `DEFAULT_Q_MODE` (chosen by measurement; README "Coordination layer");
+The learned default is `DEFAULT_Q_MODE` (chosen by measurement; docs/results.md);
 `default_q_mode(rule)` is the default of each shield rule (measured: `confidence` under
 `pibt_anchor`, `q` under `pibt`, issue 25; `DEFAULT_Q_MODE_BY_RULE`), which the evaluator follows.
 """

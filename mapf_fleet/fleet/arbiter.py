@@ -7,7 +7,7 @@ Rules (`CONFLICT_RULES`):
           move is reverted, a robot in the way may be pushed to another of its ranked moves.
           The batched evaluator's `--shield pibt` (`evaluation.runner.run_decentralized`).
   pibt_anchor  the same, with the highest-priority robot on its distance order whatever it
-          ranked (`PIBTShield(anchor=True)`; measured in the README, "Coordination layer").
+          ranked (`PIBTShield(anchor=True)`; measured in docs/results.md).
   revert  the paper's environment: `grid.env.resolve_moves` on the first choices (a conflicting
           move is reverted to "stay").
 
@@ -29,8 +29,8 @@ from mapf_fleet.coordination.pibt import SHIELD_RULES, make_shield
 from mapf_fleet.grid.actions import NUM_ACTIONS, STAY, actions_between
 
 CONFLICT_RULES = (*SHIELD_RULES, "revert")
-# The fleet's default: measured above plain "pibt" with the shipped policy (README, "Coordination
-# layer": 40x40 at 64 agents 0.700 vs 0.490, fewer steps at every count; structured maps at 64)
+# The fleet's default: measured above plain "pibt" with the shipped policy (docs/results.md: 40x40
+# at 64 agents 0.700 vs 0.490, fewer steps at every count; structured maps at 64)
 DEFAULT_CONFLICT_RULE = "pibt_anchor"
 
 

@@ -25,7 +25,9 @@ from mapf_fleet.ros.instances import InstanceSource
 # name: (default, description); both nodes take their instance and their tick from these
 INSTANCE_PARAMETERS = {
     "instance_file": ("", "instance YAML (grid rows, starts, goals); overrides the rest"),
-    "map_file": ("", "MovingAI .map file (with scen_file)"),
+    "map_file": ("", "the map: a MovingAI .map (with scen_file for starts and goals) or a Nav2 "
+                     "map_server YAML (see cell_size); without scen_file, starts and goals are "
+                     "drawn from seed"),
     "scen_file": ("", "MovingAI .scen file (with map_file)"),
     "num_robots": (8, "robots to generate or to take from the .scen file"),
     "size": (16, "side of a generated square map"),
