@@ -134,10 +134,17 @@ class FleetClient:
         from mapf_fleet_interfaces.action import NavigateToPose
 
         assert self.actions[robot].wait_for_server(timeout_sec=60.0)
-        future = self.actions[robot].send_goal_async(NavigateToPose.Goal(pose=self.pose(row, col)),
-                                                     feedback_callback=feedback)
-        self.wait(future.done, 30.0, "the goal response")
-        return future.result()
+        # a service response can be lost while the server has not matched the client's reply
+        # reader yet (discovery on a loaded machine): ask again, as a user would
+        for attempt in range(3):
+            future = self.actions[robot].send_goal_async(
+                NavigateToPose.Goal(pose=self.pose(row, col)), feedback_callback=feedback)
+            try:
+                self.wait(future.done, 30.0, "the goal response")
+                return future.result()
+            except AssertionError:
+                if attempt == 2:
+                    raise
 
 
 def _far_free_cells(instance, count):

@@ -131,6 +131,9 @@ def test_the_view_shows_a_running_fleet_in_a_browser(tmp_path, ros_env, checkpoi
         fleet = _start(
             CLI + ["up", "--checkpoint", checkpoints["dhc"], "--num-robots", str(ROBOTS),
                    "--size", str(SIZE), "--seed", str(SEED), "--max-steps", "2000",
+                   # lifelong goals: the fleet runs until the test stops it, however fast the
+                   # robots reach their first goals
+                   "--task-source", "lifelong",
                    "--single-process", "--record", str(record), "--quiet", *in_ns,
                    "--ros-args", "-p", "tick_period:=0.3"], ros_env, up_log)
         with Browser(width=SIZE * CELL + 420, height=SIZE * CELL + 300) as browser:
