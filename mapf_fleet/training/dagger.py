@@ -53,7 +53,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import logging
 import math
 import os
 import signal
@@ -542,17 +541,11 @@ class _RayWorkers:
     def __init__(self, cfg: DaggerConfig, model_config: dict):
         import ray
 
+        from .ray_pool import actor_cpus, init_ray
+
         self.ray = ray
-        self.started = False
-        if not ray.is_initialized():
-            kwargs: dict[str, Any] = dict(include_dashboard=False, logging_level=logging.WARNING,
-                                          log_to_driver=False, configure_logging=True)
-            if cfg.ray_address:
-                ray.init(address=cfg.ray_address, **kwargs)
-            else:
-                ray.init(num_cpus=cfg.num_cpus, **kwargs)
-            self.started = True
-        cpus = 1.0 if cfg.ray_address else min(1.0, cfg.num_cpus / cfg.num_workers)
+        self.started = init_ray(cfg.ray_address, cfg.num_cpus)
+        cpus = actor_cpus(cfg.ray_address, cfg.num_cpus, cfg.num_workers)
         remote = ray.remote(num_cpus=cpus)(DaggerWorker)
         self.actors = [remote.remote(cfg, model_config) for _ in range(cfg.num_workers)]
 

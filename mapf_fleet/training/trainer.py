@@ -29,7 +29,6 @@ import signal
 import threading
 import time
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
@@ -101,18 +100,11 @@ class _RayActors:
     def __init__(self, cfg: TrainConfig):
         import ray
 
+        from .ray_pool import actor_cpus, init_ray
+
         self.ray = ray
-        self.started_ray = False
-        if not ray.is_initialized():
-            kwargs: dict[str, Any] = dict(include_dashboard=False, logging_level=logging.WARNING,
-                                          log_to_driver=False, configure_logging=True)
-            if cfg.ray_address:
-                ray.init(address=cfg.ray_address, **kwargs)
-            else:
-                ray.init(num_cpus=cfg.num_cpus, **kwargs)
-            self.started_ray = True
-        # Locally, actors share the configured CPUs; on a cluster each takes one CPU.
-        cpus = 1.0 if cfg.ray_address else min(1.0, cfg.num_cpus / cfg.num_actors)
+        self.started_ray = init_ray(cfg.ray_address, cfg.num_cpus)
+        cpus = actor_cpus(cfg.ray_address, cfg.num_cpus, cfg.num_actors)
         remote_cls = ray.remote(num_cpus=cpus)(EpisodeWorker)
         self.actors = [remote_cls.remote(cfg, i) for i in range(cfg.num_actors)]
         self.cfg = cfg

@@ -18,6 +18,8 @@ import pytest
 from mapf_fleet.ros.instances import InstanceSource
 
 UP = [sys.executable, "-m", "mapf_fleet.cli", "up", "--quiet"]
+# every process these tests start gets `ros_env` (test/conftest.py): its own ROS_DOMAIN_ID and
+# ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, so nothing leaves loopback
 
 
 def _lifelong_rollout(checkpoint, instance, steps, seed):

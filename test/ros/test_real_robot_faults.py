@@ -24,6 +24,8 @@ REPO = Path(__file__).resolve().parents[2]
 INSTANCE = REPO / "config" / "fleet" / "instance_small.yaml"
 UP = [sys.executable, "-m", "mapf_fleet.cli", "up"]
 STAND_IN = [sys.executable, "-m", "mapf_fleet.ros.stand_in_robot"]
+# every process these tests start gets `ros_env` (test/conftest.py): its own ROS_DOMAIN_ID and
+# ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, so nothing leaves loopback
 
 
 def _pose(x, y):
