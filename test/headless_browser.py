@@ -10,6 +10,7 @@ from __future__ import annotations
 import base64
 import io
 import json
+import os
 import shutil
 import socket
 import subprocess
@@ -54,7 +55,10 @@ class Browser:
         chromium, driver = require_browser()
         self.profile = tempfile.mkdtemp(prefix="mapf_view_chromium_")
         self.port = _free_port()
+        # chromedriver is no ROS process, but it inherits no discovery range wider than loopback
         self.driver = subprocess.Popen([driver, f"--port={self.port}"],
+                                       env={**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE":
+                                            "LOCALHOST"},
                                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         self.session = None
         try:

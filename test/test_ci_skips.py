@@ -33,6 +33,7 @@ def _run(tmp_path: Path, ci: str | None) -> str:
     shutil.copy(TEST_DIR / "conftest.py", tmp_path / "conftest.py")
     (tmp_path / "test_probe.py").write_text(PROBE)
     env = {k: v for k, v in __import__("os").environ.items() if k != "CI"}
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"  # the probe suite stays on loopback too
     if ci is not None:
         env["CI"] = ci
     done = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",

@@ -22,6 +22,7 @@ from __future__ import annotations
 import json
 import re
 import shlex
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -153,8 +154,11 @@ def collect():
 
 def parse_in_child(commands: list[list[str]]) -> list[str]:
     """Run `_check_commands` in a child Python; its verdict per command ('' = parsed)."""
+    # the child imports the sub-commands (some import rclpy) and stops at parse_args; it still
+    # gets loopback-only discovery, like every process the project starts
     done = subprocess.run([sys.executable, __file__], input=json.dumps(commands), text=True,
-                          capture_output=True, cwd=REPO, timeout=600)
+                          capture_output=True, cwd=REPO, timeout=600,
+                          env={**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"})
     assert done.returncode == 0, f"the parse check failed:\n{done.stdout}\n{done.stderr}"
     return json.loads(done.stdout.strip().splitlines()[-1])
 

@@ -35,7 +35,9 @@ pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.timeout(900)]
 
 def _start(command, env, log):
     """A child whose output goes to the file `log` (a pipe nobody reads could fill and block
-    it)."""
+    it). `env` is the test's `ros_env` (test/conftest.py): its own ROS_DOMAIN_ID and
+    ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, checked here before anything starts."""
+    assert env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
     with open(log, "w") as out:
         return subprocess.Popen(command, env=env, stdout=out, stderr=subprocess.STDOUT, text=True)
 
