@@ -180,7 +180,7 @@ def _start_fleet(tmp_path, ros_env, checkpoint, extra, name):
 
 def _exercise_goals(client, instance, robots):
     """goal_pose (plain publisher), the action (feedback decreasing, reached), preempt, cancel
-    and a rejection with its reason; returns the cells the action goals were sent to."""
+    and a rejection with its reason."""
     # goal events are volatile: hear the fleet's publisher before anything is sent, and wait
     # for the fleet's first state (real robots: once every robot has posed)
     client.wait(lambda: client.events_sub.get_publisher_count() > 0, 60, "fleet/goal_events")
@@ -224,7 +224,23 @@ def _exercise_goals(client, instance, robots):
     client.wait(second_result.done, 60, "the cancelled result")
     assert second_result.result().result.error_code == 2  # CANCELED
     client.wait(lambda: client.event(r1, "cancelled"), 30, "the cancelled event")
-    return [b]
+
+
+def _exercise_then_stop(proc, record_path, log, instance, robots, stop=()):
+    """`_exercise_goals` on the running fleet `proc`, then Ctrl-C (and `stop`'s processes):
+    the fleet exits 130; its record."""
+    client = FleetClient(len(instance.starts))
+    try:
+        _exercise_goals(client, instance, robots)
+    finally:
+        client.close()
+        proc.send_signal(signal.SIGINT)
+        code = proc.wait(120)
+        for other in stop:
+            other.send_signal(signal.SIGINT)
+            other.wait(60)
+    assert code == 130, log.read_text()[-3000:]
+    return json.loads(record_path.read_text())
 
 
 @pytest.mark.ros
@@ -236,15 +252,7 @@ def test_simulated_fleet_takes_goals_at_run_time(tmp_path, ros_env, checkpoints)
         tmp_path, ros_env, checkpoints["dcc"],
         ["--num-robots", "4", "--size", "12", "--density", "0.2", "--seed", str(seed),
          "--nodes-per-process", "2"], "sim")
-    client = FleetClient(4)
-    try:
-        _exercise_goals(client, instance, (0, 1))
-    finally:
-        client.close()
-        proc.send_signal(signal.SIGINT)
-        code = proc.wait(120)
-    record = json.loads(record_path.read_text())
-    assert code == 130, log.read_text()[-3000:]
+    record = _exercise_then_stop(proc, record_path, log, instance, (0, 1))
     kinds = {e["event"] for e in record["goal_events"]}
     assert {"assigned", "reached", "preempted", "cancelled", "rejected"} <= kinds
     assert record["summary"].startswith("stopped at tick")
@@ -266,17 +274,7 @@ def test_real_robot_mode_takes_goals_at_run_time_and_robots_never_share_a_cell(
     proc, record_path, log = _start_fleet(
         tmp_path, ros_env, checkpoints["dcc"],
         ["--instance", str(path), "--real-robots", "--nodes-per-process", "2"], "real")
-    client = FleetClient(4)
-    try:
-        _exercise_goals(client, instance, (2, 3))
-    finally:
-        client.close()
-        proc.send_signal(signal.SIGINT)
-        code = proc.wait(120)
-        stand_ins.send_signal(signal.SIGINT)
-        stand_ins.wait(60)
-    record = json.loads(record_path.read_text())
-    assert code == 130, log.read_text()[-3000:]
+    record = _exercise_then_stop(proc, record_path, log, instance, (2, 3), stop=[stand_ins])
     assert record["goal_events"] and record["steps"] > 0
     for tick, cells in enumerate(record["positions"]):
         assert len({tuple(c) for c in cells}) == len(cells), f"two robots in one cell at {tick}"
