@@ -22,7 +22,8 @@ from .instance import Instance
 class BatchMAPFEnv:
     """`MAPFEnv` over B episodes at once.
 
-    reset(instances=None) -> obs float32 (B, N, 6, S, S)
+    reset(instances=None) -> obs float32 (B, N, C, S, S) (C = 6, 7 with
+      `EnvConfig.observation` "cost_to_go")
     step(actions int (B, N)) -> (obs, rewards float32 (B, N), done bool (B,), info) with info
       {"collisions": (B, N), "on_goal": (B, N), "success": (B,), "steps": int (B,)}.
     An episode that is done stays frozen until the next reset: its actions are ignored (treated
@@ -64,16 +65,22 @@ class BatchMAPFEnv:
         self._map_offset = self._map_of_agent * (h * w)
         self._blocked_flat = (self.grids != 0).reshape(-1)
         self._goal_flat = (self.goals[..., 0] * w + self.goals[..., 1]).reshape(-1)
+        distances = None
+        if self.config.observation == "cost_to_go":
+            distances = np.concatenate([self._cache.distances(inst.grid, inst.goals)
+                                        for inst in instances]) if n else np.zeros((0, h, w))
         bits = np.concatenate([self._cache.bits(inst.grid, inst.goals) for inst in instances]) \
             if n else np.zeros((0, h, w), np.uint8)
-        self._obs = _ObservationBuilder(self.grids, bits, self.config.obs_radius, self._map_of_agent)
+        self._obs = _ObservationBuilder(self.grids, bits, self.config.obs_radius,
+                                        self._map_of_agent, distances)
 
     def _flat_positions(self) -> np.ndarray:
         return self.positions.reshape(-1, 2)
 
     def _build(self) -> np.ndarray:
         s = self._obs.size
-        return self._obs.build(self._flat_positions()).reshape(self.num_envs, self.num_agents, 6, s, s)
+        return self._obs.build(self._flat_positions()).reshape(self.num_envs, self.num_agents,
+                                                               self._obs.channels, s, s)
 
     def reset(self, instances: Sequence[Instance] | None = None) -> np.ndarray:
         if instances is not None:

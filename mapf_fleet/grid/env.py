@@ -4,6 +4,10 @@ Everything per step is vectorised over agents. The static part of every agent's 
 (obstacle bit + its four heuristic bits) is packed into one byte per cell and padded once per
 reset; a step then gathers one byte per FOV cell for the static part and one for the agents, and
 unpacks the bits into the (N, 6, 9, 9) float32 observation.
+
+Observations (`OBSERVATIONS`, `EnvConfig.observation`, recorded in a model's config): "paper",
+the six channels above, or "cost_to_go", the same plus a 7th channel, the agent's normalised
+cost-to-go over its FOV (`cost_to_go_channel`), gathered from its padded BFS distance map.
 """
 
 from __future__ import annotations
@@ -13,11 +17,21 @@ import dataclasses
 import numpy as np
 
 from .actions import ACTION_DELTAS, NUM_ACTIONS, STAY
-from .heuristic import HeuristicCache, default_cache, pack_heuristic_channels
+from .heuristic import (UNREACHABLE, HeuristicCache, compact_distances, default_cache,
+                        pack_heuristic_channels)
 from .instance import Instance
 
 FINISH_REWARD_MODES = ("team", "per_agent")
-NUM_OBS_CHANNELS = 6
+NUM_OBS_CHANNELS = 6  # the paper's observation
+OBSERVATIONS = ("paper", "cost_to_go")
+COST_TO_GO_CHANNEL = NUM_OBS_CHANNELS  # index of the cost-to-go channel, after the paper's six
+
+
+def observation_channels(observation: str) -> int:
+    """How many channels `observation` has (6 paper, 7 cost_to_go)."""
+    if observation not in OBSERVATIONS:
+        raise ValueError(f"observation must be one of {OBSERVATIONS}, got {observation!r}")
+    return NUM_OBS_CHANNELS + (observation == "cost_to_go")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -31,6 +45,8 @@ class EnvConfig:
         reaches its goal in the episode (first arrival only, so leaving and re-entering the goal
         cannot farm the bonus); the episode still ends, with no extra bonus, when every agent
         stands on its goal at once.
+    observation: "paper" (6 channels) or "cost_to_go" (a 7th: `cost_to_go_channel`); a model
+        says which it reads (`ModelConfig.observation`).
     """
 
     obs_radius: int = 4
@@ -41,6 +57,7 @@ class EnvConfig:
     reward_collision: float = -0.5
     reward_finish: float = 3.0
     finish_reward: str = "team"
+    observation: str = "paper"  # one of OBSERVATIONS: the channels `reset` / `step` return
 
     def __post_init__(self):
         if not isinstance(self.obs_radius, (int, np.integer)) or self.obs_radius < 1:
@@ -56,6 +73,9 @@ class EnvConfig:
         if self.finish_reward not in FINISH_REWARD_MODES:
             raise ValueError(f"EnvConfig.finish_reward must be one of {FINISH_REWARD_MODES}, "
                              f"got {self.finish_reward!r}")
+        if self.observation not in OBSERVATIONS:
+            raise ValueError(f"EnvConfig.observation must be one of {OBSERVATIONS}, "
+                             f"got {self.observation!r}")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -200,17 +220,59 @@ def step_rewards(config: EnvConfig, actions, collided, was_on_goal, on_goal,
 # ----------------------------------------------------------------------------------------------
 # observations
 
+def cost_to_go_steps(window_distances, radius: int) -> np.ndarray:
+    """int8 (..., S*S): each FOV cell's BFS distance to the agent's goal minus the distance at the
+    agent's own cell (the middle of the window), clipped to +-(2r+1); obstacle, off-map and
+    unreachable cells (`UNREACHABLE` in `window_distances` (..., S*S)), and every cell when the
+    agent's own cell cannot reach its goal, hold 2r+1. `cost_to_go_channel` normalises them."""
+    d = np.asarray(window_distances).astype(np.int32)
+    bound = 2 * int(radius) + 1
+    centre = d[..., d.shape[-1] // 2, None]
+    blocked = (d == UNREACHABLE) | (centre == UNREACHABLE)
+    return np.where(blocked, bound, np.clip(d - centre, -bound, bound)).astype(np.int8)
+
+
+def cost_to_go_channel(steps, radius: int) -> np.ndarray:
+    """float32 cost-to-go channel from `cost_to_go_steps`: steps / (2r+1), within [-1, 1].
+
+    Relative to the agent's own cell, as SSIL's normalised cost-to-go (Veerapaneni et al.,
+    ICRA 2025), so the values do not grow with the distance to the goal; 2r+1 bounds every cell
+    whose difference the FOV's geometry allows (|steps| <= 2r) strictly inside (-1, 1), so the
+    blocked value 1.0 (obstacles, off the map, unreachable) differs from every free cell except
+    those 2r+1 or more steps farther from the goal than the agent (behind a wall), which clip
+    to it. Every value is a multiple of 1/(2r+1): `steps_from_cost_to_go` inverts this exactly
+    (int8 storage)."""
+    return np.asarray(steps, dtype=np.float32) / np.float32(2 * int(radius) + 1)
+
+
+def steps_from_cost_to_go(channel, radius: int) -> np.ndarray:
+    """int8 steps of a cost-to-go channel (the inverse of `cost_to_go_channel`)."""
+    return np.rint(np.asarray(channel, dtype=np.float32) * (2 * int(radius) + 1)).astype(np.int8)
+
+
+def pad_distances(distances: np.ndarray, radius: int) -> np.ndarray:
+    """(N, H+2r, W+2r) BFS distance maps (N, H, W) with `UNREACHABLE` off the map (its compact
+    integer type: one map per agent)."""
+    distances = compact_distances(distances)
+    n, h, w = distances.shape
+    r = int(radius)
+    padded = np.full((n, h + 2 * r, w + 2 * r), UNREACHABLE, dtype=distances.dtype)
+    padded[:, r:r + h, r:r + w] = distances
+    return padded
+
+
 class _ObservationBuilder:
     """Gathers all agents' FOV windows from maps padded once per instance.
 
     static byte per (agent, cell): bit 0 obstacle (off-map padded as obstacle), bits 1..4 the
     heuristic channels up/down/left/right (padded 0). Agents live in a padded occupancy map per
     map. `grids` is (B, H, W) and `map_of_agent` (N,) says on which map each agent is (B = 1 and
-    all zeros for a single episode).
+    all zeros for a single episode). With `distances` (N, H, W), each agent's BFS distances to
+    its goal, observations get the cost-to-go channel (`cost_to_go_channel`).
     """
 
     def __init__(self, grids: np.ndarray, heuristic_bits: np.ndarray, radius: int,
-                 map_of_agent: np.ndarray | None = None):
+                 map_of_agent: np.ndarray | None = None, distances: np.ndarray | None = None):
         if grids.ndim == 2:
             grids = grids[None]
         b, h, w = grids.shape
@@ -224,6 +286,8 @@ class _ObservationBuilder:
         static[:, r:r + h, r:r + w] = (grids[map_of_agent] != 0).astype(np.uint8) \
             | (heuristic_bits << 1)
         self.static = static.reshape(-1)
+        self.distances = None if distances is None else pad_distances(distances, r).reshape(-1)
+        self.channels = NUM_OBS_CHANNELS + (distances is not None)
         self.occupancy = np.zeros(b * hp * wp, dtype=np.uint8)
         offsets = np.arange(self.size)
         # flat offsets of a window relative to its top-left corner in the padded map
@@ -250,22 +314,29 @@ class _ObservationBuilder:
         n = positions.shape[0]
         s = self.size
         corners = self.corners(positions)
-        static = self.static[(corners + self.agent_base)[:, None] + self.window]  # (N, S*S)
-        obs = np.empty((n, NUM_OBS_CHANNELS, s * s), dtype=np.float32)
+        own_windows = (corners + self.agent_base)[:, None] + self.window  # (N, S*S)
+        static = self.static[own_windows]
+        obs = np.empty((n, self.channels, s * s), dtype=np.float32)
         obs[:, 0] = self.occupancy[(corners + self.map_base)[:, None] + self.window]
         obs[:, 0, (s * s) // 2] = 0.0  # the agent itself is not in its agent channel
         for bit in range(5):
             obs[:, 1 + bit] = (static >> bit) & 1
-        return obs.reshape(n, NUM_OBS_CHANNELS, s, s)
+        if self.distances is not None:
+            obs[:, COST_TO_GO_CHANNEL] = cost_to_go_channel(
+                cost_to_go_steps(self.distances[own_windows], self.radius), self.radius)
+        return obs.reshape(n, self.channels, s, s)
 
 
-def observe(grid, positions, goals, channels, radius: int = 4) -> np.ndarray:
-    """float32 (N, 6, 2r+1, 2r+1) observations centred on each agent.
+def observe(grid, positions, goals, channels, radius: int = 4, distances=None) -> np.ndarray:
+    """float32 (N, 6, 2r+1, 2r+1) observations centred on each agent, (N, 7, ...) with
+    `distances`.
 
     Channels: 0 other agents (self excluded), 1 obstacles (off-map cells count as obstacles),
     2..5 the agent's heuristic channels up/down/left/right (0 off the map). `channels` is the
     (N, 4, H, W) stack of the agents' heuristic channels; `goals` (N, 2) is only checked for
-    shape, since the heuristic channels already encode the goals.
+    shape, since the heuristic channels already encode the goals. `distances` (N, H, W), each
+    agent's BFS distances to its goal (`HeuristicCache.distances`), adds channel 6, the
+    "cost_to_go" observation's normalised cost-to-go (`cost_to_go_channel`).
     """
     grid = np.asarray(grid)
     positions = _check_positions(positions, grid.shape)
@@ -276,7 +347,11 @@ def observe(grid, positions, goals, channels, radius: int = 4) -> np.ndarray:
     if channels.shape != (n, 4, *grid.shape):
         raise ValueError(f"channels must have shape ({n}, 4, {grid.shape[0]}, {grid.shape[1]}), "
                          f"got {channels.shape}")
-    builder = _ObservationBuilder(grid, pack_heuristic_channels(channels), radius)
+    if distances is not None and np.asarray(distances).shape != (n, *grid.shape):
+        raise ValueError(f"distances must have shape ({n}, {grid.shape[0]}, {grid.shape[1]}), "
+                         f"got {np.asarray(distances).shape}")
+    builder = _ObservationBuilder(grid, pack_heuristic_channels(channels), radius,
+                                  distances=distances)
     builder.set_agents(positions)
     return builder.build(positions)
 
@@ -319,8 +394,11 @@ class MAPFEnv:
         h, w = self.grid.shape
         self._blocked_flat = (self.grid != 0).ravel()
         self._goal_flat = self.goals[:, 0] * w + self.goals[:, 1]
-        bits = self._cache.bits(self.grid, self.goals)
-        self._obs = _ObservationBuilder(self.grid, bits, self.config.obs_radius)
+        distances = self._cache.distances(self.grid, self.goals) \
+            if self.config.observation == "cost_to_go" else None
+        bits = self._cache.bits(self.grid, self.goals)  # found by the distances' search
+        self._obs = _ObservationBuilder(self.grid, bits, self.config.obs_radius,
+                                        distances=distances)
 
     def reset(self, instance: Instance | None = None) -> np.ndarray:
         if instance is not None:

@@ -119,17 +119,20 @@ def heuristic_channels(grid, goal) -> np.ndarray:
 
 
 class HeuristicCache:
-    """Packed heuristic bits keyed by (map bytes, goal), LRU over maps.
+    """Packed heuristic bits, and on request BFS distances, keyed by (map bytes, goal), LRU over
+    maps.
 
     A map's adjacency graph is kept with its entries, and all goals missing for a request are
-    searched in one call. `max_maps` bounds memory: one 80x80 map with 128 goals takes ~0.8 MB.
+    searched in one call. `max_maps` bounds memory: one 80x80 map with 128 goals takes ~0.8 MB
+    of bits, ~1.6 MB more once its distances were asked for (`distances`: the cost-to-go
+    observation; the paper's observation never keeps them).
     """
 
     def __init__(self, max_maps: int = 64):
         if int(max_maps) < 1:
             raise ValueError(f"max_maps must be >= 1, got {max_maps}")
         self.max_maps = int(max_maps)
-        self._maps: OrderedDict[tuple, tuple[csr_matrix, dict]] = OrderedDict()
+        self._maps: OrderedDict[tuple, tuple[csr_matrix, dict, dict]] = OrderedDict()
         self.hits = 0
         self.misses = 0
 
@@ -139,37 +142,57 @@ class HeuristicCache:
 
     def bits(self, grid, goals) -> np.ndarray:
         """uint8 (N, H, W) packed heuristic bits for each goal of `goals` (N, 2)."""
+        return self._lookup(grid, goals, want_distances=False)
+
+    def distances(self, grid, goals) -> np.ndarray:
+        """(N, H, W) `bfs_distances` to each goal of `goals` (N, 2), int16 when every distance
+        of the map fits (else int32); the goals' bits are cached by the same search."""
+        return self._lookup(grid, goals, want_distances=True)
+
+    def _lookup(self, grid, goals, want_distances: bool) -> np.ndarray:
         blocked = _as_grid(grid)
         goals = _as_goals(goals, blocked.shape)
         key = (blocked.shape, np.packbits(blocked).tobytes())
         entry = self._maps.get(key)
         if entry is None:
-            entry = (_adjacency(blocked), {})
+            entry = (_adjacency(blocked), {}, {})
             self._maps[key] = entry
             while len(self._maps) > self.max_maps:
                 self._maps.popitem(last=False)
         else:
             self._maps.move_to_end(key)
-        graph, per_goal = entry
+        graph, bits_of, distances_of = entry
+        wanted = distances_of if want_distances else bits_of
         goal_keys = [(int(r), int(c)) for r, c in goals]
-        missing = sorted({g for g in goal_keys if g not in per_goal})
+        missing = sorted({g for g in goal_keys if g not in wanted})
         self.misses += len(missing)
         self.hits += len(goal_keys) - len(missing)
         if missing:
-            missing_arr = np.array(missing, dtype=np.int64)
-            computed = _bits_from_distances(_distances(blocked, missing_arr, graph))
-            for g, b in zip(missing, computed):
-                b.setflags(write=False)
-                per_goal[g] = b
-        h, w = blocked.shape
-        out = np.empty((len(goal_keys), h, w), dtype=np.uint8)
-        for i, g in enumerate(goal_keys):
-            out[i] = per_goal[g]
-        return out
+            dist = _distances(blocked, np.array(missing, dtype=np.int64), graph)
+            computed = _bits_from_distances(dist)
+            if want_distances:
+                dist = compact_distances(dist)
+            for k, g in enumerate(missing):
+                computed[k].setflags(write=False)
+                bits_of.setdefault(g, computed[k])
+                if want_distances:
+                    dist[k].setflags(write=False)
+                    distances_of[g] = dist[k]
+        return np.stack([wanted[g] for g in goal_keys]) if goal_keys else \
+            np.empty((0, *blocked.shape), np.int32 if want_distances else np.uint8)
 
     def channels(self, grid, goals) -> np.ndarray:
         """uint8 (N, 4, H, W) heuristic channels for each goal."""
         return unpack_heuristic_bits(self.bits(grid, goals))
+
+
+def compact_distances(distances: np.ndarray) -> np.ndarray:
+    """`distances` as int16 when every value fits (maps of up to 32,767 free cells always do),
+    else int32: the cost-to-go observation keeps one map per agent."""
+    distances = np.asarray(distances)
+    if distances.size == 0 or int(distances.max()) < np.iinfo(np.int16).max:
+        return distances.astype(np.int16)
+    return distances.astype(np.int32, copy=False)
 
 
 # The process-wide cache used by the environment.
@@ -182,3 +205,7 @@ def cached_heuristic_bits(grid, goals) -> np.ndarray:
 
 def cached_heuristic_channels(grid, goals) -> np.ndarray:
     return default_cache.channels(grid, goals)
+
+
+def cached_distances(grid, goals) -> np.ndarray:
+    return default_cache.distances(grid, goals)
