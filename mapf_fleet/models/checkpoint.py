@@ -5,7 +5,8 @@ File layout (a torch.save'd dict of tensors and plain data, loadable with weight
      "state_dict": {name: tensor}, "metadata": {...}}
 metadata fields:
     algorithm        "dhc" | "dcc"
-    model_config     ModelConfig.to_dict()
+    model_config     ModelConfig.to_dict() (its `observation`: "paper" or "cost_to_go"; files
+                     written before the field existed have none and load as "paper")
     obs_radius       int (= model_config["obs_radius"])
     obs_padding      "obstacle" (off-map cells are obstacles in channel 1)
     action_order     ["stay", "up", "down", "left", "right"]
@@ -23,6 +24,7 @@ half a file.
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 from pathlib import Path
 from typing import Any, Mapping
@@ -55,6 +57,33 @@ def build_model(config: ModelConfig) -> nn.Module:
     from .dhc import DHCNetwork
 
     return DHCNetwork(config) if config.algo == "dhc" else DCCNetwork(config)
+
+
+def with_observation(model: nn.Module, observation: str) -> nn.Module:
+    """`model` rebuilt to read `observation` (e.g. a "paper" network warm-started as a
+    "cost_to_go" one): every weight is copied and the first conv's weights of the channels
+    `observation` adds are zero, so the new network's outputs equal `model`'s on the same
+    observations, whatever the added channel holds, until training moves them. `model` itself
+    when it already reads `observation`; a network cannot drop channels it was trained on."""
+    config = model.config
+    if observation == config.observation:
+        return model
+    wider = dataclasses.replace(config, observation=observation)
+    have, need = config.obs_shape[0], wider.obs_shape[0]
+    if need < have:
+        raise ValueError(f"with_observation: a {config.observation!r} network reads {have} "
+                         f"channels, {observation!r} only {need}: it cannot drop channels")
+    widened = build_model(wider)
+    own, state = model.state_dict(), {}
+    for name, target in widened.state_dict().items():
+        weight = own[name]
+        if weight.shape != target.shape:  # the first conv: (out, have, k, k) -> (out, need, k, k)
+            grown = torch.zeros_like(target)
+            grown[:, :have] = weight
+            weight = grown
+        state[name] = weight
+    widened.load_state_dict(state)
+    return widened.to(next(model.parameters()).device).train(model.training)
 
 
 def save_checkpoint(path, model: nn.Module, metadata: Mapping[str, Any]) -> Path:

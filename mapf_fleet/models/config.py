@@ -10,10 +10,13 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any, Mapping
 
+from mapf_fleet.grid.env import OBSERVATIONS, observation_channels
+
 ALGORITHMS = ("dhc", "dcc")
 PRESETS = ("paper", "small")
-# Observation channels (docs/architecture.md): other agents, obstacles, 4 heuristic directions.
-OBS_CHANNELS = 6
+# Observation channels of the paper (docs/architecture.md): other agents, obstacles, 4 heuristic
+# directions; `ModelConfig.observation` "cost_to_go" adds a 7th (`ModelConfig.obs_shape`).
+OBS_CHANNELS = observation_channels("paper")
 # DHC squeezes its residual trunk to 16 channels before the GRU (reference code).
 DHC_SQUEEZE_CHANNELS = 16
 
@@ -34,6 +37,9 @@ class ModelConfig:
         (0, 0)) besides its senders'. The DCC reference attends over the senders only (False);
         this project's default is True (receivers attend over self + senders).
     obs_radius: r; the field of view is (2r+1) x (2r+1).
+    observation: what the network reads, one of `grid.env.OBSERVATIONS`: "paper" (the paper's six
+        channels) or "cost_to_go" (those plus the normalised cost-to-go channel,
+        `grid.env.cost_to_go_channel`). Checkpoints without the field are "paper".
     """
 
     algo: str = "dhc"
@@ -46,6 +52,7 @@ class ModelConfig:
     pos_embed_dim: int = 16
     attend_self: bool = True
     obs_radius: int = 4
+    observation: str = "paper"
 
     def __post_init__(self) -> None:
         # Accept lists (e.g. from YAML or a checkpoint) but store a tuple so the config is hashable.
@@ -77,6 +84,10 @@ class ModelConfig:
                 f"ModelConfig.obs_radius: {self.algo} needs an int >= {min_radius}, "
                 f"got {self.obs_radius!r}"
             )
+        if self.observation not in OBSERVATIONS:
+            raise ValueError(
+                f"ModelConfig.observation: expected one of {OBSERVATIONS}, got {self.observation!r}"
+            )
 
     @property
     def fov(self) -> int:
@@ -84,7 +95,7 @@ class ModelConfig:
 
     @property
     def obs_shape(self) -> tuple[int, int, int]:
-        return (OBS_CHANNELS, self.fov, self.fov)
+        return (observation_channels(self.observation), self.fov, self.fov)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain types only (lists, ints, str, bool), as stored in checkpoints."""

@@ -37,7 +37,7 @@ from .common import (
     DuelingHead, StepOutput, as_float, as_long, as_vector, check_batch_inputs, module_device,
     stack_vectors,
 )
-from .config import OBS_CHANNELS, ModelConfig
+from .config import ModelConfig
 
 
 class DCCCommLayer(nn.Module):
@@ -88,7 +88,7 @@ class DCCNetwork(nn.Module):
             raise ValueError(f"DCCNetwork: config.algo must be 'dcc', got {config.algo!r}")
         self.config = config
         layers: list[nn.Module] = []
-        in_channels = OBS_CHANNELS
+        in_channels = config.obs_shape[0]  # 6 channels, 7 with cost_to_go
         for out_channels in config.conv_channels:
             layers += [nn.Conv2d(in_channels, out_channels, 3, 1), nn.LeakyReLU(0.2, True)]
             in_channels = out_channels
@@ -112,7 +112,8 @@ class DCCNetwork(nn.Module):
 
     def encode_batch(self, obs: torch.Tensor, last_action: torch.Tensor,
                 hidden: torch.Tensor) -> torch.Tensor:
-        """obs (M, 6, fov, fov), last_action (M,) long in -1..4 (-1: none), hidden (M, H)."""
+        """obs (M, C, fov, fov) (C = config.obs_shape[0]), last_action (M,) long in -1..4 (-1:
+        none), hidden (M, H)."""
         one_hot = F.one_hot(last_action.clamp(min=0), NUM_ACTIONS).to(obs.dtype)
         one_hot = one_hot * (last_action >= 0)[:, None].to(obs.dtype)
         features = self.obs_encoder(obs.contiguous(memory_format=torch.channels_last))
@@ -123,7 +124,7 @@ class DCCNetwork(nn.Module):
         return self.head(h).argmax(-1)
 
     def _erased_variants(self, obs: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
-        """Copies of obs (E, 6, fov, fov), channel 0 cleared at offsets (E, 2) from the centre."""
+        """Copies of obs (E, C, fov, fov), channel 0 cleared at offsets (E, 2) from the centre."""
         variants = obs.clone()
         cell = offsets + self.config.obs_radius
         variants[torch.arange(len(variants), device=obs.device), 0, cell[:, 0], cell[:, 1]] = 0.0
@@ -154,11 +155,12 @@ class DCCNetwork(nn.Module):
              comm_mask=None) -> StepOutput:
         """One step of B episodes x N agents (differentiable; wrap in torch.no_grad to act).
 
-        obs (B, N, 6, fov, fov), positions (B, N, 2) int, hidden (B, N, H) or None (zeros),
-        last_action (B, N) int in -1..4 or None (-1 = no previous action: zero one-hot),
-        agent_mask (B, N) bool or None, comm_mask (B, N, N) bool or None: a decision-causal
-        mask recorded earlier ([b, i, j] = i requests from j); when given, the causal check is
-        skipped (the trainer can replay the actor's masks, as the reference learner does).
+        obs (B, N, C, fov, fov) (C = config.obs_shape[0]), positions (B, N, 2) int, hidden
+        (B, N, H) or None (zeros), last_action (B, N) int in -1..4 or None (-1 = no previous
+        action: zero one-hot), agent_mask (B, N) bool or None, comm_mask (B, N, N) bool or None:
+        a decision-causal mask recorded earlier ([b, i, j] = i requests from j); when given, the
+        causal check is skipped (the trainer can replay the actor's masks, as the reference
+        learner does).
         """
         cfg = self.config
         device = module_device(self)

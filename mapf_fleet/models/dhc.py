@@ -27,7 +27,7 @@ from .common import (
     DuelingHead, StepOutput, as_float, as_long, as_vector, check_batch_inputs, module_device,
     stack_vectors,
 )
-from .config import DHC_SQUEEZE_CHANNELS, OBS_CHANNELS, ModelConfig
+from .config import DHC_SQUEEZE_CHANNELS, ModelConfig
 
 
 class ResBlock(nn.Module):
@@ -77,7 +77,7 @@ class DHCNetwork(nn.Module):
         channels = config.conv_channels[0]
         side = config.fov - 2  # one valid 3x3 conv; the residual blocks keep the size
         self.obs_encoder = nn.Sequential(
-            nn.Conv2d(OBS_CHANNELS, channels, 3, 1),
+            nn.Conv2d(config.obs_shape[0], channels, 3, 1),  # 6 channels, 7 with cost_to_go
             nn.ReLU(True),
             ResBlock(channels),
             ResBlock(channels),
@@ -102,7 +102,7 @@ class DHCNetwork(nn.Module):
     # ---- shared pieces ------------------------------------------------------------------
 
     def encode_batch(self, obs: torch.Tensor, hidden: torch.Tensor) -> torch.Tensor:
-        """obs (M, 6, fov, fov), hidden (M, H) -> (M, H)."""
+        """obs (M, C, fov, fov) (C = config.obs_shape[0]), hidden (M, H) -> (M, H)."""
         features = self.obs_encoder(obs.contiguous(memory_format=torch.channels_last))
         return self.recurrent(features, hidden)
 
@@ -116,9 +116,9 @@ class DHCNetwork(nn.Module):
     def step(self, obs, positions, hidden=None, agent_mask=None, partners=None) -> StepOutput:
         """One step of B episodes x N agents (differentiable; wrap in torch.no_grad to act).
 
-        obs (B, N, 6, fov, fov), positions (B, N, 2) int, hidden (B, N, H) or None (zeros),
-        agent_mask (B, N) bool or None (all real), partners (B, N, k) or None (computed from
-        positions with comm.dhc_partners_torch).
+        obs (B, N, C, fov, fov) (C = config.obs_shape[0]), positions (B, N, 2) int, hidden
+        (B, N, H) or None (zeros), agent_mask (B, N) bool or None (all real), partners (B, N, k)
+        or None (computed from positions with comm.dhc_partners_torch).
         """
         device = module_device(self)
         obs = as_float(obs, "obs", device)
@@ -161,7 +161,7 @@ class DHCNetwork(nn.Module):
     # Each takes only the robot's own data and the vectors it received; 1-D in, 1-D out.
 
     def encode(self, obs_i, hidden_i=None) -> torch.Tensor:
-        """Own observation (6, fov, fov) and previous hidden (H,) or None -> h (H,)."""
+        """Own observation (C, fov, fov) and previous hidden (H,) or None -> h (H,)."""
         device = module_device(self)
         obs_i = as_float(obs_i, "obs_i", device)
         if tuple(obs_i.shape) != self.config.obs_shape:

@@ -1,7 +1,8 @@
 """LearnedPolicy: a DHC or DCC network acting for B episodes x N agents (evaluator, actors).
 
 It keeps the recurrent state between calls: the hidden vectors (the post-communication hidden
-of the previous step) and, for DCC, the last actions (-1 before the first step).
+of the previous step) and, for DCC, the last actions (-1 before the first step). The caller
+builds the observations the model reads, `policy.observation` (`EnvConfig(observation=...)`).
 """
 
 from __future__ import annotations
@@ -24,6 +25,8 @@ class LearnedPolicy:
         self.device = resolve_device(device)
         self.model = model.to(self.device).eval()
         self.algo = model.config.algo
+        # what the caller's environment must build: "paper" or "cost_to_go" (grid.env)
+        self.observation = model.config.observation
         self.hidden: torch.Tensor | None = None
         self.last_actions: torch.Tensor | None = None
         self.q_values: np.ndarray | None = None  # (B, N, 5) of the last `act`
@@ -58,7 +61,8 @@ class LearnedPolicy:
     @torch.no_grad()
     def act(self, obs, positions, greedy: bool = True, epsilon=0.0,
             rng: np.random.Generator | None = None, agent_mask=None) -> np.ndarray:
-        """Actions (B, N) int64 for obs (B, N, 6, fov, fov) and positions (B, N, 2).
+        """Actions (B, N) int64 for obs (B, N, C, fov, fov) and positions (B, N, 2); C = 6, 7
+        for the "cost_to_go" observation (`self.observation`).
 
         A single episode may be given without the B axis (obs (N, ...), positions (N, 2));
         actions are then (N,). greedy=True takes argmax Q (lowest action on ties); otherwise
@@ -71,6 +75,11 @@ class LearnedPolicy:
         if single:
             obs, positions = obs[None], positions[None]
             agent_mask = None if agent_mask is None else np.asarray(agent_mask)[None]
+        channels = self.model.config.obs_shape[0]
+        if obs.ndim == 5 and obs.shape[2] != channels:
+            raise ValueError(f"act: obs has {obs.shape[2]} channels, the model reads the "
+                             f"{self.observation!r} observation ({channels} channels): build it "
+                             f"with EnvConfig(observation={self.observation!r})")
         batch, num_agents = obs.shape[:2]
         if self.hidden is None:
             self.reset(batch, num_agents)

@@ -204,10 +204,12 @@ class Trainer:
     def _load_init_checkpoint(self, path: str) -> None:
         """Start from a checkpoint's weights (online and target); the network must match."""
         from mapf_fleet.models.checkpoint import CheckpointError, read_checkpoint
+        from mapf_fleet.models.config import ModelConfig
 
         state, metadata = read_checkpoint(path)
         own = self.learner.model.config.to_dict()
-        theirs = dict(metadata.get("model_config") or {})
+        # through ModelConfig: fields newer than the file (observation) take their defaults
+        theirs = ModelConfig.from_dict(metadata["model_config"]).to_dict()
         if metadata.get("algorithm") != self.cfg.algo or theirs != own:
             diff = sorted(k for k in set(own) | set(theirs) if own.get(k) != theirs.get(k))
             raise CheckpointError(

@@ -127,7 +127,9 @@ def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | 
     passed = curriculum.get("alpha_passed")
     facts = [
         ("algorithm", metadata["algorithm"].upper()),
-        ("network", f"preset `{summary['preset']}`, {summary['parameters']:,} parameters"),
+        ("network", f"preset `{summary['preset']}`, {summary['parameters']:,} parameters"
+         + ("" if summary["observation"] == "paper"
+            else f", observation `{summary['observation']}` (the paper's + cost-to-go channel)")),
         ("alpha (cooperation coefficient of this checkpoint)", f"{float(metadata['alpha']):g}"),
         ("curriculum stage", str(curriculum.get("stage", "not recorded"))),
         ("curriculum setting reached (stage 1)", setting_text),

@@ -10,15 +10,17 @@ from mapf_fleet import paths
 
 
 def model_summary(model, metadata: dict) -> dict:
-    """Preset name (or "custom") and parameter count."""
+    """Preset name (or "custom"; the sizes: a preset's network may read another observation),
+    parameter count and observation ("paper" or "cost_to_go")."""
     from mapf_fleet.models.config import PRESETS, ModelConfig
 
-    config = dict(metadata["model_config"])
+    config = ModelConfig.from_dict(metadata["model_config"])
     preset = "custom"
     for name in PRESETS:
-        if ModelConfig.preset(metadata["algorithm"], name).to_dict() == config:
+        if ModelConfig.preset(metadata["algorithm"], name, observation=config.observation) == config:
             preset = name
-    return {"preset": preset, "parameters": sum(p.numel() for p in model.parameters())}
+    return {"preset": preset, "parameters": sum(p.numel() for p in model.parameters()),
+            "observation": config.observation}
 
 
 def training_config_diff(training_config: dict) -> tuple[list[tuple[str, Any, Any]], str | None, str | None]:

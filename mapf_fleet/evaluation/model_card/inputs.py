@@ -198,6 +198,6 @@ def _check_run_matches(config: dict, metadata: dict, where: Path) -> None:
             expected = ModelConfig.preset(metadata["algorithm"], preset, **(config.get("model_overrides") or {}))
         except (TypeError, ValueError):
             return
-        if expected.to_dict() != dict(metadata["model_config"]):
+        if expected != ModelConfig.from_dict(metadata["model_config"]):
             raise CardError(f"{where}: model_preset {preset!r} builds another network than the "
                             "checkpoint's model_config: the run directory belongs to another checkpoint")
