@@ -51,14 +51,14 @@ def batched_ms_per_step(checkpoint, instance, steps):
     """ms per step of the evaluator's own rollout (MAPFEnv + LearnedPolicy, one thread)."""
     import torch
 
-    from mapf_fleet.grid.env import MAPFEnv
+    from mapf_fleet.grid.env import EnvConfig, MAPFEnv
     from mapf_fleet.models.checkpoint import load_checkpoint
     from mapf_fleet.models.policy import LearnedPolicy
 
     torch.set_num_threads(1)
     model, _ = load_checkpoint(str(checkpoint))
     policy = LearnedPolicy(model, device="cpu")
-    env = MAPFEnv(instance)
+    env = MAPFEnv(instance, EnvConfig(observation=policy.observation))
     obs, done, count = env.reset(), False, 0
     policy.reset(1, env.num_agents)
     start = time.perf_counter()

@@ -48,7 +48,7 @@ def instance_for(num_agents: int, seed: int):
 
 
 def measure(policy: LearnedPolicy, instance, steps: int) -> dict[str, list[float]]:
-    env = MAPFEnv(instance, EnvConfig(max_steps=10**6))
+    env = MAPFEnv(instance, EnvConfig(max_steps=10**6, observation=policy.observation))
     obs = env.reset()
     shield = PIBTShield(instance.grid, instance.goals)
     policy.reset(1, instance.num_agents)

@@ -123,13 +123,16 @@ def episode_seed(seed: int, k: int) -> int:
     return int(np.random.SeedSequence([int(seed), int(k)]).generate_state(1)[0])
 
 
-def observe_runs(runs: list[FleetRun]) -> np.ndarray:
-    """(B, N, 6, 9, 9) observations of every run's robots with their current goals."""
+def observe_runs(runs: list[FleetRun], observation: str = "paper") -> np.ndarray:
+    """(B, N, C, 9, 9) observations of every run's robots with their current goals (C = 6, 7
+    for the "cost_to_go" observation: distances from the same cache, keyed by goal)."""
     from mapf_fleet.grid.env import observe
-    from mapf_fleet.grid.heuristic import cached_heuristic_channels
+    from mapf_fleet.grid.heuristic import cached_distances, cached_heuristic_channels
 
     return np.stack([observe(run.grid, run.positions, run.goals,
-                             cached_heuristic_channels(run.grid, run.goals))
+                             cached_heuristic_channels(run.grid, run.goals),
+                             distances=cached_distances(run.grid, run.goals)
+                             if observation == "cost_to_go" else None)
                      for run in runs]).astype(np.float32)
 
 
@@ -139,8 +142,9 @@ def rollout(policy, runs: list[FleetRun], shielded: bool) -> None:
     (`policy.executed`); unshielded its first choices go to the paper's rule."""
     n = runs[0].num_robots
     policy.reset(len(runs), n)
+    observation = getattr(policy, "observation", "paper")
     while not all(run.finished() for run in runs):
-        obs = observe_runs(runs)
+        obs = observe_runs(runs, observation)
         positions = np.stack([run.positions for run in runs])
         tick = runs[0].tick
         if shielded:

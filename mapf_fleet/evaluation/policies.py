@@ -1,7 +1,9 @@
 """What `--checkpoint` names: a checkpoint file, or a reference ("heuristic", "lacam", "pibt").
 
 Decentralized policies (learned, heuristic) implement the batched interface the runner steps:
-`reset(num_envs, num_agents)` then `act(obs (B,N,6,9,9), positions (B,N,2)) -> actions (B,N)`;
+`reset(num_envs, num_agents)` then `act(obs (B,N,C,9,9), positions (B,N,2)) -> actions (B,N)`,
+the observations built as the policy's `observation` says ("paper", C = 6, or "cost_to_go",
+C = 7: a checkpoint's `model_config.observation`);
 under a shield (`PolicySpec.shield == "pibt"`) the runner calls `rank(obs, positions, tick) ->
 preferences (B,N,5)` instead, arbitrates them with `coordination.pibt.PIBTShield`, and tells the
 policy what was executed with `executed(actions (B,N))` (DCC's last-action input).
@@ -119,6 +121,8 @@ class HeuristicBatchPolicy:
     """The non-learned reference (`mapf_fleet.grid.policies.heuristic_policy`), batched.
     Under the shield its ranking is the distance order: plain PIBT."""
 
+    observation = "paper"  # it reads the heuristic bits only
+
     def __init__(self, preference_mode: str = "distance"):
         self.preference_mode = preference_mode
 
@@ -155,6 +159,7 @@ class CheckpointBatchPolicy:
             raise ValueError(f"{path}: obs_padding is {padding!r}, the evaluator's environment pads 'obstacle'")
         self.metadata = metadata
         self.policy = LearnedPolicy(model, device)
+        self.observation = self.policy.observation
         self.preference_mode = preference_mode
 
     def reset(self, num_envs: int, num_agents: int) -> None:

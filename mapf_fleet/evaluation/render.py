@@ -30,7 +30,7 @@ def record_episode(spec, instances: InstanceSet, max_steps: int) -> tuple[np.nda
     from mapf_fleet.coordination.planners import positions_to_actions
 
     policy = build_policy(spec)
-    env = _make_env(instances, 0, max_steps)
+    env = _make_env(instances, 0, max_steps, getattr(policy, "observation", "paper"))
     obs = env.reset()
     trail, bumps, success = [np.asarray(env.positions).copy()], [], False
     plan = None

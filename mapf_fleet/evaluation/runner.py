@@ -1,7 +1,8 @@
 """Runs policies over scenarios: batched episodes in-process, and `workers` processes in parallel.
 
 Decentralized policies step all episodes of a chunk together (one `act` call on
-(B, N, 6, 9, 9) per step); finished episodes are frozen and only the live ones advance.
+(B, N, C, 9, 9) per step, the channels of the policy's `observation`); finished episodes are
+frozen and only the live ones advance.
 Planners plan each instance and their plans are replayed through the same environment, so
 every policy is measured by the same conflict rules and the same `EpisodeTracker`.
 
@@ -57,10 +58,10 @@ def lower_bounds(instances: InstanceSet) -> np.ndarray:
     return bounds
 
 
-def _make_env(instances: InstanceSet, k: int, max_steps: int):
+def _make_env(instances: InstanceSet, k: int, max_steps: int, observation: str = "paper"):
     from mapf_fleet.grid.env import EnvConfig, MAPFEnv
 
-    return MAPFEnv(instances.instance(k), EnvConfig(max_steps=max_steps))
+    return MAPFEnv(instances.instance(k), EnvConfig(max_steps=max_steps, observation=observation))
 
 
 def run_decentralized(policy, instances: InstanceSet, max_steps: int, shield: str = "none") -> list[EpisodeRecord]:
@@ -74,7 +75,8 @@ def run_decentralized(policy, instances: InstanceSet, max_steps: int, shield: st
     those are executed (and reported back with `policy.executed`), and the overridden
     agent-steps are counted."""
     bounds = lower_bounds(instances)
-    envs = [_make_env(instances, k, max_steps) for k in range(len(instances))]
+    observation = getattr(policy, "observation", "paper")
+    envs = [_make_env(instances, k, max_steps, observation) for k in range(len(instances))]
     obs = np.stack([env.reset() for env in envs]).astype(np.float32)
     positions = np.stack([np.asarray(env.positions) for env in envs])
     trackers = [EpisodeTracker(positions[k], instances.goals[k], max_steps, bounds[k]) for k in range(len(envs))]

@@ -39,7 +39,9 @@ import numpy as np
 import torch
 
 from mapf_fleet.coordination.preferences import rank_actions, tie_breakers
-from mapf_fleet.grid.heuristic import cached_heuristic_bits
+from mapf_fleet.grid.env import (COST_TO_GO_CHANNEL, cost_to_go_channel, cost_to_go_steps,
+                                 observation_channels, pad_distances)
+from mapf_fleet.grid.heuristic import cached_distances, cached_heuristic_bits
 from mapf_fleet.ros import common
 from mapf_fleet.ros.lockstep import EpisodeBinding
 from mapf_fleet.ros.mailbox import Mailbox
@@ -54,16 +56,23 @@ def dcc_hub_service(host: str) -> str:
 
 class LocalObserver:
     """FOV observations of some robots (the local ones) in a fleet, with the padded static map
-    and each robot's heuristic channels computed once per (map, goals). Same layout and values as
-    `mapf_fleet.grid.env.observe` (off-map = obstacle, heuristic 0 off the map)."""
+    and each robot's heuristic channels (and, for the "cost_to_go" observation, its BFS distance
+    map) computed once per (map, goals), from the cache the environment uses. Same layout and
+    values as `mapf_fleet.grid.env.observe` (off-map = obstacle, heuristic 0 off the map)."""
 
-    def __init__(self, grid: np.ndarray, goals: np.ndarray, radius: int):
+    def __init__(self, grid: np.ndarray, goals: np.ndarray, radius: int,
+                 observation: str = "paper"):
         grid = np.asarray(grid)
         self.key = (grid.shape, grid.tobytes(), np.asarray(goals).tobytes())
         h, w = grid.shape
         r = self.radius = int(radius)
         self.size = 2 * r + 1
         self.hp, self.wp = h + 2 * r, w + 2 * r
+        self.channels = observation_channels(observation)
+        self.distances = None
+        if observation == "cost_to_go":
+            distances = cached_distances(grid, goals)  # (M, H, W), to each robot's goal
+            self.distances = pad_distances(distances, r).reshape(len(goals), -1)
         bits = cached_heuristic_bits(grid, goals)  # (M, H, W), bit k = heuristic channel k
         static = np.ones((len(goals), self.hp, self.wp), dtype=np.uint8)
         static[:, r:r + h, r:r + w] = (grid != 0).astype(np.uint8) | (bits << 1)
@@ -73,19 +82,23 @@ class LocalObserver:
         self.centre = r * self.wp + r
 
     def observe(self, positions: np.ndarray, local: np.ndarray) -> np.ndarray:
-        """float32 (M, 6, S, S) for robots `local` given every robot's `positions` (N, 2)."""
+        """float32 (M, C, S, S) for robots `local` given every robot's `positions` (N, 2)."""
         corners = positions[:, 0] * self.wp + positions[:, 1]  # window corner == cell (padded)
         occupancy = np.zeros(self.hp * self.wp, dtype=np.float32)
         occupancy[corners + self.centre] = 1.0
         windows = corners[local][:, None] + self.window  # (M, S*S)
         m, s2 = windows.shape
-        obs = np.empty((m, 6, s2), dtype=np.float32)
+        obs = np.empty((m, self.channels, s2), dtype=np.float32)
         obs[:, 0] = occupancy[windows]
         obs[:, 0, s2 // 2] = 0.0  # the robot itself is not in its agent channel
         static = np.take_along_axis(self.static, windows, axis=1)
         for bit in range(5):
             obs[:, 1 + bit] = (static >> bit) & 1
-        return obs.reshape(m, 6, self.size, self.size)
+        if self.distances is not None:
+            distances = np.take_along_axis(self.distances, windows, axis=1)
+            obs[:, COST_TO_GO_CHANNEL] = cost_to_go_channel(
+                cost_to_go_steps(distances, self.radius), self.radius)
+        return obs.reshape(m, self.channels, self.size, self.size)
 
 
 class StateWatch:
@@ -261,7 +274,8 @@ class HubExchange:
         local_goals = goals[self.ids]
         key = (grid.shape, grid.tobytes(), local_goals.tobytes())
         if self._observer is None or self._observer.key != key:
-            self._observer = LocalObserver(grid, local_goals, self.radius)
+            self._observer = LocalObserver(grid, local_goals, self.radius,
+                                           self.model.config.observation)
         obs = torch.from_numpy(self._observer.observe(positions, self.ids))
         self.timing.begin(started, arrived, stamp)
         self.timing.mark("observe")

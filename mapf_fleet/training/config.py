@@ -285,6 +285,11 @@ class TrainConfig:
             raise bad("device", "must be 'auto', 'cpu', 'cuda' or 'cuda:N'")
         if not isinstance(self.model_overrides, dict):
             raise bad("model_overrides", "must be a mapping")
+        if self.model_overrides.get("observation", "paper") != "paper":
+            # the actors' replay bit-packs the paper's six binary channels only
+            raise bad("model_overrides", "the Ape-X trainer builds the paper's observation "
+                      "only; train a cost_to_go network with `mapf-fleet dagger --set "
+                      "observation=cost_to_go`")
         if not isinstance(self.task_mix, dict):
             raise bad("task_mix", "must be a mapping (kinds, sizes, agents), or {} for none")
         if self.task_mix:

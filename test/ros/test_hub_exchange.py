@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 import torch
 
-from mapf_fleet.grid.env import MAPFEnv
+from mapf_fleet.grid.env import EnvConfig, MAPFEnv
 from mapf_fleet.grid.instance import generate_instance
-from mapf_fleet.models.checkpoint import load_checkpoint
+from mapf_fleet.models.checkpoint import load_checkpoint, with_observation
 from mapf_fleet.ros.hub import HubExchange
 from mapf_fleet.ros.mailbox import Mailbox
 
@@ -97,15 +97,29 @@ def _batched(model, env, obs, hidden):
     return out.actions[0].numpy(), out.comm_mask[0].numpy(), out.hidden
 
 
-@pytest.mark.parametrize("algo", ["dhc", "dcc_sensitive"])
+def _model(checkpoints, name: str):
+    """A checkpoint's network; "X+cost_to_go": X's warm-started for the "cost_to_go"
+    observation, its new channel's weights made non-zero so the channel matters."""
+    algo, _, observation = name.partition("+")
+    model, _ = load_checkpoint(checkpoints[algo])
+    if observation:
+        model = with_observation(model, observation)
+        torch.manual_seed(5)
+        with torch.no_grad():
+            model.obs_encoder[0].weight[:, -1].normal_(0.0, 0.5)
+    return model
+
+
+@pytest.mark.parametrize("algo", ["dhc", "dcc_sensitive", "dcc_sensitive+cost_to_go"])
 def test_linked_exchanges_equal_the_batched_step(checkpoints, algo):
     """Three "processes" of uneven size: the first choices (`q` ranking) and who talked to
-    whom equal the batched step's actions and comm_mask, tick after tick."""
+    whom equal the batched step's actions and comm_mask, tick after tick (with the
+    observation the model reads)."""
     torch.set_num_threads(1)
-    model, _ = load_checkpoint(checkpoints[algo])
+    model = _model(checkpoints, algo)
     for seed in (1, 2):
         instance = generate_instance(12, 10, 0.25, seed)
-        env = MAPFEnv(instance)
+        env = MAPFEnv(instance, EnvConfig(observation=model.config.observation))
         obs, hidden = env.reset(), None
         fleet = MemoryFleet(model, [[0, 3, 7], [1, 2, 4, 5], [6, 8, 9]])
         talked = 0
