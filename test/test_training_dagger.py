@@ -143,6 +143,39 @@ def test_run_writes_shards_and_resume_skips_them(small_checkpoint, tmp_path):
     assert json.loads((run / "state.json").read_text())["round"] == 2
 
 
+def test_a_cost_to_go_run_warm_starts_and_records_the_channel(small_checkpoint, tmp_path):
+    """`observation: cost_to_go` on a paper checkpoint: round 0 plays exactly as the init
+    checkpoint, the shards keep the channel beside the bits (int8 `ctg`), the windows rebuild
+    the 7-channel observation and the round's checkpoint records the option."""
+    run = tmp_path / "run"
+    driver = dagger.Dagger(tiny_config(small_checkpoint, observation="cost_to_go"), run,
+                           log=lambda m: None)
+    assert driver.model.config.observation == "cost_to_go"
+    init, _ = load_checkpoint(small_checkpoint)
+    inst = generate_instance(9, 4, 0.1, 1)
+    plays = [dagger.play_episode(m, inst, 20, "pibt_anchor", "q_then_distance",
+                                 torch.device("cpu"), seq_len=6, burn_in=3)
+             for m in (init, driver.model)]
+    assert "ctg" not in plays[0]["arrays"] and plays[1]["arrays"]["ctg"].dtype == np.int8
+    for key in ("obs_bits", "positions", "last_actions", "hidden"):
+        np.testing.assert_array_equal(plays[0]["arrays"][key], plays[1]["arrays"][key])
+    assert driver.run()["round"] == 1
+    shards = sorted((run / "data").glob("r000_*.npz"))
+    assert len(shards) == 2
+    for shard in shards:
+        arrays, _ = dagger.read_shard(shard)
+        assert arrays["ctg"].shape == (*arrays["labels"].shape, 9, 9)
+    win = driver.data.window(*driver.data.windows[0])
+    assert win["obs"].shape[2:] == (7, 9, 9)
+    _, meta = load_checkpoint(run / "checkpoints" / "round_000.pt")
+    assert meta["model_config"]["observation"] == "cost_to_go"
+    assert meta["training_config"]["dagger"]["observation"] == "cost_to_go"
+    # a paper network cannot read the run's shards: the resume names the state file
+    with pytest.raises(dagger.DaggerConfigError, match="state.pt.*observation"):
+        dagger.Dagger(tiny_config(small_checkpoint, observation="paper"), run,
+                      log=lambda m: None)
+
+
 def test_training_fits_the_labels(small_checkpoint, tmp_path):
     cfg = tiny_config(small_checkpoint, lr=3e-3, batch_windows=4)
     learner = dagger.Dagger(cfg, tmp_path / "run", log=lambda m: None)
@@ -182,6 +215,8 @@ def test_config_errors_name_the_field(tmp_path):
                                             "weight": 1, "max_steps": 64}]})
     with pytest.raises(dagger.DaggerConfigError, match="shield"):
         dagger.config_from_dict({"shield": "none"})
+    with pytest.raises(dagger.DaggerConfigError, match="'observation' = 'foo'"):
+        dagger.config_from_dict({"observation": "foo"})
     for name in ("dagger_dcc.yaml", "dagger_dhc.yaml"):  # the shipped configs load
         cfg = dagger.load_config(Path(__file__).parents[1] / "config" / "training" / name)
         assert cfg.shield == "pibt_anchor"

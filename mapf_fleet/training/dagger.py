@@ -24,10 +24,11 @@ Round k (k = 0, 1, ...):
      in-process (`use_ray: false`). The driver waits while they play: collection and training
      never run at the same time, so a run uses about `num_cpus` cores.
   2. aggregate: each episode is one shard `data/r{round}_e{index}.npz` (observations as the
-     policy saw them, bit-packed; positions; last-action inputs; labels, -1 = none; the policy's
-     hidden state at every window start), recorded in `data/manifest.json` after its file; both
-     written atomically. A resumed run skips the shards in the manifest (and adopts a shard file
-     the manifest missed).
+     policy saw them, bit-packed, and for the "cost_to_go" observation its cost-to-go channel
+     beside them as int8 steps, `ctg`; positions; last-action inputs; labels, -1 = none; the
+     policy's hidden state at every window start), recorded in `data/manifest.json` after its
+     file; both written atomically. A resumed run skips the shards in the manifest (and adopts a
+     shard file the manifest missed).
   3. train: `updates_per_round` updates on the aggregate of every round so far (DAgger). An update
      takes `batch_windows` windows sampled uniformly from all labelled windows: window j of an
      episode trains steps [j L, (j+1) L) (L = `seq_len`), unrolled from the hidden state the
@@ -42,6 +43,11 @@ Round k (k = 0, 1, ...):
      never the published test sets), success and average steps under the shield, appended to
      `curve.json` / `curve.csv` and TensorBoard (`tb/`). Before round 0 the same check runs on
      the init checkpoint (round -1) and on plain PIBT (the distance ranking, no network).
+
+Observation (`observation`): the init checkpoint's unless set; "cost_to_go" on a "paper"
+checkpoint adds the normalised cost-to-go channel (`grid.env.cost_to_go_channel`), warm-started
+with that channel's first-conv weights zero (`models.checkpoint.with_observation`); the round
+checkpoints record it in their `model_config`.
 
 Resume: `state.json` names the round and phase (collect / train / heldout); training progress
 within a round is saved every `state_interval_seconds`. After kill -9 a run loses at most the
@@ -69,7 +75,7 @@ import yaml
 from mapf_fleet.files import atomic_write
 
 from .modelio import model_step, pick_device
-from .replay import pack_obs, unpack_obs
+from .replay import pack_cost_to_go, pack_obs, unpack_obs
 
 CONFIG_FILE = "config.yaml"
 STATE_JSON = "state.json"
@@ -119,6 +125,10 @@ class DaggerConfig:
     # how the policy's Q-values become the ranking the shield reads (coordination.preferences);
     # q_then_distance is the best measured ranking under pibt_anchor (issue 25)
     preferences: str = "q_then_distance"
+    # what the network reads (grid.env.OBSERVATIONS): None = the init checkpoint's; "cost_to_go"
+    # from a "paper" checkpoint warm-starts it with the extra channel's weights zero
+    # (models.checkpoint.with_observation), so round 0 plays exactly as the init checkpoint
+    observation: str | None = None
 
     # --- rounds and data ---------------------------------------------------------------------
     rounds: int = 30
@@ -175,6 +185,7 @@ class DaggerConfig:
     def validate(self, source: str = "DaggerConfig") -> None:
         from mapf_fleet.coordination.pibt import SHIELD_RULES
         from mapf_fleet.coordination.preferences import Q_MODES
+        from mapf_fleet.grid.env import OBSERVATIONS
 
         def bad(name: str, why: str) -> DaggerConfigError:
             return DaggerConfigError(f"{source}: field {name!r} = {getattr(self, name)!r}: {why}")
@@ -185,6 +196,9 @@ class DaggerConfig:
             raise bad("preferences", f"must be one of {Q_MODES}")
         if self.loss not in LOSSES:
             raise bad("loss", f"must be one of {LOSSES}")
+        if self.observation is not None and self.observation not in OBSERVATIONS:
+            raise bad("observation", f"must be one of {OBSERVATIONS} or null (the init "
+                      "checkpoint's)")
         for name in ("rounds", "episodes_per_round", "label_interval", "label_backoff_max",
                      "num_cpus", "num_workers",
                      "seq_len", "batch_windows", "threads", "heldout_count"):
@@ -364,7 +378,8 @@ def play_episode(model, instance, max_steps: int, shield_rule: str, preferences:
     from mapf_fleet.models.policy import LearnedPolicy
 
     rng = np.random.default_rng(0) if rng is None else rng
-    env = MAPFEnv(instance, EnvConfig(max_steps=max_steps))
+    cost_to_go = model.config.observation == "cost_to_go"
+    env = MAPFEnv(instance, EnvConfig(max_steps=max_steps, observation=model.config.observation))
     obs = env.reset()
     n = instance.num_agents
     shield = make_shield(shield_rule, instance.grid, instance.goals)
@@ -372,7 +387,7 @@ def play_episode(model, instance, max_steps: int, shield_rule: str, preferences:
     policy.reset(1, n)
     distances = bfs_distances_many(instance.grid, instance.goals) if labeller else None
     ties_agents = np.arange(n)
-    rec_obs, rec_pos, rec_last, rec_labels, hiddens = [], [], [], [], []
+    rec_obs, rec_ctg, rec_pos, rec_last, rec_labels, hiddens = [], [], [], [], [], []
     stats = {"labelled_states": 0, "labels": 0, "unsolved": 0, "too_long": 0,
              "expert_steps": 0, "label_seconds": 0.0, "disagree": 0, "disagree_off_goal": 0,
              "off_goal_labels": 0, "label_calls": 0}
@@ -382,6 +397,8 @@ def play_episode(model, instance, max_steps: int, shield_rule: str, preferences:
         t = env.steps
         if record:
             rec_obs.append(pack_obs(obs))
+            if cost_to_go:
+                rec_ctg.append(pack_cost_to_go(obs))
             rec_pos.append(env.positions.astype(np.int16))
             rec_last.append(env.last_actions.astype(np.int8))
             hiddens.append(policy.hidden[0].detach().to("cpu", torch.float16).numpy())
@@ -439,6 +456,10 @@ def play_episode(model, instance, max_steps: int, shield_rule: str, preferences:
             "labels": np.stack(rec_labels) if length else np.zeros((0, n), np.int8),
             "hidden_starts": starts, "hidden": hidden,
         }
+        if cost_to_go:
+            fov = obs.shape[-1]
+            out["arrays"]["ctg"] = np.stack(rec_ctg) if length else np.zeros((0, n, fov, fov),
+                                                                               np.int8)
     return out
 
 
@@ -619,7 +640,8 @@ class LabelledData:
         ep = self.episodes[e]
         start = int(ep["hidden_starts"][j])
         end = min(len(ep["labels"]), (j + 1) * self.seq_len)
-        return {"obs": unpack_obs(ep["obs_bits"][start:end]),
+        ctg = ep["ctg"][start:end] if "ctg" in ep else None
+        return {"obs": unpack_obs(ep["obs_bits"][start:end], ctg),
                 "positions": ep["positions"][start:end].astype(np.int64),
                 "last": ep["last_actions"][start:end].astype(np.int64),
                 "labels": ep["labels"][start:end].astype(np.int64),
@@ -659,7 +681,7 @@ def window_loss(model, algo: str, win: dict, device, loss: str, margin: float):
 # -- the driver ------------------------------------------------------------------------------------
 class Dagger:
     def __init__(self, cfg: DaggerConfig, run_dir: str | Path, log=print):
-        from mapf_fleet.models.checkpoint import load_checkpoint
+        from mapf_fleet.models.checkpoint import load_checkpoint, with_observation
 
         self.cfg, self.run_dir, self.log = cfg, Path(run_dir), log
         self.run_dir.mkdir(parents=True, exist_ok=True)
@@ -668,9 +690,16 @@ class Dagger:
         torch.set_num_threads(cfg.threads)
         self.device = pick_device(cfg.device)
         model, meta = load_checkpoint(cfg.init_checkpoint)
+        if cfg.observation is not None:
+            try:
+                model = with_observation(model, cfg.observation)
+            except ValueError as exc:
+                raise DaggerConfigError(
+                    f"field 'observation' = {cfg.observation!r}: the init checkpoint "
+                    f"{cfg.init_checkpoint} reads {model.config.observation!r}: {exc}") from None
         self.init_metadata = meta
         self.algo = meta["algorithm"]
-        self.model_config = meta["model_config"]
+        self.model_config = model.config.to_dict()  # the workers' network, observation included
         self.model = model.to(self.device)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.lr)
         self.state = {"round": 0, "phase": "collect", "updates_in_round": 0, "updates": 0,
@@ -694,7 +723,13 @@ class Dagger:
     def _load(self) -> None:
         self.state = json.loads((self.run_dir / STATE_JSON).read_text())
         saved = torch.load(self.run_dir / STATE_PT, map_location=self.device, weights_only=True)
-        self.model.load_state_dict(saved["model"])
+        try:
+            self.model.load_state_dict(saved["model"])
+        except RuntimeError as exc:  # e.g. a resume that changes field 'observation'
+            raise DaggerConfigError(
+                f"{self.run_dir / STATE_PT}: the run's network is not the one this config builds "
+                f"(field 'observation' = {self.cfg.observation!r}, init checkpoint "
+                f"{self.cfg.init_checkpoint}): {str(exc).splitlines()[0]}") from None
         self.optimizer.load_state_dict(saved["optimizer"])
         manifest = self.run_dir / DATA_DIR / MANIFEST
         if manifest.is_file():
@@ -795,9 +830,16 @@ class Dagger:
         self.save_state()
 
     def load_data(self) -> None:
+        observation = self.model.config.observation
         for name in sorted(self.manifest["shards"]):
             if name not in self.data.names:
-                arrays, _ = read_shard(self.run_dir / DATA_DIR / name)
+                path = self.run_dir / DATA_DIR / name
+                arrays, _ = read_shard(path)
+                recorded = "cost_to_go" if "ctg" in arrays else "paper"
+                if recorded != observation:
+                    raise DaggerConfigError(
+                        f"{path}: holds {recorded!r} observations, the network reads "
+                        f"{observation!r}: field 'observation' changed during the run")
                 self.data.add(name, arrays)
 
     def train(self, round_index: int, writer=None) -> dict:

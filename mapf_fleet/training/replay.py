@@ -16,22 +16,38 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mapf_fleet.grid.env import COST_TO_GO_CHANNEL, cost_to_go_channel, steps_from_cost_to_go
+
 OBS_SHAPE = (6, 9, 9)
+OBS_RADIUS = (OBS_SHAPE[-1] - 1) // 2
 OBS_BITS = int(np.prod(OBS_SHAPE))
 OBS_BYTES = (OBS_BITS + 7) // 8
 FAR_AWAY = -10_000  # position of padding agents: never inside anyone's FOV
 
 
 def pack_obs(obs: np.ndarray) -> np.ndarray:
-    """(..., 6, 9, 9) binary -> (..., 61) uint8."""
-    flat = np.asarray(obs).reshape(*obs.shape[:-3], OBS_BITS) > 0.5
+    """(..., 6, 9, 9) binary -> (..., 61) uint8. Of a "cost_to_go" observation (..., 7, 9, 9)
+    the six binary channels; its cost-to-go channel is not binary: `pack_cost_to_go`."""
+    obs = np.asarray(obs)[..., :OBS_SHAPE[0], :, :]
+    flat = obs.reshape(*obs.shape[:-3], OBS_BITS) > 0.5
     return np.packbits(flat, axis=-1)
 
 
-def unpack_obs(bits: np.ndarray) -> np.ndarray:
-    """(..., 61) uint8 -> (..., 6, 9, 9) float32."""
+def pack_cost_to_go(obs: np.ndarray) -> np.ndarray:
+    """int8 (..., 9, 9): the cost-to-go channel of "cost_to_go" observations (..., 7, 9, 9) as
+    whole steps (`grid.env.steps_from_cost_to_go`, exact)."""
+    return steps_from_cost_to_go(np.asarray(obs)[..., COST_TO_GO_CHANNEL, :, :], OBS_RADIUS)
+
+
+def unpack_obs(bits: np.ndarray, cost_to_go: np.ndarray | None = None) -> np.ndarray:
+    """(..., 61) uint8 -> (..., 6, 9, 9) float32; with `cost_to_go` (..., 9, 9) int8 from
+    `pack_cost_to_go`, the "cost_to_go" observation (..., 7, 9, 9)."""
     flat = np.unpackbits(bits, axis=-1, count=OBS_BITS)
-    return flat.reshape(*bits.shape[:-1], *OBS_SHAPE).astype(np.float32)
+    obs = flat.reshape(*bits.shape[:-1], *OBS_SHAPE).astype(np.float32)
+    if cost_to_go is None:
+        return obs
+    channel = cost_to_go_channel(cost_to_go, OBS_RADIUS)[..., None, :, :]
+    return np.concatenate([obs, channel], axis=-3)
 
 
 class SumTree:
