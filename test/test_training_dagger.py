@@ -253,3 +253,34 @@ def test_labelling_backs_off_after_failed_states(small_checkpoint):
         t += wait
     assert out["label_calls"] == len(expected) == out["unsolved"]
     assert out["labels"] == 0 and (out["arrays"]["labels"] == -1).all()
+
+
+def _fake_run(path: Path, loss: str, rounds: list[float]) -> Path:
+    path.mkdir()
+    (path / dagger.CONFIG_FILE).write_text(f"loss: {loss}\nobservation: null\n")
+    curve = [{"round": -1, "policy": "plain_pibt", "labels": 0, "cpu_seconds": 1.0,
+              "d_success": 0.5, "d_steps": 100.0},
+             {"round": -1, "policy": "init", "labels": 0, "cpu_seconds": 2.0,
+              "d_success": 0.1, "d_steps": 120.0}]
+    curve += [{"round": k, "policy": "dagger", "labels": 1000 * (k + 1), "cpu_seconds": 3600.0 * (k + 1),
+               "d_success": s, "d_steps": 90.0 - k} for k, s in enumerate(rounds)]
+    (path / dagger.CURVE_JSON).write_text(json.dumps(curve))
+    return path
+
+
+def test_compare_runs_prints_the_ab_side_by_side(tmp_path, capsys):
+    a = _fake_run(tmp_path / "a", "cross_entropy", [0.2, 0.4, 0.6])
+    b = _fake_run(tmp_path / "b", "margin", [0.3, 0.5, 0.9])
+    table = dagger.compare_runs([a, b], last=2)
+    rows = table.splitlines()
+    assert rows[0].startswith("| run | loss |") and "d success (steps)" in rows[0]
+    assert "| a | cross_entropy | init | 3 | 3,000 | 3.00 | plain PIBT | 0.50 (100) |" in table
+    assert "| round 2 | 0.60 (88) |" in table and "| round 2 | 0.90 (88) |" in table
+    # the mean of the last two rounds: (0.4 + 0.6) / 2 and (89 + 88) / 2
+    assert "| mean of rounds 1-2 | 0.50 (88) |" in table
+    assert "| mean of rounds 1-2 | 0.70 (88) |" in table
+    assert dagger.main(["--compare", str(a), str(b), "--last", "2"]) == 0
+    assert capsys.readouterr().out.strip() == table
+    # not a run directory: one line naming it, exit 2
+    assert dagger.main(["--compare", str(tmp_path / "nope")]) == 2
+    assert "nope: not a DAgger run directory" in capsys.readouterr().err

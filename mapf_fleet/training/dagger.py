@@ -1020,6 +1020,57 @@ class Dagger:
                 "counters": dict(self.state["counters"])}
 
 
+def compare_runs(run_dirs: list[str | Path], last: int = 4) -> str:
+    """A Markdown table of DAgger runs side by side (the A/Bs of issue 25): per run its loss,
+    observation, rounds, labels and CPU-hours, and per held-out setting the success (average
+    steps) of plain PIBT, the init checkpoint, the last round, and the mean over the last `last`
+    rounds (each round's check is `heldout_count` instances: the mean of several rounds is less
+    noisy than any one round, though its rounds are different checkpoints)."""
+    if last < 1:
+        raise DaggerConfigError(f"--last must be >= 1, got {last}")
+    runs = []
+    for run_dir in map(Path, run_dirs):
+        curve_file, config_file = run_dir / CURVE_JSON, run_dir / CONFIG_FILE
+        if not curve_file.is_file() or not config_file.is_file():
+            raise DaggerConfigError(f"{run_dir}: not a DAgger run directory (no {CURVE_JSON} "
+                                    f"or {CONFIG_FILE})")
+        curve = json.loads(curve_file.read_text())
+        config = yaml.safe_load(config_file.read_text()) or {}
+        rounds = sorted((r for r in curve if r["policy"] == "dagger"), key=lambda r: r["round"])
+        if not rounds:
+            raise DaggerConfigError(f"{run_dir}: no round has finished its held-out check yet")
+        runs.append((run_dir, config, curve, rounds))
+    keys = list(dict.fromkeys(k[:-len("_success")] for _, _, curve, _ in runs for row in curve
+                              for k in row if k.endswith("_success")))
+
+    def cell(rows: list[dict], key: str) -> str:
+        have = [r for r in rows if f"{key}_success" in r]
+        if not have:
+            return ""
+        success = float(np.mean([r[f"{key}_success"] for r in have]))
+        steps = float(np.mean([r[f"{key}_steps"] for r in have]))
+        return f"{success:.2f} ({steps:.0f})"
+
+    lines = ["| run | loss | observation | rounds | labels | CPU-h | policy | "
+             + " | ".join(f"{k} success (steps)" for k in keys) + " |",
+             "|---|---|---|---:|---:|---:|---|" + "---:|" * len(keys)]
+    for run_dir, config, curve, rounds in runs:
+        final = rounds[-1]
+        base = {r["policy"]: r for r in curve if r["round"] == -1}
+        head = (f"| {run_dir.name} | {config.get('loss', '')} | "
+                f"{config.get('observation') or 'init'} | {final['round'] + 1} | "
+                f"{final['labels']:,} | {final['cpu_seconds'] / 3600:.2f} |")
+        blank = "| | | | | | |"
+        table = [("plain PIBT", [base["plain_pibt"]] if "plain_pibt" in base else []),
+                 ("init", [base["init"]] if "init" in base else []),
+                 (f"round {final['round']}", [final]),
+                 (f"mean of rounds {rounds[-last:][0]['round']}-{final['round']}", rounds[-last:])]
+        for i, (label, rows) in enumerate(table):
+            lines.append(f"{head if i == 0 else blank} {label} | "
+                         + " | ".join(cell(rows, k) for k in keys) + " |")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     import argparse
     import sys
@@ -1028,11 +1079,25 @@ def main(argv: list[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--config", help="DAgger config YAML (config/training/dagger_*.yaml); "
                                          "ignored when RUN already holds a run (it resumes)")
-    parser.add_argument("--run-dir", required=True, help="run directory (created; rerun to resume)")
+    parser.add_argument("--run-dir", help="run directory (created; rerun to resume)")
+    parser.add_argument("--compare", nargs="+", metavar="RUN",
+                        help="print a Markdown table of these runs' held-out curves side by side "
+                             "(the A/Bs) and exit; no training")
+    parser.add_argument("--last", type=int, default=4,
+                        help="with --compare: average the held-out checks of the last K rounds")
     parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                         help="override a config field (repeatable; also on a resume)")
     args = parser.parse_args(argv)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    if args.compare:
+        try:
+            print(compare_runs(args.compare, args.last))
+        except (DaggerConfigError, OSError, ValueError, KeyError) as exc:
+            print(f"mapf-fleet dagger: {exc}", file=sys.stderr)
+            return 2
+        return 0
+    if not args.run_dir:
+        parser.error("--run-dir is required (or --compare RUN ...)")
     run_dir = Path(args.run_dir)
     try:
         overrides = {}
