@@ -47,6 +47,35 @@ def test_round_trip_keeps_weights_and_metadata(tmp_path, model):
     assert [p.name for p in tmp_path.iterdir()] == ["ckpt.pt"]
 
 
+def test_rankings_round_trip_and_old_files_have_none(tmp_path, model):
+    """metadata.rankings {shield rule: preference mode}: the ranking the weights were trained
+    behind (DAgger writes it); a file written without it has none (the rule's default)."""
+    rankings = {"pibt_anchor": "q_then_distance", "pibt": "q"}
+    _, meta = load_checkpoint(save_checkpoint(tmp_path / "r.pt", model,
+                                              {**META, "rankings": rankings}))
+    assert meta["rankings"] == rankings
+    _, meta = load_checkpoint(save_checkpoint(tmp_path / "old.pt", model, META))
+    assert "rankings" not in meta
+
+
+@pytest.mark.parametrize("rankings, message", [
+    ({"pibt_anchor": "sideways"},
+     r"ckpt.pt: field metadata.rankings.pibt_anchor: expected one of .*found 'sideways'"),
+    ({"pibt_anchor": "distance"},  # a learned policy ranks by its Q-values
+     r"ckpt.pt: field metadata.rankings.pibt_anchor: expected one of .*found 'distance'"),
+    ({"revert": "q"}, r"ckpt.pt: field metadata.rankings: expected shield rules .*found 'revert'"),
+    (["pibt_anchor", "q"], r"ckpt.pt: field metadata.rankings: expected a dict"),
+])
+def test_bad_rankings_are_refused_naming_file_field_and_value(tmp_path, model, rankings,
+                                                              message):
+    path = save_checkpoint(tmp_path / "ckpt.pt", model, META)
+    _rewrite(path, lambda p: p["metadata"].update(rankings=rankings))
+    with pytest.raises(CheckpointError, match=message):
+        load_checkpoint(path)
+    with pytest.raises(CheckpointError, match=message):  # and never written
+        save_checkpoint(tmp_path / "ckpt.pt", model, {**META, "rankings": rankings})
+
+
 def test_overwrite_is_atomic_replacement(tmp_path, model):
     path = tmp_path / "ckpt.pt"
     save_checkpoint(path, model, META)

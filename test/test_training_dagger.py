@@ -123,6 +123,8 @@ def test_run_writes_shards_and_resume_skips_them(small_checkpoint, tmp_path):
     assert (run / "checkpoints" / "round_000.pt").is_file()
     _, meta = load_checkpoint(run / "checkpoints" / "round_000.pt")
     assert meta["extra"]["dagger"]["round"] == 0 and meta["extra"]["dagger"]["labels"] > 0
+    # the ranking it was trained behind, its default there in the evaluator and the fleet
+    assert meta["rankings"] == {cfg.shield: cfg.preferences} == {"pibt_anchor": "q_then_distance"}
     curve = json.loads((run / "curve.json").read_text())
     assert [(r["round"], r["policy"]) for r in curve] == [(-1, "plain_pibt"), (-1, "init"),
                                                           (0, "dagger")]

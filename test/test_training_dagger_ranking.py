@@ -44,6 +44,39 @@ def test_default_ranking_follows_the_shield_rule():
     assert with_shield(learned, "pibt_anchor", "q").preference_mode == "q"
 
 
+def _checkpoint(path, **metadata):
+    import torch
+
+    from mapf_fleet.models.checkpoint import build_model, save_checkpoint
+    from mapf_fleet.models.config import ModelConfig
+
+    torch.manual_seed(0)
+    return str(save_checkpoint(path, build_model(ModelConfig.preset("dhc", "small")), {
+        "alpha": 0.0, "curriculum": {}, "learner_steps": 0, "training_config": {}, **metadata}))
+
+
+def test_a_checkpoints_recorded_ranking_is_its_default_and_preferences_beat_it(tmp_path):
+    """Precedence: --preferences > the checkpoint's `rankings` for the rule > the rule's."""
+    from mapf_fleet.evaluation.policies import build_policy, parse_policy, with_shield
+
+    assert default_q_mode("pibt_anchor", {"pibt_anchor": "q_then_distance"}) == "q_then_distance"
+    assert default_q_mode("pibt", {"pibt_anchor": "q_then_distance"}) == default_q_mode("pibt")
+    spec = parse_policy(_checkpoint(tmp_path / "round_007.pt",
+                                    rankings={"pibt_anchor": "q_then_distance"}))
+    anchored = with_shield(spec, "pibt_anchor")
+    assert anchored.preference_mode == "q_then_distance"
+    assert anchored.name == "round_007 +PIBT-anchor(q_then_distance)"  # which ranking ran
+    assert build_policy(anchored).preference_mode == "q_then_distance"
+    plain = with_shield(spec, "pibt")  # no ranking recorded for this rule: the rule's
+    assert (plain.preference_mode, plain.name) == (default_q_mode("pibt"), "round_007 +PIBT")
+    asked = with_shield(spec, "pibt_anchor", "confidence")
+    assert (asked.preference_mode, asked.name) == ("confidence",
+                                                   "round_007 +PIBT-anchor(confidence)")
+    # a checkpoint without rankings keeps the rule's default, unnamed as before
+    old = with_shield(parse_policy(_checkpoint(tmp_path / "old.pt")), "pibt_anchor")
+    assert (old.preference_mode, old.name) == (default_q_mode("pibt_anchor"), "old +PIBT-anchor")
+
+
 def test_evaluate_dense_scenarios():
     from mapf_fleet.evaluation.cli import dense_scenarios
     from mapf_fleet.evaluation.protocol import ProtocolError

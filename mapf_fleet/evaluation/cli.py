@@ -62,8 +62,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "its distance order); several give one row each (default: none)")
     p.add_argument("--preferences", nargs="+", choices=list(PREFERENCE_MODES), metavar="MODE",
                    help=f"how a policy ranks its actions under the shield, one row per mode: "
-                        f"{', '.join(PREFERENCE_MODES)} (default: the shield rule's, for "
-                        f"checkpoints "
+                        f"{', '.join(PREFERENCE_MODES)} (default: for a checkpoint the ranking "
+                        f"it records for the rule (metadata rankings, e.g. a DAgger round's), "
+                        f"else the rule's: "
                         + ", ".join(f"{m} under {r}" for r, m in DEFAULT_Q_MODE_BY_RULE.items())
                         + "; distance for the heuristic)")
     p.add_argument("--config", default=str(DEFAULT_CONFIG), help="protocol YAML (default %(default)s)")

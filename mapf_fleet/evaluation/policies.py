@@ -44,6 +44,8 @@ class PolicySpec:
     device: str = "cpu"
     shield: str = "none"  # one of SHIELDS (decentralized policies only)
     preferences: str | None = None  # preference mode under the shield (None: the default)
+    # a checkpoint's recorded rankings (metadata `rankings`), ((rule, mode), ...): its default
+    rankings: tuple[tuple[str, str], ...] = ()
 
     @property
     def is_planner(self) -> bool:
@@ -52,10 +54,13 @@ class PolicySpec:
     @property
     def preference_mode(self) -> str:
         """The mode the shield ranks actions with: the heuristic ranks by distance (its choice
-        first: it follows a closer move), a checkpoint by its Q-values."""
+        first: it follows a closer move), a checkpoint by its Q-values: `preferences` when given,
+        else the ranking the checkpoint records for the rule, else the rule's default."""
         if self.preferences is not None:
             return self.preferences
-        return "distance" if self.kind == "heuristic" else default_q_mode(self.shield)
+        if self.kind == "heuristic":
+            return "distance"
+        return default_q_mode(self.shield, dict(self.rankings))
 
 
 def with_shield(spec: PolicySpec, shield: str, preferences: str | None = None) -> PolicySpec:
@@ -71,12 +76,15 @@ def with_shield(spec: PolicySpec, shield: str, preferences: str | None = None) -
     if spec.kind == "heuristic" and preferences not in (None, "distance"):
         raise ValueError(f"--preferences {preferences}: the heuristic has no Q-values "
                          f"(its ranking is 'distance'); the Q modes are {Q_MODES}")
-    label = SHIELD_LABELS[shield] + ("" if preferences is None else f"({preferences})")
+    # the ranking is named unless it comes from the rule's table: asked for, or the checkpoint's
+    named = preferences if preferences is not None else dict(spec.rankings).get(shield)
+    label = SHIELD_LABELS[shield] + ("" if named is None else f"({named})")
     return replace(spec, name=f"{spec.name} {label}", shield=shield, preferences=preferences)
 
 
 def parse_policy(arg: str, *, device: str = "cpu", planner_time_limit: float = 10.0, planner_seed: int = 0) -> PolicySpec:
-    """`heuristic`, `lacam`, `pibt`, or a path to a checkpoint file (must exist)."""
+    """`heuristic`, `lacam`, `pibt`, or a path to a checkpoint file (must exist; its metadata is
+    read here, once: a bad file is refused before any worker starts)."""
     if arg == HEURISTIC:
         return PolicySpec("heuristic", "heuristic")
     if arg in PLANNER_NAMES:
@@ -87,7 +95,11 @@ def parse_policy(arg: str, *, device: str = "cpu", planner_time_limit: float = 1
     path = Path(arg)
     if not path.is_file():
         raise FileNotFoundError(f"--checkpoint {arg!r}: no such file (or use one of {', '.join(REFERENCE_NAMES)})")
-    return PolicySpec("checkpoint", path.stem, path=str(path), device=device)
+    from mapf_fleet.models.checkpoint import read_checkpoint
+
+    rankings = read_checkpoint(path)[1].get("rankings") or {}
+    return PolicySpec("checkpoint", path.stem, path=str(path), device=device,
+                      rankings=tuple(sorted(rankings.items())))
 
 
 def unique_names(specs: list[PolicySpec]) -> list[PolicySpec]:

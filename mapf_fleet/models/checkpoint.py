@@ -18,6 +18,10 @@ metadata fields:
     evaluation       dict or None (evaluation summary)
     created          ISO 8601 UTC time of writing
     extra            dict, free plain data (optional)
+    rankings         {shield rule: preference mode} (optional): the ranking the weights were
+                     trained behind each rule (DAgger writes {shield: preferences}); the
+                     evaluator and the policy nodes default to it under that rule
+                     (coordination.preferences.default_q_mode)
 Writes are atomic (temporary file in the same directory + os.replace), so a reader never sees
 half a file.
 """
@@ -44,7 +48,7 @@ OBS_PADDING = "obstacle"
 ACTION_ORDER = list(ACTION_NAMES)
 # Fields the caller supplies (the rest are derived from the model and the code).
 REQUIRED_FIELDS = ("alpha", "curriculum", "learner_steps", "training_config")
-OPTIONAL_FIELDS = ("evaluation", "extra")
+OPTIONAL_FIELDS = ("evaluation", "extra", "rankings")
 
 
 class CheckpointError(ValueError):
@@ -115,6 +119,8 @@ def save_checkpoint(path, model: nn.Module, metadata: Mapping[str, Any]) -> Path
         "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         "extra": metadata.get("extra", {}),
     }
+    if "rankings" in metadata:  # absent, not empty, when not given: files as before
+        full["rankings"] = metadata["rankings"]
     _check_metadata(full, str(path))
     payload = {
         "format": FORMAT,
@@ -221,8 +227,25 @@ def _check_metadata(meta: Mapping[str, Any], path: str) -> None:
         fail("evaluation", "a dict or None", meta["evaluation"])
     if not isinstance(meta.get("extra", {}), Mapping):
         fail("extra", "a dict", meta.get("extra"))
+    if "rankings" in meta:
+        _check_rankings(meta["rankings"], fail)
     for name in meta:
         _check_plain(meta[name], f"metadata.{name}", path)
+
+
+def _check_rankings(rankings: Any, fail) -> None:
+    """metadata.rankings: {rule: mode}, a rule of coordination.pibt.SHIELD_RULES and a Q mode of
+    coordination.preferences.Q_MODES (a learned policy ranks by its Q-values)."""
+    from mapf_fleet.coordination.pibt import SHIELD_RULES
+    from mapf_fleet.coordination.preferences import Q_MODES
+
+    if not isinstance(rankings, Mapping):
+        fail("rankings", "a dict {shield rule: preference mode}", rankings)
+    for rule, mode in rankings.items():
+        if rule not in SHIELD_RULES:
+            fail("rankings", f"shield rules among {SHIELD_RULES}", rule)
+        if mode not in Q_MODES:
+            fail(f"rankings.{rule}", f"one of {Q_MODES}", mode)
 
 
 def _check_plain(value: Any, where: str, path: str) -> None:

@@ -131,9 +131,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--preference-mode", default=None,
                         help="how policy nodes rank their actions from Q-values (default: "
                              "the policy nodes' preference_mode if a params file sets it, else "
-                             "the conflict rule's, coordination.preferences.default_q_mode: "
-                             "confidence under pibt_anchor, q under "
-                             "pibt and revert)")
+                             "the ranking the checkpoint records for the conflict rule "
+                             "(metadata rankings, e.g. a DAgger round's), else the rule's, "
+                             "coordination.preferences.default_q_mode: confidence under "
+                             "pibt_anchor, q under pibt and revert)")
     parser.add_argument("--nodes-per-process", type=int, default=1,
                         help="robots' policy nodes hosted per process (one hub each; 32 for "
                              "large fleets)")
@@ -487,8 +488,9 @@ def node_parameters(args, checkpoint: str, record: str, num_robots: int) -> tupl
     if args.bag:  # tick 0 waits until the hubs and the recorder hear the state: no tick missed
         sim_params["state_subscribers"] = (
             policy_processes(num_robots, args.single_process, args.nodes_per_process) + 1)
-    # the policy nodes' default preference_mode follows the arbiter's rule (a params file's or
-    # the command line's preference_mode still wins: up passes none unless --preference-mode)
+    # the policy nodes' default preference_mode follows the checkpoint and the arbiter's rule (a
+    # params file's or the command line's preference_mode still wins: up passes none unless
+    # --preference-mode)
     policy_params = {"checkpoint": checkpoint, "comm_timeout": args.comm_timeout,
                      "conflict_rule": args.conflict_rule}
     if args.preference_mode is not None:
@@ -675,7 +677,8 @@ def _run_in_this_process(num_robots, sim_params, policy_params, args) -> tuple[i
         simulator = SimulatorNode()
         options = host_kwargs(num_robots)
         first = PolicyNode(robot_id=0, checkpoint=policy_params["checkpoint"], **options)
-        policies = [first] + [PolicyNode(robot_id=i, model=first.model, **options)
+        policies = [first] + [PolicyNode(robot_id=i, model=first.model,
+                                         metadata=first.checkpoint_metadata, **options)
                               for i in range(1, num_robots)]
         # one hub drives every robot of this process; the simulator shares the executor
         code = spin_policy_nodes(policies, until=simulator.finished.is_set,

@@ -46,7 +46,8 @@ PARAMETERS = {
                                              "default preference_mode"),
     "preference_mode": ("", "how a robot ranks its five actions from its Q-values for the "
                             f"arbiter: one of {', '.join(PREFERENCE_MODES)}; empty: the "
-                            "conflict rule's default ("
+                            "ranking the checkpoint records for the conflict rule (metadata "
+                            "rankings, e.g. a DAgger round's), else the rule's default ("
                             + ", ".join(f"{m} under {r}" for r, m in DEFAULT_Q_MODE_BY_RULE.items())
                             + f", {default_q_mode('revert')} otherwise)"),
 }
@@ -65,10 +66,12 @@ def load_policy_model(path: str):
 class PolicyNode(Node):
     """One robot: its parameters, its publishers (move, heartbeat) and, for DCC, its request
     and reply services. The decisions are made by the process's
-    `PolicyHub` (mapf_fleet.ros.hub), which batches the robots hosted in one process."""
+    `PolicyHub` (mapf_fleet.ros.hub), which batches the robots hosted in one process.
+    `model` and `metadata`: a checkpoint already loaded (the robots of one process share the
+    first node's); without `metadata` the checkpoint records no ranking."""
 
     def __init__(self, robot_id: int | None = None, checkpoint: str | None = None, model=None,
-                 **node_kwargs):
+                 metadata=None, **node_kwargs):
         overrides = list(node_kwargs.pop("parameter_overrides", None) or [])
         if robot_id is not None or checkpoint is not None:
             from rclpy.parameter import Parameter
@@ -96,19 +99,22 @@ class PolicyNode(Node):
         if self.conflict_rule not in CONFLICT_RULES:
             raise ValueError(f"parameter conflict_rule must be one of {CONFLICT_RULES}, "
                              f"got {self.conflict_rule!r}")
-        # a preference_mode given (params file, -p, `up --preference-mode`) always wins; else
-        # the ranking measured best under the rule (issue 25 item 3)
-        self.preference_mode = (str(self.get_parameter("preference_mode").value)
-                                or default_q_mode(self.conflict_rule))
-        if self.preference_mode not in PREFERENCE_MODES:
+        given = str(self.get_parameter("preference_mode").value)
+        if given and given not in PREFERENCE_MODES:  # before the checkpoint loads
             raise ValueError(f"parameter preference_mode must be one of {PREFERENCE_MODES}, "
-                             f"got {self.preference_mode!r}")
+                             f"got {given!r}")
         if model is None:
             path = self.get_parameter("checkpoint").value
             if not path:
                 raise ValueError("parameter 'checkpoint' is required (a checkpoint file path)")
-            model, _ = load_policy_model(path)
+            model, metadata = load_policy_model(path)
         self.model = model
+        self.checkpoint_metadata = metadata or {}
+        # a preference_mode given (params file, -p, `up --preference-mode`) always wins; else
+        # the ranking the checkpoint was trained behind under the rule (metadata rankings),
+        # else the ranking measured best under the rule (issue 25 item 3)
+        self.preference_mode = given or default_q_mode(self.conflict_rule,
+                                                       self.checkpoint_metadata.get("rankings"))
         self.algo = model.config.algo
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.hub = None  # set by PolicyHub

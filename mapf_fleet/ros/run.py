@@ -59,7 +59,8 @@ def host_policy_nodes(robot_ids: list[int], ros_args: list[str]) -> int:
         first = PolicyNode(robot_id=robot_ids[0], **options)
         # one model object shared by the nodes of this process (inference only, no state in it)
         model = first.model
-        nodes = [first] + [PolicyNode(robot_id=i, model=model, **options)
+        nodes = [first] + [PolicyNode(robot_id=i, model=model,
+                                      metadata=first.checkpoint_metadata, **options)
                          for i in robot_ids[1:]]
         return spin_policy_nodes(nodes, signals=signals)
     finally:

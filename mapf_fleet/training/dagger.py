@@ -38,9 +38,10 @@ Round k (k = 0, 1, ...):
      labelled step: `loss` "cross_entropy" (softmax over the Q-head as logits) or "margin" (the
      DQfD large-margin loss of `demos.margin_loss`).
   4. checkpoint `checkpoints/round_{k}.pt` (the checkpoint format, atomic; metadata: round, labels,
-     CPU seconds) and the training state (`state.pt`, `state.json`), then the held-out check:
-     `heldout` settings, `heldout_count` generated instances each (seeded apart from training;
-     never the published test sets), success and average steps under the shield, appended to
+     CPU seconds, `rankings` {shield: preferences}: the ranking it runs with by default) and the
+     training state (`state.pt`, `state.json`), then the held-out check: `heldout` settings,
+     `heldout_count` generated instances each (seeded apart from training; never the published
+     test sets), success and average steps under the shield, appended to
      `curve.json` / `curve.csv` and TensorBoard (`tb/`). Before round 0 the same check runs on
      the init checkpoint (round -1) and on plain PIBT (the distance ranking, no network).
 
@@ -905,7 +906,10 @@ class Dagger:
                                      "unsolved": int(c["unsolved"]), "too_long": int(c["too_long"]),
                                      "cpu_seconds": round(float(c["cpu_seconds"]), 1),
                                      "init_checkpoint": self.cfg.init_checkpoint,
-                                     "train": train_summary}}}
+                                     "train": train_summary}},
+                # the states it learned from were visited under this ranking behind this rule:
+                # the evaluator and the policy nodes rank with it there unless told otherwise
+                "rankings": {self.cfg.shield: self.cfg.preferences}}
         return save_checkpoint(self.run_dir / CHECKPOINT_DIR / f"round_{round_index:03d}.pt",
                                self.model, meta)
 

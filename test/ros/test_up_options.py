@@ -2,8 +2,8 @@
 default stated (defect 8), --resolution / --origin for real robots, a .scen's own robot count
 (defect 8), --log-dir and the logs of a failed run kept (defect 10), `mapf-fleet param`
 (defect 9), --single-process with 128 robots ready without waiting out the start-up timeout
-(defect 3), and the policy nodes' default preference_mode following the conflict rule (issue 25
-item 3). The bad values refused up front (defect 5) are in test_cli_errors.py."""
+(defect 3), and the policy nodes' default preference_mode following the checkpoint's recorded
+ranking, else the conflict rule (issue 25 item 3). The bad values refused up front (defect 5) are in test_cli_errors.py."""
 
 from __future__ import annotations
 
@@ -107,6 +107,49 @@ def test_default_preference_mode_follows_the_rule_and_yields_to_a_params_file(
             node = PolicyNode(robot_id=0, context=context)
             assert node.preference_mode == expected, (own, node.preference_mode)
             node.destroy_node()
+        finally:
+            rclpy.try_shutdown(context=context)
+
+
+@pytest.mark.ros
+def test_default_preference_mode_is_the_checkpoints_recorded_ranking(tmp_path, ros_env):
+    """A checkpoint recording its ranking for the rule (metadata rankings, e.g. a DAgger round):
+    the policy nodes use it when no preference_mode is given, the rule's default under another
+    rule, and a given preference_mode (params file, --preference-mode) still wins. The robots a
+    process hosts beside the first (sharing its model) rank the same."""
+    import rclpy
+    import torch
+
+    from mapf_fleet.coordination.preferences import default_q_mode
+    from mapf_fleet.models.checkpoint import build_model, save_checkpoint
+    from mapf_fleet.models.config import ModelConfig
+    from mapf_fleet.ros.policy_node import PolicyNode
+
+    torch.manual_seed(7)
+    recorded = "q_then_distance"
+    assert recorded != default_q_mode("pibt_anchor")  # the checkpoint's, not the rule's
+    checkpoint = str(save_checkpoint(tmp_path / "round.pt",
+                                     build_model(ModelConfig.preset("dhc", "small")), {
+        "alpha": 0.0, "curriculum": {}, "learner_steps": 0, "training_config": {},
+        "rankings": {"pibt_anchor": recorded}}))
+    params = tmp_path / "p.yaml"
+    params.write_text("/**:\n  ros__parameters:\n    preference_mode: q_demote_stay\n")
+    cases = [([], recorded), (["--conflict-rule", "pibt"], default_q_mode("pibt")),
+             (["--params-file", str(params)], "q_demote_stay"),
+             (["--preference-mode", "confidence"], "confidence")]
+    for own, expected in cases:
+        args = _args(own)
+        _, policy = launcher.node_parameters(args, checkpoint, "r.json", 2)
+        context = rclpy.Context()
+        rclpy.init(args=["policy"] + launcher._ros_args(policy, args, "policy"),
+                   context=context)
+        try:
+            first = PolicyNode(robot_id=0, context=context)
+            second = PolicyNode(robot_id=1, model=first.model,
+                                metadata=first.checkpoint_metadata, context=context)
+            assert (first.preference_mode, second.preference_mode) == (expected, expected), own
+            first.destroy_node()
+            second.destroy_node()
         finally:
             rclpy.try_shutdown(context=context)
 
