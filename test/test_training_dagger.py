@@ -283,6 +283,9 @@ def test_compare_runs_prints_the_ab_side_by_side(tmp_path, capsys):
     assert "| mean of rounds 1-2 | 0.70 (88) |" in table
     assert dagger.main(["--compare", str(a), str(b), "--last", "2"]) == 0
     assert capsys.readouterr().out.strip() == table
+    png = tmp_path / "curves.png"
+    assert dagger.main(["--compare", str(a), str(b), "--plot", str(png)]) == 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f"curves: {png}" in capsys.readouterr().out
     # not a run directory: one line naming it, exit 2
     assert dagger.main(["--compare", str(tmp_path / "nope")]) == 2
     assert "nope: not a DAgger run directory" in capsys.readouterr().err

@@ -1075,6 +1075,44 @@ def compare_runs(run_dirs: list[str | Path], last: int = 4) -> str:
     return "\n".join(lines)
 
 
+def plot_runs(run_dirs: list[str | Path], out: str | Path) -> Path:
+    """The DAgger curves as a PNG: per held-out setting, each run's success per round (the init
+    checkpoint at round -1) and plain PIBT's as a dashed line (the first run's)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    curves = []
+    for run_dir in map(Path, run_dirs):
+        if not (run_dir / CURVE_JSON).is_file():
+            raise DaggerConfigError(f"{run_dir}: not a DAgger run directory (no {CURVE_JSON})")
+        curves.append((run_dir.name, json.loads((run_dir / CURVE_JSON).read_text())))
+    keys = list(dict.fromkeys(k[:-len("_success")] for _, curve in curves for row in curve
+                              for k in row if k.endswith("_success")))
+    fig, axes = plt.subplots(1, len(keys), figsize=(4.2 * len(keys), 3.4), squeeze=False)
+    for ax, key in zip(axes[0], keys):
+        for name, curve in curves:
+            rows = sorted((r for r in curve if r["policy"] in ("init", "dagger")
+                           and f"{key}_success" in r), key=lambda r: r["round"])
+            ax.plot([r["round"] for r in rows], [r[f"{key}_success"] for r in rows],
+                    marker="o", ms=3, label=name)
+        base = [r for r in curves[0][1] if r["policy"] == "plain_pibt" and f"{key}_success" in r]
+        if base:
+            ax.axhline(base[0][f"{key}_success"], color="k", ls="--", lw=1, label="plain PIBT")
+        ax.set_title(key)
+        ax.set_xlabel("round (-1: init)")
+        ax.set_ylim(-0.02, 1.02)
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel("held-out success")
+    axes[0][-1].legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    out = Path(out)
+    atomic_write(out, lambda f: fig.savefig(f, format="png", dpi=110))
+    plt.close(fig)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     import argparse
     import sys
@@ -1089,6 +1127,8 @@ def main(argv: list[str] | None = None) -> int:
                              "(the A/Bs) and exit; no training")
     parser.add_argument("--last", type=int, default=4,
                         help="with --compare: average the held-out checks of the last K rounds")
+    parser.add_argument("--plot", metavar="PNG",
+                        help="with --compare: also draw the runs' success per round to this PNG")
     parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                         help="override a config field (repeatable; also on a resume)")
     args = parser.parse_args(argv)
@@ -1096,6 +1136,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.compare:
         try:
             print(compare_runs(args.compare, args.last))
+            if args.plot:
+                print(f"curves: {plot_runs(args.compare, args.plot)}")
         except (DaggerConfigError, OSError, ValueError, KeyError) as exc:
             print(f"mapf-fleet dagger: {exc}", file=sys.stderr)
             return 2
