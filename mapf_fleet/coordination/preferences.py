@@ -43,7 +43,8 @@ PREFERENCE_MODES = ("q", "q_demote_stay", "q_then_distance", "confidence", "dist
 Q_MODES = ("q", "q_demote_stay", "q_then_distance", "confidence")
 DEFAULT_Q_MODE = "q"
 # The ranking each shield rule uses by default (coordination.pibt.SHIELD_RULES). Measured with
-# models/default.pt under pibt_anchor (issue 25; JSONs models/eval/dagger_ranking_*.json):
+# the then default, models/archive/dcc_4x25_cl_alpha1.0.pt, under pibt_anchor (issue 25; JSONs
+# models/eval/dagger_ranking_*.json):
 #   published 40x40/64, first 50: q 0.58 (187 steps), q_then_distance 0.76 (168),
 #     confidence 0.78 (124), plain PIBT 0.70 (135);
 #   generated dense 17-21 maps (seed 0, 50 each), 48 / 64 agents: q_then_distance 0.02 / 0.00,
@@ -55,10 +56,11 @@ DEFAULT_Q_MODE = "q"
 DEFAULT_Q_MODE_BY_RULE = {"pibt": "q", "pibt_anchor": "confidence"}
 # `confidence`: the Q lead of the argmax over the runner-up above which the network's choice
 # goes first (Q units: one step costs 0.075). Chosen on generated 40x40 maps (density 0.3, seed
-# 101, 50 instances, 64 agents, pibt_anchor; never the published sets), models/default.pt:
+# 101, 50 instances, 64 agents, pibt_anchor; never the published sets), the then default
+# models/archive/dcc_4x25_cl_alpha1.0.pt:
 # margin 0.1 / 0.3 / 0.6 solved 0.70 / 0.72 / 0.66 in 149 / 135 / 140 average steps, beside
-# q_then_distance 0.74 / 164, q 0.64 / 175, plain PIBT 0.70 / 134. The default shipped
-# default.pt's Q leads (top minus runner-up, agents off their goal): median 0.72, quartile 0.28.
+# q_then_distance 0.74 / 164, q 0.64 / 175, plain PIBT 0.70 / 134. That checkpoint's
+# Q leads (top minus runner-up, agents off their goal): median 0.72, quartile 0.28.
 CONFIDENCE_MARGIN = 0.3
 
 
@@ -67,7 +69,7 @@ def default_q_mode(rule: str, recorded: Mapping[str, str] | None = None) -> str:
     checkpoint records for `rule` (`recorded`, the metadata's `rankings` {rule: mode}), else the
     rule's default. A checkpoint trained on the states one ranking visits does best under that
     ranking (DAgger, pibt_anchor, 40x40/64, 100 instances: q_then_distance 0.77, confidence
-    0.66), whatever the rule's default measured best for models/default.pt."""
+    0.66), whatever the rule's default measured best for models/archive/dcc_4x25_cl_alpha1.0.pt."""
     if recorded and rule in recorded:
         return recorded[rule]
     return DEFAULT_Q_MODE_BY_RULE.get(rule, DEFAULT_Q_MODE)

@@ -161,7 +161,7 @@ class DaggerConfig:
 
     # --- learner -------------------------------------------------------------------------------
     # "margin" (DQfD) | "cross_entropy"; margin won the A/B of issue 25 at matched compute (8 rounds
-    # each from models/default.pt, docs/results.md)
+    # each from the then default, models/archive/dcc_4x25_cl_alpha1.0.pt; docs/results.md)
     loss: str = "margin"
     margin: float = 0.8  # the large margin of loss "margin"
     lr: float = 5e-5
