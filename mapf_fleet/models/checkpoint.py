@@ -140,9 +140,11 @@ def read_checkpoint(path, map_location="cpu") -> tuple[dict[str, torch.Tensor], 
     try:
         payload = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as exc:  # torch raises many types for corrupt/truncated/unsafe files
+        # one line: torch's own message runs to a page (every command prints this error as one)
+        first = (str(exc).strip().splitlines() or [""])[0]
         raise CheckpointError(
             f"{path}: not a readable checkpoint (corrupt, truncated or not weights-only): "
-            f"{type(exc).__name__}: {exc}") from exc
+            f"{type(exc).__name__}: {first}") from exc
     if not isinstance(payload, dict):
         raise CheckpointError(f"{path}: top level: expected a dict, found {type(payload).__name__}")
     _expect(path, "format", payload.get("format"), FORMAT)
