@@ -1026,6 +1026,25 @@ class Dagger:
                 "counters": dict(self.state["counters"])}
 
 
+def _read_runs(run_dirs: list[str | Path]) -> list[tuple[Path, dict, list[dict]]]:
+    """(run directory, its config, its held-out curve) of each DAgger run directory."""
+    runs = []
+    for run_dir in map(Path, run_dirs):
+        curve_file, config_file = run_dir / CURVE_JSON, run_dir / CONFIG_FILE
+        if not curve_file.is_file() or not config_file.is_file():
+            raise DaggerConfigError(f"{run_dir}: not a DAgger run directory (no {CURVE_JSON} "
+                                    f"or {CONFIG_FILE})")
+        runs.append((run_dir, yaml.safe_load(config_file.read_text()) or {},
+                     json.loads(curve_file.read_text())))
+    return runs
+
+
+def _heldout_keys(curves) -> list[str]:
+    """The held-out settings ("dense21_48", ...) the curves' rows hold, in order of appearance."""
+    return list(dict.fromkeys(k[:-len("_success")] for curve in curves for row in curve
+                              for k in row if k.endswith("_success")))
+
+
 def compare_runs(run_dirs: list[str | Path], last: int = 4) -> str:
     """A Markdown table of DAgger runs side by side (the A/Bs of issue 25): per run its loss,
     observation, rounds, labels and CPU-hours, and per held-out setting the success (average
@@ -1035,19 +1054,12 @@ def compare_runs(run_dirs: list[str | Path], last: int = 4) -> str:
     if last < 1:
         raise DaggerConfigError(f"--last must be >= 1, got {last}")
     runs = []
-    for run_dir in map(Path, run_dirs):
-        curve_file, config_file = run_dir / CURVE_JSON, run_dir / CONFIG_FILE
-        if not curve_file.is_file() or not config_file.is_file():
-            raise DaggerConfigError(f"{run_dir}: not a DAgger run directory (no {CURVE_JSON} "
-                                    f"or {CONFIG_FILE})")
-        curve = json.loads(curve_file.read_text())
-        config = yaml.safe_load(config_file.read_text()) or {}
+    for run_dir, config, curve in _read_runs(run_dirs):
         rounds = sorted((r for r in curve if r["policy"] == "dagger"), key=lambda r: r["round"])
         if not rounds:
             raise DaggerConfigError(f"{run_dir}: no round has finished its held-out check yet")
         runs.append((run_dir, config, curve, rounds))
-    keys = list(dict.fromkeys(k[:-len("_success")] for _, _, curve, _ in runs for row in curve
-                              for k in row if k.endswith("_success")))
+    keys = _heldout_keys(curve for _, _, curve, _ in runs)
 
     def cell(rows: list[dict], key: str) -> str:
         have = [r for r in rows if f"{key}_success" in r]
@@ -1085,13 +1097,8 @@ def plot_runs(run_dirs: list[str | Path], out: str | Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    curves = []
-    for run_dir in map(Path, run_dirs):
-        if not (run_dir / CURVE_JSON).is_file():
-            raise DaggerConfigError(f"{run_dir}: not a DAgger run directory (no {CURVE_JSON})")
-        curves.append((run_dir.name, json.loads((run_dir / CURVE_JSON).read_text())))
-    keys = list(dict.fromkeys(k[:-len("_success")] for _, curve in curves for row in curve
-                              for k in row if k.endswith("_success")))
+    curves = [(run_dir.name, curve) for run_dir, _, curve in _read_runs(run_dirs)]
+    keys = _heldout_keys(curve for _, curve in curves)
     fig, axes = plt.subplots(1, len(keys), figsize=(4.2 * len(keys), 3.4), squeeze=False)
     for ax, key in zip(axes[0], keys):
         for name, curve in curves:
