@@ -179,8 +179,20 @@ def cell_pose(row: int, col: int, geometry: MapGeometry, stamp=None):
 
 class SpinThread:
     """Spin an executor in its own thread (DESIGN.md section 2: never call
-    spin_until_future_complete in a loop); `stop()` shuts it down and joins the thread, which must
-    happen before the nodes are destroyed.
+    spin_until_future_complete in a loop); `stop()` ends the thread, then shuts the executor
+    down, which must happen before the nodes are destroyed.
+
+    The thread runs `spin_once` in a loop that checks its own stop flag, and `stop()` shuts the
+    executor down only once the thread has left it. rclpy's `Executor.shutdown()` called while
+    another thread spins is racy (Jazzy): it destroys the executor's wake-up guard condition
+    without waiting for the spinning thread, so a thread that is between its shutdown check and
+    building its wait set waits forever without that guard, holding the node's handles, and
+    `destroy_node` then blocks (an `echo` stopped during discovery hung past 30 s under CI
+    load). `stop()` hands the executor an empty task: `spin_once` runs it and returns, so the
+    thread sees its flag at once (a bare `wake()` does not end `spin_once`: the executor's own
+    guard yields no work and it waits on). The task's guard trigger stays set until a wait takes
+    it and tasks are checked before each wait, so no wake-up is lost; the `spin_once` timeout
+    bounds the wait regardless.
 
     A callback that raises never ends the thread silently: the exception is logged with its
     traceback (on the logger of the executor's first node), kept in `error`, passed to
@@ -189,22 +201,26 @@ class SpinThread:
     Bad input a node expects (a NaN pose) is handled in its callback and never gets here. A
     context or executor shut down under it ends it quietly."""
 
+    # longest wait in one spin_once: the stop flag is seen this soon even without a wake-up
+    POLL_S = 0.5
+
     def __init__(self, executor, on_error=None):
         self.executor = executor
         self.on_error = on_error
         self.error: BaseException | None = None
-        self._stopping = False
+        self._stopping = threading.Event()
         self._thread = threading.Thread(target=self._run, name="ros-spin", daemon=True)
 
     def _run(self):
         from rclpy.executors import ExternalShutdownException, ShutdownException
 
         try:
-            self.executor.spin()
+            while not self._stopping.is_set() and self.executor.context.ok():
+                self.executor.spin_once(timeout_sec=self.POLL_S)
         except (ExternalShutdownException, ShutdownException):
             pass
         except Exception as exc:
-            if self._stopping or not self.executor.context.ok():
+            if self._stopping.is_set() or not self.executor.context.ok():
                 return  # shut down under us: nothing left to do
             self.error = exc
             log_callback_error(self.executor, exc)
@@ -215,10 +231,18 @@ class SpinThread:
         self._thread.start()
         return self
 
+    @property
+    def running(self) -> bool:
+        return self._thread.is_alive()
+
     def stop(self, timeout: float = 5.0):
-        self._stopping = True
-        self.executor.shutdown(timeout_sec=timeout)
+        self._stopping.set()
+        try:
+            self.executor.create_task(lambda: None)
+        except Exception:  # the executor was already shut down (its guard is gone)
+            pass
         self._thread.join(timeout)
+        self.executor.shutdown(timeout_sec=timeout)
 
 
 def log_callback_error(executor, exc: BaseException) -> None:

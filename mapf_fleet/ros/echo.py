@@ -20,7 +20,6 @@ import argparse
 import importlib
 import os
 import re
-import signal
 import sys
 import threading
 import time
@@ -29,6 +28,7 @@ from contextlib import contextmanager
 import yaml
 
 from mapf_fleet.ros import common
+from mapf_fleet.ros.processes import StopSignals
 
 # Topics the fleet publishes latched (reliable, transient local); relative to any namespace.
 LATCHED_TOPIC_RE = re.compile(r"(^|/)(fleet/(map|outcome)|robot_\d+/(goal|waypoint))$")
@@ -88,36 +88,6 @@ def choose_qos(topic: str, publishers, depth: int = 100):
         depth=depth, history=HistoryPolicy.KEEP_LAST,
         reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
         durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
-
-
-class StopSignals:
-    """SIGINT/SIGTERM set `.event` (and remember the signal) instead of raising in whatever the
-    main thread is doing; rclpy's own handlers are not installed (see `start_node`)."""
-
-    SIGNALS = (signal.SIGINT, signal.SIGTERM)
-
-    def __init__(self):
-        self.event = threading.Event()
-        self.signum: int | None = None
-        self._previous = {}
-
-    def _handle(self, signum, _frame):
-        self.signum = signum
-        self.event.set()
-
-    def install(self) -> "StopSignals":
-        for signum in self.SIGNALS:
-            self._previous[signum] = signal.signal(signum, self._handle)
-        return self
-
-    def restore(self):
-        for signum, handler in self._previous.items():
-            signal.signal(signum, handler)
-        self._previous.clear()
-
-    def wait(self, seconds: float) -> bool:
-        """Sleep up to `seconds`; True when a stop signal came."""
-        return self.event.wait(seconds)
 
 
 def start_node(node_name: str):

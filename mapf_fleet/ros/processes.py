@@ -90,6 +90,10 @@ class StopSignals:
     def requested(self) -> bool:
         return self.event.is_set()
 
+    def wait(self, seconds: float) -> bool:
+        """Sleep up to `seconds`; True when a stop signal came."""
+        return self.event.wait(seconds)
+
     @property
     def forced(self) -> bool:
         """A second signal: stop waiting for a clean end."""

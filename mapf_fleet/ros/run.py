@@ -1,7 +1,7 @@
 """`mapf-fleet node NAME [--ros-args ...]`: run one node like `ros2 run mapf_fleet NAME`.
 
 NAME is simulator, policy or aggregator. `mapf-fleet node policy --robots 0-7 --ros-args -p
-checkpoint:=F` hosts several policy nodes in one process (one MultiThreadedExecutor), which is
+checkpoint:=F` hosts several policy nodes in one process (one executor, spun in one thread), which is
 how large fleets stay within Fast DDS's ~32 processes per domain.
 """
 

@@ -2,10 +2,12 @@
 two-cell jump reach the aggregator's pose callback and are rejected with one log line naming the
 robot, the field and the value, the robot holds its cell, and the callback does not raise (it
 used to, and the spin thread then stopped the executor without a word). A callback that does
-raise is logged with its cause by `SpinThread`, which reports it to the process."""
+raise is logged with its cause by `SpinThread`, which reports it to the process, and a
+`SpinThread` stopped right after it started does stop."""
 
 from __future__ import annotations
 
+import sys
 import threading
 import time
 from pathlib import Path
@@ -91,3 +93,40 @@ def test_spin_thread_logs_a_failing_callback_and_reports_it(rclpy_context, capfd
         spinner.stop()
         node.destroy_node()
     assert len(calls) == 1  # it stopped spinning: the process ends non-zero (spin loops)
+
+
+@pytest.mark.ros
+def test_spin_thread_stopped_at_once_ends_its_thread(rclpy_context):
+    """`stop()` right after `start()`, many times, with the GIL switching between threads as
+    often as it can and a busy thread competing for it: the spin thread has ended when `stop()`
+    returns. With rclpy's own `Executor.shutdown()` racing the spinning thread (what SpinThread
+    did until stop 27), a few in a hundred were left waiting forever without the executor's
+    guard condition, and destroying the node then blocked (an `echo` hung on SIGINT in CI)."""
+    from rclpy.executors import SingleThreadedExecutor
+
+    from mapf_fleet.ros.common import SpinThread
+
+    node = rclpy_context.create_node("spin_stop_race")
+    busy_until = time.monotonic() + 120.0
+    done = threading.Event()
+
+    def busy():
+        while not done.is_set() and time.monotonic() < busy_until:
+            pass
+
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)
+    threading.Thread(target=busy, daemon=True).start()
+    stuck = 0
+    try:
+        for _ in range(150):
+            executor = SingleThreadedExecutor()
+            executor.add_node(node)
+            spinner = SpinThread(executor).start()
+            spinner.stop(timeout=2.0)
+            stuck += spinner.running
+    finally:
+        done.set()
+        sys.setswitchinterval(interval)
+        node.destroy_node()
+    assert stuck == 0, f"{stuck} of 150 spin threads still running after stop()"
