@@ -17,6 +17,7 @@ import yaml
 from mapf_fleet.evaluation import paper_results
 from mapf_fleet.evaluation.model_card import CardError, build_card, main
 
+REPO = Path(__file__).resolve().parents[1]
 PAPER_TEXT = Path("/work/shared/paper/cooperative-mapf-paper.txt")
 NUMBER = re.compile(r"^\d+\.\d+$")  # values have decimals; agent counts do not
 
@@ -533,3 +534,30 @@ def test_shielded_rows_are_compared_with_plain_pibt_in_success_and_steps():
     better = [row("m +PIBT", 16, 1.0, 60.0), row(PLAIN_PIBT, 16, 0.9, 70.0)]
     assert "at every agent count" in _against_plain_pibt(better, "m +PIBT", [16])[0]
     assert _against_plain_pibt(rows[:1], "m +PIBT", [16]) == []  # no PIBT row: nothing said
+
+
+def test_card_of_a_dagger_round_states_its_dagger_record(tmp_path):
+    """A DAgger checkpoint's card gives its own rows (training, init, labels, unlabelled states,
+    measured CPU time, the recorded ranking) instead of the Ape-X curriculum's stage-1 setting,
+    alpha gate and alpha*, and the side-by-side table names its training and compute."""
+    models = REPO / "models"
+    text = build_card(models / "dcc_4x25_cl_alpha1.0_dagger_r7.pt",
+                      [models / "eval" / "dagger_r7_anchor_40.json",
+                       models / "eval" / "dcc_4x25_cl_alpha1.0_pibt.json"],
+                      compare=[models / "archive" / "dcc_4x25_cl_alpha1.0.pt"])
+    what = text.split("## What it is", 1)[1].split("## How to run it", 1)[0]
+    rows = dict(line.strip("|").split(" | ", 1) for line in what.splitlines()
+                if line.startswith("| ") and " | " in line)
+    rows = {k.strip(): v.strip(" |") for k, v in rows.items()}
+    assert "alphas that passed the gate (stage 2)" not in rows
+    assert "curriculum setting reached (stage 1)" not in rows
+    assert rows["training"].startswith("DAgger round 7 of 8 behind `pibt_anchor`")
+    assert rows["labels"].startswith("123,170 (every agent of 3,005 labelled states")
+    assert rows["states LaCAM left unlabelled"].startswith("177 unsolved")
+    assert rows["DAgger compute to this checkpoint"].startswith("0.48 CPU-hours measured")
+    assert rows["ranking it runs with unless told otherwise (recorded)"] == \
+        "`q_then_distance` under `pibt_anchor`"
+    assert "**0.48 CPU-hours** measured to this checkpoint" in text
+    side = text.split("### Side by side", 1)[1]
+    mine = next(line for line in side.splitlines() if "(this checkpoint)" in line)
+    assert "DAgger round 7 of 8" in mine and "DAgger task mix" in mine and "| 0.48 |" in mine

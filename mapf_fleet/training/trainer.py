@@ -281,7 +281,7 @@ class Trainer:
                       "alpha_passed": list(self.alpha.passed), "alpha_star": self.alpha.alpha_star}
         if self.cfg.task_mix:  # the tasks came from the mix, not from `setting`
             curriculum["task_mix"] = dict(self.cfg.task_mix)
-        return {"alpha": float(self.task.alpha),
+        meta = {"alpha": float(self.task.alpha),
                 "curriculum": curriculum,
                 "learner_steps": int(self.learner.updates),
                 "training_config": self.cfg.to_dict(),
@@ -289,6 +289,11 @@ class Trainer:
                           # the compute spent up to this checkpoint (cards, side-by-side tables)
                           "counters": {k: self.counters[k] for k in CHECKPOINT_COUNTERS
                                        if k in self.counters}}}
+        if self.cfg.shield != "none":
+            # trained behind the shield under this ranking: the evaluator and the policy nodes
+            # rank with it under that rule unless told otherwise (as DAgger's checkpoints do)
+            meta["rankings"] = {self.cfg.shield: self.cfg.shield_preferences}
+        return meta
 
     def save_checkpoint(self, name: str, alpha: float | None = None) -> Path:
         from mapf_fleet.models.checkpoint import save_checkpoint

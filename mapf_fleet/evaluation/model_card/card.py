@@ -11,7 +11,8 @@ from pathlib import Path
 
 from .compute import CHECKPOINT_POINT, compute_spent
 from .curves import CURVE_TAGS, plot_curves, read_scalars, scalars_up_to
-from .facts import _alpha_star_text, _trained_with_text, _version_text, model_summary, training_config_diff
+from .facts import (_alpha_star_text, _trained_with_text, _version_text, dagger_facts, dagger_record,
+                    model_summary, rankings_text, training_config_diff)
 from .inputs import CardError, _sha256, load_evaluations, match_policy, read_run_dir
 from .tables import _repo_relative, comparison_section, evaluation_block
 
@@ -142,6 +143,16 @@ def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | 
         ("code that trained it (per training session)", _trained_with_text(metadata)),
         ("checkpoint SHA-256", f"`{_sha256(checkpoint)}`"),
     ]
+    dagger = dagger_record(metadata)
+    if dagger is not None:
+        # a DAgger round has no stage-1 setting, alpha gate or alpha*: its own rows instead
+        at = next(i for i, (k, _) in enumerate(facts) if k == "curriculum setting reached (stage 1)")
+        del facts[at:at + 3]
+        facts[at:at] = dagger_facts(dagger)
+    rankings = rankings_text(metadata)
+    if rankings is not None:
+        facts.insert(facts.index(next(f for f in facts if f[0] == "learner steps")) + 1,
+                     ("ranking it runs with unless told otherwise (recorded)", rankings))
     if curriculum.get("note"):
         facts.insert(3, ("note", str(curriculum["note"])))
     if run is not None:
@@ -176,7 +187,14 @@ def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | 
 
     lines += ["", "### Compute", ""]
     compute = compute_spent(run, metadata)
-    if compute is None:
+    if compute is None and dagger is not None:
+        cpu = dagger.get("cpu_seconds")
+        lines.append("DAgger: " + ("not recorded" if not isinstance(cpu, (int, float)) else
+                     f"**{cpu / 3600:.2f} CPU-hours** measured to this checkpoint (process CPU time "
+                     "of the driver and its workers: rollouts, LaCAM labelling, updates and the "
+                     "held-out checks, `extra.dagger.cpu_seconds`)")
+                     + ", on top of the compute of the checkpoint it started from (its own card).")
+    elif compute is None:
         lines.append("Not recorded: no run directory given and the checkpoint holds no elapsed time.")
     elif compute.cpu_hours is None:
         lines.append(f"Wall time {compute.wall_seconds / 3600:.2f} h ({compute.source}); CPU-hours unknown: "

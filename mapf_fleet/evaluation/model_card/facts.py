@@ -85,3 +85,57 @@ def _version_text(version: Any) -> str:
         return "not recorded"
     commit = version.get("git_commit")
     return f"mapf_fleet {version.get('package', '?')}" + (f", git {commit[:12]}" if commit else ", git commit unknown")
+
+
+def dagger_record(metadata: dict) -> dict | None:
+    """The DAgger round's record (`extra.dagger`, written by `mapf-fleet dagger`) with its
+    configuration (`training_config.dagger`) under "config", or None for other checkpoints."""
+    if (metadata.get("curriculum") or {}).get("stage") != "dagger":
+        return None
+    record = (metadata.get("extra") or {}).get("dagger")
+    if not isinstance(record, dict):
+        return None
+    config = (metadata.get("training_config") or {}).get("dagger")
+    return {**record, "config": config if isinstance(config, dict) else {}}
+
+
+def dagger_training_text(record: dict) -> str:
+    """One line: what a DAgger checkpoint trained on and how."""
+    cfg = record["config"]
+    rounds = cfg.get("rounds")
+    of = f" of {rounds}" if isinstance(rounds, int) else ""
+    return (f"DAgger round {record.get('round', '?')}{of} behind `{cfg.get('shield', '?')}` "
+            f"(ranking `{cfg.get('preferences', '?')}`), {cfg.get('loss', '?')} loss on LaCAM labels")
+
+
+def dagger_facts(record: dict) -> list[tuple[str, str]]:
+    """The card's "What it is" rows for a DAgger checkpoint, in place of the Ape-X curriculum's
+    (stage-1 setting, alpha gate, alpha*), which a DAgger round does not have."""
+    def count(key: str) -> str:
+        value = record.get(key)
+        return f"{value:,}" if isinstance(value, int) else "not recorded"
+
+    cpu = record.get("cpu_seconds")
+    init = record.get("init_checkpoint") or record["config"].get("init_checkpoint")
+    return [
+        ("training", dagger_training_text(record)),
+        ("initialised from", "not recorded" if not init
+         else f"`{init}` (the path as the run named it when it began)"),
+        ("labels", f"{count('labels')} (every agent of {count('labelled_states')} labelled "
+                   f"states, {count('episodes')} episodes)"),
+        ("states LaCAM left unlabelled", f"{count('unsolved')} unsolved within the limit, "
+                                         f"{count('too_long')} with a plan too long to trust"),
+        ("updates in DAgger", count("updates")),
+        ("DAgger compute to this checkpoint",
+         "not recorded" if not isinstance(cpu, (int, float))
+         else f"{cpu / 3600:.2f} CPU-hours measured (process CPU time of the driver and its "
+              "workers, `extra.dagger.cpu_seconds`), beside the init checkpoint's own"),
+    ]
+
+
+def rankings_text(metadata: dict) -> str | None:
+    """The rankings a checkpoint records (`{rule: mode}`), as one line; None when it records none."""
+    rankings = metadata.get("rankings")
+    if not isinstance(rankings, dict) or not rankings:
+        return None
+    return ", ".join(f"`{mode}` under `{rule}`" for rule, mode in rankings.items())

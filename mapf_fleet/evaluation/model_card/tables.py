@@ -13,6 +13,7 @@ from mapf_fleet import paths
 from .. import paper_results
 from ..paper_results import BASELINE, CURRICULUM, FIXED
 from .compute import compute_spent
+from .facts import dagger_record, dagger_training_text
 from .inputs import CardError, RunInfo, match_policy
 
 # The paper's tables: (summary field, title, format), as mapf_fleet.evaluation.report prints them.
@@ -123,7 +124,14 @@ def comparison_section(evaluation: dict, policy: str, metadata: dict, eval_path:
     for name, meta, compute in entries:
         config = meta.get("training_config") or {}
         setting = (meta.get("curriculum") or {}).get("setting") or ["?", "?"]
+        setting_text = f"{setting[0]} agents on {setting[1]}x{setting[1]}"
+        training = RECIPES.get(config.get('demo_source', 'none'), config.get('demo_source'))
         measured = None if compute is None else compute.measured_cpu_seconds
+        dagger = dagger_record(meta)
+        if dagger is not None:  # a DAgger round: its task mix, its own measured CPU time
+            training, setting_text = dagger_training_text(dagger), "DAgger task mix"
+            if compute is None and isinstance(dagger.get("cpu_seconds"), (int, float)):
+                measured = float(dagger["cpu_seconds"])
         if compute is not None and compute.measured_from_elapsed > 0 and measured is not None:
             measured_text = f"{measured / 3600:.2f} (last {(compute.wall_seconds - compute.measured_from_elapsed) / 3600:.2f} h of wall time)"
         else:
@@ -131,8 +139,8 @@ def comparison_section(evaluation: dict, policy: str, metadata: dict, eval_path:
         reserved = None if compute is None or compute.cpu_hours is None else compute.cpu_hours * 3600
         label = f"**{name}** (this checkpoint)" if name == policy else name
         lines.append(f"| {label} | {meta.get('algorithm', '?').upper()} "
-                     f"| {RECIPES.get(config.get('demo_source', 'none'), config.get('demo_source'))} "
-                     f"| {setting[0]} agents on {setting[1]}x{setting[1]} | {float(meta.get('alpha', 0)):g} "
+                     f"| {training} "
+                     f"| {setting_text} | {float(meta.get('alpha', 0)):g} "
                      f"| {int(meta.get('learner_steps', 0)):,} | {measured_text} | {_hours(reserved)} |")
     lines.append("")
     names = [e[0] for e in entries]
