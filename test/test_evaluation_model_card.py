@@ -543,6 +543,7 @@ def test_card_of_a_dagger_round_states_its_dagger_record(tmp_path):
     models = REPO / "models"
     text = build_card(models / "dcc_4x25_cl_alpha1.0_dagger_r7.pt",
                       [models / "eval" / "dagger_r7_anchor_40.json",
+                       models / "eval" / "dagger_r7_anchor_80.json",
                        models / "eval" / "dcc_4x25_cl_alpha1.0_pibt.json"],
                       compare=[models / "archive" / "dcc_4x25_cl_alpha1.0.pt"])
     what = text.split("## What it is", 1)[1].split("## How to run it", 1)[0]
@@ -558,6 +559,9 @@ def test_card_of_a_dagger_round_states_its_dagger_record(tmp_path):
     assert rows["ranking it runs with unless told otherwise (recorded)"] == \
         "`q_then_distance` under `pibt_anchor`"
     assert "**0.48 CPU-hours** measured to this checkpoint" in text
+    # 80x80 holds only its shielded rows: their instance count is still stated
+    assert "Measured on 200 instances per scenario, limit 386 steps" in text
+    assert "Measured on  instances" not in text
     side = text.split("### Side by side", 1)[1]
     mine = next(line for line in side.splitlines() if "(this checkpoint)" in line)
     assert "DAgger round 7 of 8" in mine and "DAgger task mix" in mine and "| 0.48 |" in mine

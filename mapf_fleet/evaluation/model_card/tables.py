@@ -57,7 +57,9 @@ def evaluation_section(evaluation: dict, policy: str, metadata: dict, eval_path:
         mine = [r for r in rows if r["map"] == map_name]
         agents = sorted({int(r["agents"]) for r in mine})
         limits = "/".join(str(v) for v in sorted({r["max_steps"] for r in mine}))
-        counts = "/".join(str(v) for v in sorted({_episode_count(r) for r in mine if r["policy"] == policy}))
+        # this checkpoint's rows, shielded ones included (a map may have only those)
+        counts = "/".join(str(v) for v in sorted({_episode_count(r) for r in mine
+                                                  if r["policy"] in (policy, *shielded)}))
         sources = "; ".join(sorted({str(r.get("source", "?")) for r in mine}))
         size = _map_size(map_name)
         paper = []
