@@ -67,7 +67,14 @@ def evaluation_section(evaluation: dict, policy: str, metadata: dict, eval_path:
             methods = (BASELINE, CURRICULUM, FIXED) if fixed else (BASELINE, CURRICULUM)
             paper = paper_results.paper_rows(algorithm, size, methods)
         lines.append(f"{'#' * level} {map_name}\n")
-        lines.append(f"Measured on {counts} instances per scenario, limit {limits} steps; instances: {sources}.")
+        if counts:
+            lines.append(f"Measured on {counts} instances per scenario, limit {limits} steps; "
+                         f"instances: {sources}.")
+        else:  # only the references were run on this map
+            others = "/".join(str(v) for v in sorted({_episode_count(r) for r in mine}))
+            lines.append(f"This checkpoint has no row on this map: the references' rows below were "
+                         f"measured on {others} instances per scenario, limit {limits} steps; "
+                         f"instances: {sources}.")
         if paper:
             tables = ", ".join(dict.fromkeys(r.table for r in paper))
             lines.append(f"Paper rows ({tables}) are the paper's own numbers on 200 instances per scenario "
