@@ -126,6 +126,16 @@ def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | 
     if alpha_star is None and run and run.result:
         alpha_star = run.result.get("alpha_star")
     passed = curriculum.get("alpha_passed")
+    dagger = dagger_record(metadata)
+    if dagger is not None:  # a DAgger round has no stage-1 setting, alpha gate or alpha*
+        training_rows = dagger_facts(dagger)
+    else:
+        training_rows = [
+            ("curriculum setting reached (stage 1)", setting_text),
+            ("alphas that passed the gate (stage 2)", "none" if not passed else ", ".join(f"{a:g}" for a in passed)),
+            ("alpha* (stage 2)", _alpha_star_text(alpha_star, metadata.get("training_config") or {})),
+        ]
+    rankings = rankings_text(metadata)
     facts = [
         ("algorithm", metadata["algorithm"].upper()),
         ("network", f"preset `{summary['preset']}`, {summary['parameters']:,} parameters"
@@ -133,26 +143,15 @@ def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | 
             else f", observation `{summary['observation']}` (the paper's + cost-to-go channel)")),
         ("alpha (cooperation coefficient of this checkpoint)", f"{float(metadata['alpha']):g}"),
         ("curriculum stage", str(curriculum.get("stage", "not recorded"))),
-        ("curriculum setting reached (stage 1)", setting_text),
-        ("alphas that passed the gate (stage 2)", "none" if not passed else ", ".join(f"{a:g}" for a in passed)),
-        ("alpha* (stage 2)", _alpha_star_text(alpha_star, metadata.get("training_config") or {})),
+        *training_rows,
         ("learner steps", f"{metadata['learner_steps']:,}"),
+        *([] if rankings is None else [("ranking it runs with unless told otherwise (recorded)", rankings)]),
         ("observation padding / action order", f"{metadata['obs_padding']} / {', '.join(metadata['action_order'])}"),
         ("checkpoint written", str(metadata.get("created", "not recorded"))),
         ("code version of the checkpoint", _version_text(metadata.get("code_version"))),
         ("code that trained it (per training session)", _trained_with_text(metadata)),
         ("checkpoint SHA-256", f"`{_sha256(checkpoint)}`"),
     ]
-    dagger = dagger_record(metadata)
-    if dagger is not None:
-        # a DAgger round has no stage-1 setting, alpha gate or alpha*: its own rows instead
-        at = next(i for i, (k, _) in enumerate(facts) if k == "curriculum setting reached (stage 1)")
-        del facts[at:at + 3]
-        facts[at:at] = dagger_facts(dagger)
-    rankings = rankings_text(metadata)
-    if rankings is not None:
-        facts.insert(facts.index(next(f for f in facts if f[0] == "learner steps")) + 1,
-                     ("ranking it runs with unless told otherwise (recorded)", rankings))
     if curriculum.get("note"):
         facts.insert(3, ("note", str(curriculum["note"])))
     if run is not None:
