@@ -248,10 +248,13 @@ def _exercise_then_stop(proc, record_path, log, instance, robots, stop=()):
 def test_simulated_fleet_takes_goals_at_run_time(tmp_path, ros_env, checkpoints):
     seed = 3
     instance = InstanceSource(num_robots=4, size=12, density=0.2, seed=seed).load()
+    # ticks of at least 0.2 s, as robots would take: free-running, the robot preempted towards d
+    # reached it in 9 ticks (about 0.3 s) before a loaded machine's cancel got there, so the
+    # cancel met a finished goal (CI, session 13); the real-robot test is paced by its stand-ins
     proc, record_path, log = _start_fleet(
         tmp_path, ros_env, checkpoints["dcc"],
         ["--num-robots", "4", "--size", "12", "--density", "0.2", "--seed", str(seed),
-         "--nodes-per-process", "2"], "sim")
+         "--nodes-per-process", "2", "--ros-args", "-p", "mapf_simulator:tick_period:=0.2"], "sim")
     record = _exercise_then_stop(proc, record_path, log, instance, (0, 1))
     kinds = {e["event"] for e in record["goal_events"]}
     assert {"assigned", "reached", "preempted", "cancelled", "rejected"} <= kinds
