@@ -75,3 +75,21 @@ def test_missing_testset_falls_back_to_generation(tmp_path):
     scenario = protocol_scenarios(config, [40], [4])[0]
     got = scenario_instances(scenario, 2, testsets_dir=tmp_path / "none", cache_dir=tmp_path)
     assert got.source.startswith("generated") and got.maps.shape == (2, 40, 40)
+    # the report says the published set is absent, generated or read back from the cache
+    assert f"{tmp_path / 'none' / '40length_4agents.npz'} is absent" in got.source
+    again = scenario_instances(scenario, 2, testsets_dir=tmp_path / "none", cache_dir=tmp_path)
+    assert "cached" in again.source and "is absent" in again.source
+    # an 80x80 scenario names no published set: nothing to say
+    big = protocol_scenarios(config, [80], [4])[0]
+    assert "absent" not in scenario_instances(big, 1, testsets_dir=tmp_path / "none", cache_dir=None).source
+
+
+def test_evaluate_says_when_the_published_sets_are_absent(tmp_path, capsys):
+    from mapf_fleet.evaluation.cli import main
+
+    code = main(["--checkpoint", "heuristic", "--no-references", "--sizes", "40", "--agents", "4",
+                 "--instances", "1", "--testsets", str(tmp_path / "none"), "--cache-dir",
+                 str(tmp_path / "cache"), "--quiet"])
+    assert code == 0
+    err = capsys.readouterr().err
+    assert "40x40/4: the published set" in err and "using generated instances" in err

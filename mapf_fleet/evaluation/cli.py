@@ -137,10 +137,13 @@ def _scenarios(args, config: ProtocolConfig):
             from dataclasses import replace
 
             scenario = replace(scenario, max_steps=args.max_steps)
-        out.append((scenario, scenario_instances(
-            scenario, count, density=config.density, seed=seed,
-            testsets_dir=args.testsets, cache_dir=args.cache_dir,
-        )))
+        instances = scenario_instances(scenario, count, density=config.density, seed=seed,
+                                       testsets_dir=args.testsets, cache_dir=args.cache_dir)
+        if "is absent" in instances.source:
+            print(f"mapf-fleet evaluate: {scenario.key}: {instances.source.split('; ', 1)[1]}: "
+                  f"using generated instances (not the paper's; --testsets DIR names the folder)",
+                  file=sys.stderr)
+        out.append((scenario, instances))
     return out
 
 

@@ -237,8 +237,16 @@ def scenario_instances(
             return InstanceSet(subset.maps, subset.starts, subset.goals, f"published DHC test sets ({scenario.testset})")
 
     source = f"generated (seed {seed}, density {density})"
+    if scenario.testset and testsets_dir is not None:
+        # say it where the table says where its instances came from: generated 40x40 sets are
+        # not the paper's and their figures are not comparable with the published ones
+        missing = Path(testsets_dir) / scenario.testset.format(agents=scenario.num_agents)
+        absent = f"; the published set {missing} is absent"
+    else:
+        absent = ""
     if cache_dir is None:
-        return generated_instances(scenario.size, scenario.num_agents, count, density, seed)
+        made = generated_instances(scenario.size, scenario.num_agents, count, density, seed)
+        return InstanceSet(made.maps, made.starts, made.goals, source + absent)
     cache = Path(cache_dir) / (
         f"{scenario.size}x{scenario.size}_{scenario.num_agents}agents_d{density:g}_seed{seed}_{generator_tag()}.npz"
     )
@@ -246,10 +254,10 @@ def scenario_instances(
         cached = _read_npz(cache)
         if len(cached) >= count:
             subset = cached.subset(slice(0, count))
-            return InstanceSet(subset.maps, subset.starts, subset.goals, source + ", cached")
+            return InstanceSet(subset.maps, subset.starts, subset.goals, source + ", cached" + absent)
     made = generated_instances(scenario.size, scenario.num_agents, count, density, seed)
     _write_npz_atomic(cache, made.maps, made.starts, made.goals)
-    return made
+    return InstanceSet(made.maps, made.starts, made.goals, source + absent)
 
 
 def _expand(items: list[str | Path], suffix: str, flag: str) -> list[Path]:
