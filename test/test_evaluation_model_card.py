@@ -565,3 +565,30 @@ def test_card_of_a_dagger_round_states_its_dagger_record(tmp_path):
     side = text.split("### Side by side", 1)[1]
     mine = next(line for line in side.splitlines() if "(this checkpoint)" in line)
     assert "DAgger round 7 of 8" in mine and "DAgger task mix" in mine and "| 0.48 |" in mine
+
+
+def test_hand_written_notes_are_included_verbatim_and_survive_regeneration(tmp_path):
+    import torch
+
+    from mapf_fleet.evaluation.cli import main as evaluate_main
+    from mapf_fleet.evaluation.model_card.command import main as card_main
+    from mapf_fleet.evaluation.random_checkpoint import save_random_checkpoint
+
+    torch.set_num_threads(1)
+    checkpoint = save_random_checkpoint(tmp_path / "rand.pt", "dcc", "small")
+    eval_json = tmp_path / "rand.json"
+    assert evaluate_main(["--checkpoint", str(checkpoint), "--sizes", "40", "--agents", "4",
+                          "--instances", "1", "--no-references", "--json", str(eval_json), "--quiet"]) == 0
+    out = tmp_path / "cards" / "rand.md"
+    args = ["--checkpoint", str(checkpoint), "--eval", str(eval_json), "--out", str(out)]
+    assert card_main(args) == 0  # no notes file: no assessment section
+    assert "## Assessment" not in out.read_text()
+    notes = tmp_path / "cards" / "rand.notes.md"
+    notes.write_text("**Where it stands**: a random network.\n\n| a | b |\n|---|---|\n| 1 | 2 |\n")
+    for _ in range(2):  # the X.notes.md beside the card is picked up, and again on regeneration
+        assert card_main(args) == 0
+        text = out.read_text()
+        assert text.count("## Assessment") == 1
+        assert notes.read_text().strip() in text
+        assert text.index("## Assessment") < text.index("## What it is")
+    assert card_main(args + ["--notes", str(tmp_path / "missing.md")]) == 2

@@ -85,11 +85,35 @@ def add_section(card: str, section: str) -> str:
     return card + section
 
 
+NOTES_SUFFIX = ".notes.md"
+ASSESSMENT = "## Assessment"
+
+
+def default_notes(out: str | Path) -> Path:
+    """The hand-written notes of the card `out` (models/X.md -> models/X.notes.md)."""
+    out = Path(out)
+    return out.with_name(out.stem + NOTES_SUFFIX)
+
+
+def notes_block(notes: str | Path, card_dir: Path) -> list[str]:
+    """The card's hand-written assessment: the notes file verbatim under its own heading, so a
+    card is generated whole and a regeneration keeps what people wrote."""
+    notes = Path(notes)
+    try:
+        text = notes.read_text()
+    except OSError as exc:
+        raise CardError(f"--notes {notes}: {exc.strerror or exc}") from exc
+    return ["", ASSESSMENT, "", f"<!-- hand-written in {_relative(notes, card_dir)}, included verbatim by "
+            "`mapf-fleet card`: edit that file, not this section -->", "", text.strip()]
+
+
 def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | Path | None = None,
                out: str | Path | None = None, curves: str | Path | None = None,
-               command: str | None = None, compare: list[str | Path] | None = None) -> str:
+               command: str | None = None, compare: list[str | Path] | None = None,
+               notes: str | Path | None = None) -> str:
     """The card's Markdown (and the curves PNG when `curves` is given); `compare`: other
-    checkpoints of the same evaluation JSON to show side by side."""
+    checkpoints of the same evaluation JSON to show side by side; `notes`: a Markdown file of
+    hand-written assessment included verbatim after the header."""
     from mapf_fleet.models.checkpoint import CheckpointError, code_version, load_checkpoint
 
     checkpoint = Path(checkpoint)
@@ -115,7 +139,10 @@ def build_card(checkpoint: str | Path, eval_path: str | Path, *, run_dir: str | 
     lines = [f"# Model card: {checkpoint.stem}", ""]
     lines.append(f"Generated {now} by `{command or 'mapf-fleet card'}`. Every figure below is read from "
                  f"`{checkpoint.name}`'s metadata, the evaluation JSON(s) `{eval_path.name}`"
-                 + (", the training run directory" if run else "") + " or the paper's tables.")
+                 + (", the training run directory" if run else "") + " or the paper's tables"
+                 + (" (the assessment is hand-written)." if notes is not None else "."))
+    if notes is not None:
+        lines += notes_block(notes, card_dir)
     lines += ["", "## What it is", "", "| | |", "|---|---|"]
     setting = curriculum.get("setting")
     if isinstance(setting, (list, tuple)) and len(setting) == 2:

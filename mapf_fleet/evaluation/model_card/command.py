@@ -11,7 +11,7 @@ from pathlib import Path
 
 from mapf_fleet.files import atomic_write
 
-from .card import add_section, append_evaluation, build_card
+from .card import add_section, append_evaluation, build_card, default_notes
 from .inputs import CardError
 
 
@@ -33,6 +33,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "CHECKPOINT=RUN_DIR (its run directory, for what the checkpoint does not "
                         "record): a side-by-side table of how each was trained, the compute up to it "
                         "and its success rates")
+    p.add_argument("--notes", metavar="MD",
+                   help="hand-written assessment (Markdown) included verbatim after the header "
+                        "(default: the card's X.notes.md beside --out, when it exists)")
     return p
 
 
@@ -51,10 +54,13 @@ def main(argv: list[str] | None = None) -> int:
         atomic_write(args.out, add_section(Path(args.out).read_text(), text).encode())
         print(f"added to {args.out}")
         return 0
+    notes = args.notes
+    if notes is None and default_notes(args.out).is_file():
+        notes = default_notes(args.out)
     try:
         text = build_card(args.checkpoint, args.eval, run_dir=args.run_dir, out=args.out,
                           curves=args.curves, command="mapf-fleet card " + shlex.join(argv),
-                          compare=args.compare)
+                          compare=args.compare, notes=notes)
     except (CardError, FileNotFoundError) as exc:
         print(f"mapf-fleet card: {exc}", file=sys.stderr)
         return 2
