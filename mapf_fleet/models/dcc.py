@@ -21,8 +21,8 @@ Carried hidden: h2_i, the reply-layer output (the final, post-communication hidd
 reference's step and training forward both do. The pre-communication h_i is not carried.
 
 `step` is the batched step (evaluator, trainer); the fleet's exchange (`models.exchange`) runs
-the same pieces (`encode_with_variants`, `greedy_actions`, `request_comm`, `reply_comm`,
-`with_self`, `head`) for the robots of one process, with the messages it received.
+the same pieces (`encode_with_variants`, `greedy_actions`, `receive` with `request_comm` /
+`reply_comm`, `head`) for the robots of one process, with the messages they received.
 """
 
 from __future__ import annotations
@@ -230,13 +230,19 @@ class DCCNetwork(nn.Module):
         rows = senders.any(-1).nonzero(as_tuple=True)
         if rows[0].numel() == 0:
             return h
-        sender_h = h[rows[0][:, None], table0[rows]]
-        position_index = relative_position_index(offsets[rows], self.config.obs_radius)
-        valid = senders[rows]
-        own = h[rows]
+        updated = self.receive(layer, h[rows], h[rows[0][:, None], table0[rows]], offsets[rows],
+                               senders[rows])
+        return h.index_put(rows, updated)
+
+    def receive(self, layer: DCCCommLayer, own: torch.Tensor, sender_h: torch.Tensor,
+                offsets: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+        """One comm layer at receivers with at least one sender: own (M, H), the senders'
+        vectors (M, S, H) at `offsets` (M, S, 2) (sender - receiver), `valid` (M, S) -> the
+        receivers' updated (M, H). The batched step and the fleet's exchange both call it."""
+        position_index = relative_position_index(offsets, self.config.obs_radius)
         if self.config.attend_self:
             sender_h, position_index, valid = self.with_self(own, sender_h, position_index, valid)
-        return h.index_put(rows, layer(own, sender_h, position_index, valid))
+        return layer(own, sender_h, position_index, valid)
 
     def with_self(self, own, sender_h, position_index, valid):
         """Prepend each receiver's own message at offset (0, 0) (the FOV centre)."""

@@ -28,7 +28,7 @@ import torch
 from mapf_fleet.coordination.preferences import rank_actions, tie_breakers
 from mapf_fleet.grid.observation import ObservationBuilder
 
-from .comm import dhc_partners, relative_position_index
+from .comm import dhc_partners
 
 TIMING_EVERY = 50  # the hub logs its per-tick time split every this many decisions
 
@@ -275,14 +275,9 @@ class PolicyExchange:
                 offsets[k, s] = positions[sender] - positions[self.ids[m]]
                 valid[k, s] = True
         index = torch.as_tensor(rows)
-        own = h[index]
-        sender_t = torch.from_numpy(sender_h)
-        position_index = relative_position_index(torch.from_numpy(offsets), self.radius)
-        valid_t = torch.from_numpy(valid)
-        if self.model.config.attend_self:
-            sender_t, position_index, valid_t = self.model.with_self(own, sender_t,
-                                                                      position_index, valid_t)
-        return h.index_put((index,), layer(own, sender_t, position_index, valid_t))
+        updated = self.model.receive(layer, h[index], torch.from_numpy(sender_h),
+                                     torch.from_numpy(offsets), torch.from_numpy(valid))
+        return h.index_put((index,), updated)
 
     def _dispatch(self, kind: str, tick: int, messages) -> None:
         """DCC messages (sender, receiver, vector) of this tick from local robots: to a local
