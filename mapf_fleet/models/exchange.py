@@ -471,7 +471,7 @@ class Mailbox:
 
 
 class TickTiming:
-    """Where an exchange's tick goes (plain Python), for the hub's log and benchmarks/bench_fleet.py:
+    """Where an exchange's tick goes (plain Python), for the hub's log and bench_fleet.py:
     `latency` from the state's stamp to its callback (the simulator's publish and DDS), `wake`
     from the callback to the decision thread, then `observe`, `network` (torch), `send`
     (publishing peer messages, DCC batch calls), `wait` (for the peers' messages) and `moves`
