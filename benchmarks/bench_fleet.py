@@ -6,9 +6,9 @@ thread) on the same instance and checkpoint.
 Per run: ticks/s from the first progress line to the last (the simulator logs one every 5 ticks
 here, `progress_every`: each also rewrites the run's record, a cost that grows with the run;
 start-up excluded), the time per tick over the first and the last quarter of the run (flat or
-growing), missed decisions, and the
-split of a tick from the hubs' own timing (`hub.TickTiming`, logged by every policy process, kept
-with --log-dir), averaged over the hubs, in ms per tick:
+growing), missed decisions, and the split of a tick from the hubs' own timing
+(`models.exchange.TickTiming`, logged by every policy process, kept with --log-dir), averaged
+over the hubs, in ms per tick:
   latency  fleet state stamped by the simulator -> the hub's callback (publish + DDS),
   wake     callback -> the hub's decision thread,
   observe  FOV observations, network (torch), send (peer messages, DCC batch calls),

@@ -4,12 +4,14 @@ Batched: one episode of N agents per `step` (N = 16, 64, 128 by default) with un
 distinct positions on the map of the paper's test protocol for that fleet size (40x40 up to 64
 agents, 80x80 above), observations synthetic but consistent with the positions. DCC's cost
 grows with the number of FOV neighbours (one extra encoder pass per neighbour), printed too.
-Per robot: each robot runs its own split step (encode, communication, Q-values; DCC with its
-causal check) with the messages of the others, as a ROS policy node would; the figure is the
-mean over the robots of one fleet.
+Per robot: the fleet's exchange (`models.exchange.LinkedExchanges`) with each robot alone in
+its "process" (a thread here), messages passed in memory, as the ROS fleet with one robot per
+process computes (encode, communication, Q-values; DCC with its causal check); the figure is
+the mean over the robots of one fleet.
 
-Times are CPU time of the calling thread (time.thread_time; torch uses that one thread), so
-other processes on a shared machine do not inflate them; the wall-clock median is shown beside.
+Times are CPU time (batched: of the calling thread, time.thread_time, torch uses that one
+thread; per robot: of the process, time.process_time, over the robots' threads), so other
+processes on a shared machine do not inflate them; the wall-clock median is shown beside.
 
 Usage: .venv/bin/python benchmarks/bench_inference.py [--agents 16 64 128] [--repeats 10]
 """
@@ -27,9 +29,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from mapf_fleet.models import (  # noqa: E402
-    ModelConfig, build_model, dhc_partners, fov_neighbours,
-)
+from mapf_fleet.models import ModelConfig, build_model  # noqa: E402
+from mapf_fleet.models.exchange import LinkedExchanges  # noqa: E402
 from mapf_fleet.models.synthetic import (  # noqa: E402
     make_sensitive, random_positions, synthetic_obs,
 )
@@ -66,38 +67,15 @@ def time_per_robot(net, obs, positions, repeats: int) -> tuple[float, float]:
     """Median over steps of (total robot compute time / N), CPU and wall; messages are passed
     in memory (no transport cost)."""
     n = len(positions)
-    cfg = net.config
-    hidden = [None] * n
-    last = [-1] * n
+    fleet = LinkedExchanges(net, [[j] for j in range(n)])
+    last = np.full(n, -1)
     cpu, wall = [], []
-    with torch.no_grad():
-        for i in range(repeats + 1):
-            start, start_wall = time.thread_time(), time.perf_counter()
-            if cfg.algo == "dhc":
-                partners = dhc_partners(positions, cfg.obs_radius, cfg.max_partners)
-                h = [net.encode(obs[j], hidden[j]) for j in range(n)]
-                for r in range(cfg.comm_rounds):
-                    sent = list(h)
-                    h = [net.comm_round(r, sent[j], [sent[p] for p in partners[j] if p >= 0])
-                         for j in range(n)]
-                final = h
-            else:
-                h, requested = [], []
-                for j in range(n):
-                    indices, offsets = fov_neighbours(positions, j, cfg.obs_radius)
-                    h.append(net.encode(obs[j], last[j], hidden[j]))
-                    requested.append(indices[net.causal_set(obs[j], last[j], hidden[j], offsets)])
-                inbox = [[] for _ in range(n)]
-                for j in range(n):
-                    for k in requested[j]:
-                        inbox[k].append((positions[j] - positions[k], h[j]))
-                h1 = [net.aggregate_requests(h[j], inbox[j]) for j in range(n)]
-                final = [net.aggregate_replies(h1[j], [(positions[k] - positions[j], h1[k])
-                                                       for k in requested[j]]) for j in range(n)]
-            actions = [int(net.q_values(v).argmax()) for v in final]
-            cpu.append(time.thread_time() - start)
-            wall.append(time.perf_counter() - start_wall)
-            hidden, last = final, actions
+    for i in range(repeats + 1):
+        start, start_wall = time.process_time(), time.perf_counter()
+        decision = fleet.tick(0, i, positions, last, obs=obs)
+        cpu.append(time.process_time() - start)
+        wall.append(time.perf_counter() - start_wall)
+        last = decision.preferences[:, 0]
     return statistics.median(cpu[1:]) * 1e3 / n, statistics.median(wall[1:]) * 1e3 / n
 
 

@@ -23,7 +23,7 @@ COMMANDS = {
     "echo": ("mapf_fleet.ros.echo", "main", "print a topic's messages as YAML"),
     "topics": ("mapf_fleet.ros.echo", "topics_main", "list the fleet's topics"),
     "record": ("mapf_fleet.ros.bag", "main", "record the fleet's topics into a rosbag2 (MCAP)"),
-    "view": ("mapf_fleet.ros.live_view", "main", "live picture of a running fleet in a browser"),
+    "view": ("mapf_fleet.view.live", "main", "live picture of a running fleet in a browser"),
     "node": ("mapf_fleet.ros.run", "main", "run one node, like `ros2 run mapf_fleet <node>`"),
     "param": ("mapf_fleet.ros.param_cli", "main",
               "get, set or list a running node's parameters, like `ros2 param`"),

@@ -139,5 +139,3 @@ def test_bad_shapes_name_the_argument():
         net.step(obs[..., :7, :7], positions)
     with pytest.raises(ValueError, match="last_action"):
         net.step(obs, positions, last_action=np.zeros((2, 3), dtype=np.int64))
-    with pytest.raises(ValueError, match="hidden_i"):
-        net.encode(obs[0, 0], 0, np.zeros(7, dtype=np.float32))

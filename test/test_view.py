@@ -301,7 +301,7 @@ def test_the_foxglove_app_gets_the_scene_and_the_stats():
 
 def test_the_view_package_never_imports_rclpy():
     """mapf_fleet/view is read by the renderer and the tests without ROS; only
-    mapf_fleet/ros/live_view.py talks to the fleet (checked like test_layering does)."""
+    mapf_fleet/view/live.py talks to the fleet (checked like test_layering does)."""
     from pathlib import Path
 
     from test_layering import imports_of

@@ -126,14 +126,10 @@ def episode_seed(seed: int, k: int) -> int:
 def observe_runs(runs: list[FleetRun], observation: str = "paper") -> np.ndarray:
     """(B, N, C, 9, 9) observations of every run's robots with their current goals (C = 6, 7
     for the "cost_to_go" observation: distances from the same cache, keyed by goal)."""
-    from mapf_fleet.grid.env import observe
-    from mapf_fleet.grid.heuristic import cached_distances, cached_heuristic_channels
+    from mapf_fleet.grid.observation import ObservationBuilder
 
-    return np.stack([observe(run.grid, run.positions, run.goals,
-                             cached_heuristic_channels(run.grid, run.goals),
-                             distances=cached_distances(run.grid, run.goals)
-                             if observation == "cost_to_go" else None)
-                     for run in runs]).astype(np.float32)
+    return np.stack([ObservationBuilder.for_goals(run.grid, run.goals, observation=observation)
+                     .observe(run.positions) for run in runs]).astype(np.float32)
 
 
 def rollout(policy, runs: list[FleetRun], shielded: bool) -> None:

@@ -8,6 +8,7 @@ from .errors import InstanceError, MapFormatError
 from .heuristic import (HeuristicCache, bfs_distances, bfs_distances_many, cached_heuristic_channels,
                         heuristic_channels)
 from .instance import Instance, generate_instance, load_dhc_testset, sample_training_density
+from .observation import ObservationBuilder
 from .movingai import (ScenarioEntry, load_movingai_instances, read_map, read_scen, write_map,
                        write_scen)
 from .policies import heuristic_policy
@@ -20,6 +21,7 @@ __all__ = [
     "HeuristicCache", "bfs_distances", "bfs_distances_many", "cached_heuristic_channels",
     "heuristic_channels",
     "Instance", "generate_instance", "load_dhc_testset", "sample_training_density",
+    "ObservationBuilder",
     "ScenarioEntry", "load_movingai_instances", "read_map", "read_scen", "write_map", "write_scen",
     "heuristic_policy",
     "CooperativeReward", "fov_neighbours",

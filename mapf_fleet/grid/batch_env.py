@@ -14,9 +14,10 @@ from typing import Sequence
 import numpy as np
 
 from .actions import NUM_ACTIONS, STAY
-from .env import EnvConfig, _ObservationBuilder, _resolve_flat, step_rewards
+from .env import EnvConfig, _resolve_flat, step_rewards
 from .heuristic import HeuristicCache, default_cache
 from .instance import Instance
+from .observation import ObservationBuilder
 
 
 class BatchMAPFEnv:
@@ -71,8 +72,8 @@ class BatchMAPFEnv:
                                         for inst in instances]) if n else np.zeros((0, h, w))
         bits = np.concatenate([self._cache.bits(inst.grid, inst.goals) for inst in instances]) \
             if n else np.zeros((0, h, w), np.uint8)
-        self._obs = _ObservationBuilder(self.grids, bits, self.config.obs_radius,
-                                        self._map_of_agent, distances)
+        self._obs = ObservationBuilder(self.grids, bits, self.config.obs_radius,
+                                       self._map_of_agent, distances)
 
     def _flat_positions(self) -> np.ndarray:
         return self.positions.reshape(-1, 2)

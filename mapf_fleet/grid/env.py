@@ -1,13 +1,7 @@
-"""The MAPF grid environment: conflict resolution, rewards and observations of DHC/DCC.
+"""The MAPF grid environment of DHC/DCC: conflict resolution, rewards, and the episode.
 
-Everything per step is vectorised over agents. The static part of every agent's observation
-(obstacle bit + its four heuristic bits) is packed into one byte per cell and padded once per
-reset; a step then gathers one byte per FOV cell for the static part and one for the agents, and
-unpacks the bits into the (N, 6, 9, 9) float32 observation.
-
-Observations (`OBSERVATIONS`, `EnvConfig.observation`, recorded in a model's config): "paper",
-the six channels above, or "cost_to_go", the same plus a 7th channel, the agent's normalised
-cost-to-go over its FOV (`cost_to_go_channel`), gathered from its padded BFS distance map.
+Everything per step is vectorised over agents. Observations come from `grid.observation`'s
+`ObservationBuilder` (built once per reset; `EnvConfig.observation` says which channels).
 """
 
 from __future__ import annotations
@@ -17,21 +11,16 @@ import dataclasses
 import numpy as np
 
 from .actions import ACTION_DELTAS, NUM_ACTIONS, STAY
-from .heuristic import (UNREACHABLE, HeuristicCache, compact_distances, default_cache,
-                        pack_heuristic_channels)
+from .heuristic import HeuristicCache, default_cache
 from .instance import Instance
+# the observations live in grid.observation; their names stay importable from here
+from .observation import (  # noqa: F401
+    COST_TO_GO_CHANNEL, NUM_OBS_CHANNELS, OBSERVATIONS, ObservationBuilder, check_positions,
+    cost_to_go_channel, cost_to_go_steps, observation_channels, observe, pad_distances,
+    steps_from_cost_to_go,
+)
 
 FINISH_REWARD_MODES = ("team", "per_agent")
-NUM_OBS_CHANNELS = 6  # the paper's observation
-OBSERVATIONS = ("paper", "cost_to_go")
-COST_TO_GO_CHANNEL = NUM_OBS_CHANNELS  # index of the cost-to-go channel, after the paper's six
-
-
-def observation_channels(observation: str) -> int:
-    """How many channels `observation` has (6 paper, 7 cost_to_go)."""
-    if observation not in OBSERVATIONS:
-        raise ValueError(f"observation must be one of {OBSERVATIONS}, got {observation!r}")
-    return NUM_OBS_CHANNELS + (observation == "cost_to_go")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -80,21 +69,6 @@ class EnvConfig:
 
 # ----------------------------------------------------------------------------------------------
 # conflict resolution
-
-def _check_positions(positions, shape) -> np.ndarray:
-    positions = np.asarray(positions)
-    if positions.ndim != 2 or positions.shape[1] != 2:
-        raise ValueError(f"positions must have shape (N, 2), got {positions.shape}")
-    positions = positions.astype(np.int64, copy=False)
-    h, w = shape
-    outside = (positions[:, 0] < 0) | (positions[:, 0] >= h) | (positions[:, 1] < 0) \
-        | (positions[:, 1] >= w)
-    if outside.any():
-        i = int(np.flatnonzero(outside)[0])
-        raise ValueError(f"agent {i} position {tuple(positions[i].tolist())} is outside the "
-                         f"{h}x{w} map")
-    return positions
-
 
 def _check_actions(actions, num_agents: int) -> np.ndarray:
     actions = np.asarray(actions)
@@ -180,7 +154,7 @@ def resolve_moves(grid, positions, actions) -> tuple[np.ndarray, np.ndarray]:
     grid = np.asarray(grid)
     if grid.ndim != 2:
         raise ValueError(f"grid must be 2-D, got shape {grid.shape}")
-    positions = _check_positions(positions, grid.shape)
+    positions = check_positions(positions, grid.shape)
     actions = _check_actions(actions, positions.shape[0])
     h, w = grid.shape
     flat = positions[:, 0] * w + positions[:, 1]
@@ -215,145 +189,6 @@ def step_rewards(config: EnvConfig, actions, collided, was_on_goal, on_goal,
     elif first_arrival is not None:
         rewards[first_arrival] = config.reward_finish
     return rewards, (bool(all_on_goal) if all_on_goal.ndim == 0 else all_on_goal)
-
-
-# ----------------------------------------------------------------------------------------------
-# observations
-
-def cost_to_go_steps(window_distances, radius: int) -> np.ndarray:
-    """int8 (..., S*S): each FOV cell's BFS distance to the agent's goal minus the distance at the
-    agent's own cell (the middle of the window), clipped to +-(2r+1); obstacle, off-map and
-    unreachable cells (`UNREACHABLE` in `window_distances` (..., S*S)), and every cell when the
-    agent's own cell cannot reach its goal, hold 2r+1. `cost_to_go_channel` normalises them."""
-    d = np.asarray(window_distances).astype(np.int32)
-    bound = 2 * int(radius) + 1
-    centre = d[..., d.shape[-1] // 2, None]
-    blocked = (d == UNREACHABLE) | (centre == UNREACHABLE)
-    return np.where(blocked, bound, np.clip(d - centre, -bound, bound)).astype(np.int8)
-
-
-def cost_to_go_channel(steps, radius: int) -> np.ndarray:
-    """float32 cost-to-go channel from `cost_to_go_steps`: steps / (2r+1), within [-1, 1].
-
-    Relative to the agent's own cell, as SSIL's normalised cost-to-go (Veerapaneni et al.,
-    ICRA 2025), so the values do not grow with the distance to the goal; 2r+1 bounds every cell
-    whose difference the FOV's geometry allows (|steps| <= 2r) strictly inside (-1, 1), so the
-    blocked value 1.0 (obstacles, off the map, unreachable) differs from every free cell except
-    those 2r+1 or more steps farther from the goal than the agent (behind a wall), which clip
-    to it. Every value is a multiple of 1/(2r+1): `steps_from_cost_to_go` inverts this exactly
-    (int8 storage)."""
-    return np.asarray(steps, dtype=np.float32) / np.float32(2 * int(radius) + 1)
-
-
-def steps_from_cost_to_go(channel, radius: int) -> np.ndarray:
-    """int8 steps of a cost-to-go channel (the inverse of `cost_to_go_channel`)."""
-    return np.rint(np.asarray(channel, dtype=np.float32) * (2 * int(radius) + 1)).astype(np.int8)
-
-
-def pad_distances(distances: np.ndarray, radius: int) -> np.ndarray:
-    """(N, H+2r, W+2r) BFS distance maps (N, H, W) with `UNREACHABLE` off the map (its compact
-    integer type: one map per agent)."""
-    distances = compact_distances(distances)
-    n, h, w = distances.shape
-    r = int(radius)
-    padded = np.full((n, h + 2 * r, w + 2 * r), UNREACHABLE, dtype=distances.dtype)
-    padded[:, r:r + h, r:r + w] = distances
-    return padded
-
-
-class _ObservationBuilder:
-    """Gathers all agents' FOV windows from maps padded once per instance.
-
-    static byte per (agent, cell): bit 0 obstacle (off-map padded as obstacle), bits 1..4 the
-    heuristic channels up/down/left/right (padded 0). Agents live in a padded occupancy map per
-    map. `grids` is (B, H, W) and `map_of_agent` (N,) says on which map each agent is (B = 1 and
-    all zeros for a single episode). With `distances` (N, H, W), each agent's BFS distances to
-    its goal, observations get the cost-to-go channel (`cost_to_go_channel`).
-    """
-
-    def __init__(self, grids: np.ndarray, heuristic_bits: np.ndarray, radius: int,
-                 map_of_agent: np.ndarray | None = None, distances: np.ndarray | None = None):
-        if grids.ndim == 2:
-            grids = grids[None]
-        b, h, w = grids.shape
-        n = heuristic_bits.shape[0]
-        map_of_agent = np.zeros(n, np.int64) if map_of_agent is None else map_of_agent
-        r = int(radius)
-        self.radius = r
-        self.size = 2 * r + 1
-        hp, wp = h + 2 * r, w + 2 * r
-        static = np.ones((n, hp, wp), dtype=np.uint8)  # off-map: obstacle bit only
-        static[:, r:r + h, r:r + w] = (grids[map_of_agent] != 0).astype(np.uint8) \
-            | (heuristic_bits << 1)
-        self.static = static.reshape(-1)
-        self.distances = None if distances is None else pad_distances(distances, r).reshape(-1)
-        self.channels = NUM_OBS_CHANNELS + (distances is not None)
-        self.occupancy = np.zeros(b * hp * wp, dtype=np.uint8)
-        offsets = np.arange(self.size)
-        # flat offsets of a window relative to its top-left corner in the padded map
-        self.window = (offsets[:, None] * wp + offsets[None, :]).reshape(-1)
-        self.agent_base = np.arange(n, dtype=np.int64) * (hp * wp)
-        self.map_base = map_of_agent * (hp * wp)
-        self.wp = wp
-        # padded flat index of an agent's own cell relative to its window corner
-        self.centre = r * wp + r
-
-    def corners(self, positions: np.ndarray) -> np.ndarray:
-        # window top-left in padded coordinates == agent cell in map coordinates
-        return positions[:, 0] * self.wp + positions[:, 1]
-
-    def set_agents(self, positions: np.ndarray) -> None:
-        self.occupancy[:] = 0
-        self.occupancy[self.map_base + self.corners(positions) + self.centre] = 1
-
-    def move_agents(self, old_positions: np.ndarray, new_positions: np.ndarray) -> None:
-        self.occupancy[self.map_base + self.corners(old_positions) + self.centre] = 0
-        self.occupancy[self.map_base + self.corners(new_positions) + self.centre] = 1
-
-    def build(self, positions: np.ndarray) -> np.ndarray:
-        n = positions.shape[0]
-        s = self.size
-        corners = self.corners(positions)
-        own_windows = (corners + self.agent_base)[:, None] + self.window  # (N, S*S)
-        static = self.static[own_windows]
-        obs = np.empty((n, self.channels, s * s), dtype=np.float32)
-        obs[:, 0] = self.occupancy[(corners + self.map_base)[:, None] + self.window]
-        obs[:, 0, (s * s) // 2] = 0.0  # the agent itself is not in its agent channel
-        for bit in range(5):
-            obs[:, 1 + bit] = (static >> bit) & 1
-        if self.distances is not None:
-            obs[:, COST_TO_GO_CHANNEL] = cost_to_go_channel(
-                cost_to_go_steps(self.distances[own_windows], self.radius), self.radius)
-        return obs.reshape(n, self.channels, s, s)
-
-
-def observe(grid, positions, goals, channels, radius: int = 4, distances=None) -> np.ndarray:
-    """float32 (N, 6, 2r+1, 2r+1) observations centred on each agent, (N, 7, ...) with
-    `distances`.
-
-    Channels: 0 other agents (self excluded), 1 obstacles (off-map cells count as obstacles),
-    2..5 the agent's heuristic channels up/down/left/right (0 off the map). `channels` is the
-    (N, 4, H, W) stack of the agents' heuristic channels; `goals` (N, 2) is only checked for
-    shape, since the heuristic channels already encode the goals. `distances` (N, H, W), each
-    agent's BFS distances to its goal (`HeuristicCache.distances`), adds channel 6, the
-    "cost_to_go" observation's normalised cost-to-go (`cost_to_go_channel`).
-    """
-    grid = np.asarray(grid)
-    positions = _check_positions(positions, grid.shape)
-    n = positions.shape[0]
-    if np.asarray(goals).shape != (n, 2):
-        raise ValueError(f"goals must have shape ({n}, 2), got {np.asarray(goals).shape}")
-    channels = np.asarray(channels)
-    if channels.shape != (n, 4, *grid.shape):
-        raise ValueError(f"channels must have shape ({n}, 4, {grid.shape[0]}, {grid.shape[1]}), "
-                         f"got {channels.shape}")
-    if distances is not None and np.asarray(distances).shape != (n, *grid.shape):
-        raise ValueError(f"distances must have shape ({n}, {grid.shape[0]}, {grid.shape[1]}), "
-                         f"got {np.asarray(distances).shape}")
-    builder = _ObservationBuilder(grid, pack_heuristic_channels(channels), radius,
-                                  distances=distances)
-    builder.set_agents(positions)
-    return builder.build(positions)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -394,11 +229,8 @@ class MAPFEnv:
         h, w = self.grid.shape
         self._blocked_flat = (self.grid != 0).ravel()
         self._goal_flat = self.goals[:, 0] * w + self.goals[:, 1]
-        distances = self._cache.distances(self.grid, self.goals) \
-            if self.config.observation == "cost_to_go" else None
-        bits = self._cache.bits(self.grid, self.goals)  # found by the distances' search
-        self._obs = _ObservationBuilder(self.grid, bits, self.config.obs_radius,
-                                        distances=distances)
+        self._obs = ObservationBuilder.for_goals(self.grid, self.goals, self.config.obs_radius,
+                                                 self.config.observation, self._cache)
 
     def reset(self, instance: Instance | None = None) -> np.ndarray:
         if instance is not None:

@@ -25,7 +25,7 @@ alike (slam_toolbox issue #587); `write_nav2_map` writes ROS 1's free_thresh 0.1
 
 Rows, cells and metres. map_server puts image row y (row 0 = top of the picture) in
 OccupancyGrid row H-1-y, so OccupancyGrid row 0 is the BOTTOM of the picture (lowest y). The grids
-here use the OccupancyGrid row order, because `MapGeometry` (mapf_fleet.ros.common) and
+here use the OccupancyGrid row order, because `MapGeometry` (mapf_fleet.fleet.topics) and
 `grid_to_occupancy` already treat grid row r as OccupancyGrid row r:
     cell (row, col) has its centre at  x = origin_x + (col + 0.5) * cell_size,
                                        y = origin_y + (row + 0.5) * cell_size
@@ -111,7 +111,7 @@ class Nav2Map:
 
     @property
     def geometry(self) -> tuple[float, float, float]:
-        """(resolution, origin_x, origin_y): the arguments of `ros.common.MapGeometry`."""
+        """(resolution, origin_x, origin_y): the arguments of `fleet.topics.MapGeometry`."""
         return (self.cell_size, self.origin_x, self.origin_y)
 
     @property
@@ -385,7 +385,7 @@ def write_nav2_map(yaml_path: str | PathLike, grid, cell_size: float,
 def load_grid_map(path: str | PathLike, cell_size: float | None = None
                   ) -> tuple[np.ndarray, tuple[float, float, float]]:
     """The project's map from either kind of file, for `--map F`: (grid uint8 (H, W), 1 =
-    obstacle; (resolution, origin_x, origin_y) for `ros.common.MapGeometry`).
+    obstacle; (resolution, origin_x, origin_y) for `fleet.topics.MapGeometry`).
     `.yaml` / `.yml`: a Nav2 map_server map (`read_nav2_map`, cell_size None: its resolution).
     Anything else: a MovingAI .map (`movingai.read_map`), cells of cell_size metres (None: 1.0)
     with origin (0, 0), as the simulator's `resolution` parameter places them today."""

@@ -94,28 +94,3 @@ def check_batch_inputs(
         raise ValueError(f"agent_mask: expected {(batch, num_agents)}, "
                          f"got {tuple(agent_mask.shape)}")
     return batch, num_agents
-
-
-def as_vector(x, name: str, size: int, device: torch.device) -> torch.Tensor:
-    """A per-robot vector: accepts (size,) or (1, size); returns (size,) float32."""
-    x = as_float(x, name, device)
-    if x.dim() == 2 and x.shape[0] == 1:
-        x = x[0]
-    if tuple(x.shape) != (size,):
-        raise ValueError(f"{name}: expected ({size},), got {tuple(x.shape)}")
-    return x
-
-
-def stack_vectors(vectors, name: str, size: int, device: torch.device) -> torch.Tensor:
-    """A list of per-robot vectors (or an (M, size) array) as an (M, size) float32 tensor."""
-    if isinstance(vectors, (torch.Tensor, np.ndarray)):
-        stacked = as_float(vectors, name, device)
-        if stacked.dim() == 1 and stacked.numel() == 0:
-            stacked = stacked.reshape(0, size)
-        if stacked.dim() != 2 or stacked.shape[1] != size:
-            raise ValueError(f"{name}: expected (M, {size}), got {tuple(stacked.shape)}")
-        return stacked
-    rows = [as_vector(v, f"{name}[{m}]", size, device) for m, v in enumerate(vectors)]
-    if not rows:
-        return torch.zeros(0, size, device=device)
-    return torch.stack(rows)

@@ -10,7 +10,7 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any, Mapping
 
-from mapf_fleet.grid.env import OBSERVATIONS, observation_channels
+from mapf_fleet.grid.observation import OBSERVATIONS, observation_channels
 
 ALGORITHMS = ("dhc", "dcc")
 PRESETS = ("paper", "small")

@@ -4,13 +4,13 @@ One step of agent i:
   h_i  = GRU([encoder(obs_i), onehot(last_action_i)], hidden_i)          (encode)
   Decision-causal selection: a_i = argmax dueling(h_i); for every FOV neighbour j, a_i,-j is the
   same computed from obs_i with j's cell erased in channel 0 (same hidden_i and last action).
-  i requests from j when a_i,-j != a_i.                                    (causal_set)
+  i requests from j when a_i,-j != a_i.                           (encode_with_variants)
   Request layer, at each receiver j with at least one requester:
     h1_j = GRU_req(attention(query LN(h_j), messages from [j itself] + requesters i), h_j)
-    and h1_j = h_j for agents without requesters.                         (aggregate_requests)
+    and h1_j = h_j for agents without requesters.                          (request_comm)
   Reply layer, at each requester i: the same with the transposed mask and the request-layer
     outputs: h2_i = GRU_rep(attention(query LN(h1_i), [i itself] + repliers j), h1_i),
-    h2_i = h1_i for agents that requested nothing.                         (aggregate_replies)
+    h2_i = h1_i for agents that requested nothing.                          (reply_comm)
   q_i = dueling(h2_i).
 A message from sender s to receiver r is key/value of [LN(h_s), embed(onehot(pos_s - pos_r))]
 (relative position one-hot over the (2r+1)^2 FOV, comm.relative_position_index). The "itself"
@@ -19,13 +19,16 @@ reference attends over the senders only (attend_self=False).
 
 Carried hidden: h2_i, the reply-layer output (the final, post-communication hidden), as the
 reference's step and training forward both do. The pre-communication h_i is not carried.
+
+`step` is the batched step (evaluator, trainer); the fleet's exchange (`models.exchange`) runs
+the same pieces (`encode_with_variants`, `greedy_actions`, `receive` with `request_comm` /
+`reply_comm`, `head`) for the robots of one process, with the messages they received.
 """
 
 from __future__ import annotations
 
 import math
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -33,10 +36,7 @@ from torch import nn
 from mapf_fleet.grid.actions import NUM_ACTIONS
 
 from .comm import fov_neighbour_table, relative_position_index
-from .common import (
-    DuelingHead, StepOutput, as_float, as_long, as_vector, check_batch_inputs, module_device,
-    stack_vectors,
-)
+from .common import DuelingHead, StepOutput, as_float, as_long, check_batch_inputs, module_device
 from .config import ModelConfig
 
 
@@ -230,13 +230,19 @@ class DCCNetwork(nn.Module):
         rows = senders.any(-1).nonzero(as_tuple=True)
         if rows[0].numel() == 0:
             return h
-        sender_h = h[rows[0][:, None], table0[rows]]
-        position_index = relative_position_index(offsets[rows], self.config.obs_radius)
-        valid = senders[rows]
-        own = h[rows]
+        updated = self.receive(layer, h[rows], h[rows[0][:, None], table0[rows]], offsets[rows],
+                               senders[rows])
+        return h.index_put(rows, updated)
+
+    def receive(self, layer: DCCCommLayer, own: torch.Tensor, sender_h: torch.Tensor,
+                offsets: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+        """One comm layer at receivers with at least one sender: own (M, H), the senders'
+        vectors (M, S, H) at `offsets` (M, S, 2) (sender - receiver), `valid` (M, S) -> the
+        receivers' updated (M, H). The batched step and the fleet's exchange both call it."""
+        position_index = relative_position_index(offsets, self.config.obs_radius)
         if self.config.attend_self:
             sender_h, position_index, valid = self.with_self(own, sender_h, position_index, valid)
-        return h.index_put(rows, layer(own, sender_h, position_index, valid))
+        return layer(own, sender_h, position_index, valid)
 
     def with_self(self, own, sender_h, position_index, valid):
         """Prepend each receiver's own message at offset (0, 0) (the FOV centre)."""
@@ -245,78 +251,3 @@ class DCCNetwork(nn.Module):
         self_valid = torch.ones_like(valid[:, :1])
         return (torch.cat([own[:, None], sender_h], 1), torch.cat([self_index, position_index], 1),
                 torch.cat([self_valid, valid], 1))
-
-    # ---- per robot ----------------------------------------------------------------------
-    # Each takes only the robot's own data and the messages it received; 1-D in, 1-D out.
-
-    def _robot_inputs(self, obs_i, last_action_i, hidden_i):
-        device = module_device(self)
-        obs_i = as_float(obs_i, "obs_i", device)
-        if tuple(obs_i.shape) != self.config.obs_shape:
-            raise ValueError(f"obs_i: expected {self.config.obs_shape}, got {tuple(obs_i.shape)}")
-        last = int(-1 if last_action_i is None else last_action_i)
-        if not -1 <= last < NUM_ACTIONS:
-            raise ValueError(f"last_action_i: expected -1..{NUM_ACTIONS - 1}, got {last}")
-        if hidden_i is None:
-            hidden_i = torch.zeros(self.config.hidden_dim, device=device)
-        hidden_i = as_vector(hidden_i, "hidden_i", self.config.hidden_dim, device)
-        return obs_i, torch.tensor([last], device=device), hidden_i
-
-    def encode(self, obs_i, last_action_i=None, hidden_i=None) -> torch.Tensor:
-        """Own observation, last action (-1/None: none) and previous hidden (None: zeros) -> h."""
-        obs_i, last, hidden_i = self._robot_inputs(obs_i, last_action_i, hidden_i)
-        return self.encode_batch(obs_i[None], last, hidden_i[None])[0]
-
-    def causal_set(self, obs_i, last_action_i, hidden_i, neighbour_offsets) -> np.ndarray:
-        """Which FOV neighbours this robot requests from: bool (M,) over `neighbour_offsets`.
-
-        neighbour_offsets (M, 2): neighbour position - own position (comm.fov_neighbours).
-        Runs the robot's own step once per erased neighbour, batched with the plain step.
-        """
-        obs_i, last, hidden_i = self._robot_inputs(obs_i, last_action_i, hidden_i)
-        offsets = as_long(np.asarray(neighbour_offsets, dtype=np.int64).reshape(-1, 2),
-                          "neighbour_offsets", obs_i.device)
-        if offsets.shape[0] == 0:
-            return np.zeros(0, dtype=bool)
-        relative_position_index(offsets, self.config.obs_radius)  # raises outside the FOV
-        owner = torch.zeros(offsets.shape[0], dtype=torch.long, device=obs_i.device)
-        with torch.no_grad():
-            h, variant_actions = self.encode_with_variants(
-                obs_i[None], last, hidden_i[None], owner, offsets)
-            own_action = self.greedy_actions(h)[0]
-        return (variant_actions != own_action).cpu().numpy()
-
-    def _aggregate(self, layer: DCCCommLayer, h_own, messages, name: str) -> torch.Tensor:
-        device = module_device(self)
-        h_own = as_vector(h_own, "h_own", self.config.hidden_dim, device)
-        messages = list(messages)
-        if not messages:
-            return h_own
-        offsets = torch.as_tensor(np.array([m[0] for m in messages], dtype=np.int64).reshape(-1, 2),
-                                  device=device)
-        sender_h = stack_vectors([m[1] for m in messages], name, self.config.hidden_dim, device)
-        position_index = relative_position_index(offsets, self.config.obs_radius)[None]
-        sender_h, valid = sender_h[None], torch.ones_like(position_index, dtype=torch.bool)
-        own = h_own[None]
-        if self.config.attend_self:
-            sender_h, position_index, valid = self.with_self(own, sender_h, position_index, valid)
-        return layer(own, sender_h, position_index, valid)[0]
-
-    def aggregate_requests(self, h_own, requests) -> torch.Tensor:
-        """Receiver side: own h (H,) and [(offset, h_requester)] -> h1 (H,).
-
-        offset = requester position - own position. No request: h1 = h_own.
-        """
-        return self._aggregate(self.request_comm, h_own, requests, "requests")
-
-    def aggregate_replies(self, h1_own, replies) -> torch.Tensor:
-        """Requester side: own request-layer output h1 (H,) and [(offset, h1_replier)] -> h2.
-
-        offset = replier position - own position. No reply (requested nobody): h2 = h1_own.
-        h2 is both the input of `q_values` and the hidden to carry to the next step.
-        """
-        return self._aggregate(self.reply_comm, h1_own, replies, "replies")
-
-    def q_values(self, h) -> torch.Tensor:
-        """Q-values (5,) of a final hidden h2 (H,) (or (..., H) -> (..., 5))."""
-        return self.head(as_float(h, "h", module_device(self)))

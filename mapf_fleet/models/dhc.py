@@ -9,9 +9,10 @@ One step of agent i:
   q_i   = dueling(h_i)
 The hidden carried to the next step is the post-communication h_i (as the reference).
 
-The batched `step` and the per-robot methods (`encode`, `comm_round`, `q_values`) share the
-same attention code (`_attend`), which takes each receiver's gathered member vectors, so both
-paths compute the same numbers.
+The batched `step` (evaluator, trainer) and the fleet's exchange (`models.exchange`: the robots
+of one process, with the vectors they received) share the pieces `encode_batch`, `round_batch`
+and `head`, which take each receiver's gathered member vectors, so both compute the same
+numbers.
 """
 
 from __future__ import annotations
@@ -23,10 +24,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .comm import dhc_partners_torch
-from .common import (
-    DuelingHead, StepOutput, as_float, as_long, as_vector, check_batch_inputs, module_device,
-    stack_vectors,
-)
+from .common import DuelingHead, StepOutput, as_float, as_long, check_batch_inputs, module_device
 from .config import DHC_SQUEEZE_CHANNELS, ModelConfig
 
 
@@ -156,39 +154,3 @@ class DHCNetwork(nn.Module):
         slot = torch.where(partners >= 0, partners, torch.full_like(partners, num_agents))
         comm_mask.scatter_(2, slot, True)
         return StepOutput(q=q, hidden=h, comm_mask=comm_mask[..., :num_agents], partners=partners)
-
-    # ---- per robot ----------------------------------------------------------------------
-    # Each takes only the robot's own data and the vectors it received; 1-D in, 1-D out.
-
-    def encode(self, obs_i, hidden_i=None) -> torch.Tensor:
-        """Own observation (C, fov, fov) and previous hidden (H,) or None -> h (H,)."""
-        device = module_device(self)
-        obs_i = as_float(obs_i, "obs_i", device)
-        if tuple(obs_i.shape) != self.config.obs_shape:
-            raise ValueError(f"obs_i: expected {self.config.obs_shape}, got {tuple(obs_i.shape)}")
-        if hidden_i is None:
-            hidden_i = torch.zeros(self.config.hidden_dim, device=device)
-        hidden_i = as_vector(hidden_i, "hidden_i", self.config.hidden_dim, device)
-        return self.encode_batch(obs_i[None], hidden_i[None])[0]
-
-    def comm_round(self, round_index: int, h_own, partner_vectors) -> torch.Tensor:
-        """One round: own vector (H,) and the partners' vectors of this round (list or (M, H)).
-
-        All rounds share their weights (as the reference); `round_index` is checked only. With
-        no partner vector the robot keeps its vector, exactly as in the batched step.
-        """
-        if not 0 <= round_index < self.config.comm_rounds:
-            raise ValueError(f"round_index: expected 0..{self.config.comm_rounds - 1}, "
-                             f"got {round_index}")
-        device = module_device(self)
-        h_own = as_vector(h_own, "h_own", self.config.hidden_dim, device)
-        partners = stack_vectors(partner_vectors, "partner_vectors", self.config.hidden_dim, device)
-        if partners.shape[0] == 0:
-            return h_own
-        member_h = torch.cat([h_own[None], partners])[None]
-        valid = torch.ones(member_h.shape[:2], dtype=torch.bool, device=device)
-        return self.round_batch(h_own[None], member_h, valid)[0]
-
-    def q_values(self, h) -> torch.Tensor:
-        """Q-values (5,) of a final hidden (H,) (or (..., H) -> (..., 5))."""
-        return self.head(as_float(h, "h", module_device(self)))

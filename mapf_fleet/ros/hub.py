@@ -1,21 +1,23 @@
-"""PolicyHub: the per-process engine behind the policy nodes hosted in one process, and
-HubExchange, the fleet's one per-robot exchange (ROS-free: what the hub computes and sends).
+"""PolicyHub: the ROS plumbing of the policy nodes hosted in one process (subscriptions, the
+peer topics, the DCC batch service and its clients, heartbeats, the decision thread) around one
+`mapf_fleet.models.exchange.PolicyExchange` (ROS-free: what the robots compute and send).
 
 Every robot keeps its own node (its parameters, its publishers, its DCC services: the ROS
 interface does not change with the process layout), but the robots of one process share:
 - one subscription each to the map, the fleet state, the peer topic (DHC hidden vectors / DCC
   announcements) and the heartbeats;
-- one `HubExchange` run by one decision thread: the local robots' encode / communication rounds
-  / Q-values as batched torch calls, with the numbers of the batched evaluator (same padding and
-  masking), messages between robots of the same process straight into its mailbox;
+- one `PolicyExchange` run by one decision thread: the local robots' encode / communication
+  rounds / Q-values as batched torch calls, with the numbers of the batched evaluator (same
+  padding and masking), messages between robots of the same process straight into its mailbox;
+  this hub is its link (`publish_hidden`, `publish_announce`, `send`, `warn`);
 - ONE peer message per process and round (DhcHidden, DccAnnounce carry all its robots), so a
   round costs (processes x processes) deliveries, not (robots x processes);
 - DCC requests and replies between processes as ONE service call per tick and per pair of
   processes (`DccBatch` on the receiving hub's service `fleet/dcc_hub/<host>`, one client per
   remote hub, created when its first heartbeat names it): at most (processes - 1) calls per
-  phase instead of one per robot pair, and no client is created during the run (issue 23: a
-  client per robot pair, created as robots met new peers, grew the executor's wait set and the
-  DDS discovery traffic tick after tick until every decision was missed). The per-robot services
+  phase instead of one per robot pair, and no client is created during the run (a client per
+  robot pair, created as robots met new peers, grew the executor's wait set and the DDS
+  discovery traffic tick after tick until every decision was missed). The per-robot services
   `/robot_<i>/dcc_request` / `dcc_reply` still take messages from anything else.
 
 Each robot publishes its five actions ranked (`coordination.preferences.rank_actions` over its
@@ -36,15 +38,10 @@ import threading
 import time
 
 import numpy as np
-import torch
 
-from mapf_fleet.coordination.preferences import rank_actions, tie_breakers
-from mapf_fleet.grid.env import (COST_TO_GO_CHANNEL, cost_to_go_channel, cost_to_go_steps,
-                                 observation_channels, pad_distances)
-from mapf_fleet.grid.heuristic import cached_distances, cached_heuristic_bits
+from mapf_fleet.models.exchange import TIMING_EVERY, PolicyExchange
 from mapf_fleet.ros import common
 from mapf_fleet.ros.lockstep import EpisodeBinding
-from mapf_fleet.ros.mailbox import Mailbox
 
 BATCH_KINDS = ("request", "reply")  # DccBatch.kind
 
@@ -52,53 +49,6 @@ BATCH_KINDS = ("request", "reply")  # DccBatch.kind
 def dcc_hub_service(host: str) -> str:
     """The batch service of the hub named `host` (its node name, as its heartbeats say)."""
     return f"/fleet/dcc_hub/{host}"
-
-
-class LocalObserver:
-    """FOV observations of some robots (the local ones) in a fleet, with the padded static map
-    and each robot's heuristic channels (and, for the "cost_to_go" observation, its BFS distance
-    map) computed once per (map, goals), from the cache the environment uses. Same layout and
-    values as `mapf_fleet.grid.env.observe` (off-map = obstacle, heuristic 0 off the map)."""
-
-    def __init__(self, grid: np.ndarray, goals: np.ndarray, radius: int,
-                 observation: str = "paper"):
-        grid = np.asarray(grid)
-        self.key = (grid.shape, grid.tobytes(), np.asarray(goals).tobytes())
-        h, w = grid.shape
-        r = self.radius = int(radius)
-        self.size = 2 * r + 1
-        self.hp, self.wp = h + 2 * r, w + 2 * r
-        self.channels = observation_channels(observation)
-        self.distances = None
-        if observation == "cost_to_go":
-            distances = cached_distances(grid, goals)  # (M, H, W), to each robot's goal
-            self.distances = pad_distances(distances, r).reshape(len(goals), -1)
-        bits = cached_heuristic_bits(grid, goals)  # (M, H, W), bit k = heuristic channel k
-        static = np.ones((len(goals), self.hp, self.wp), dtype=np.uint8)
-        static[:, r:r + h, r:r + w] = (grid != 0).astype(np.uint8) | (bits << 1)
-        self.static = static.reshape(len(goals), -1)
-        offsets = np.arange(self.size)
-        self.window = (offsets[:, None] * self.wp + offsets[None, :]).reshape(-1)
-        self.centre = r * self.wp + r
-
-    def observe(self, positions: np.ndarray, local: np.ndarray) -> np.ndarray:
-        """float32 (M, C, S, S) for robots `local` given every robot's `positions` (N, 2)."""
-        corners = positions[:, 0] * self.wp + positions[:, 1]  # window corner == cell (padded)
-        occupancy = np.zeros(self.hp * self.wp, dtype=np.float32)
-        occupancy[corners + self.centre] = 1.0
-        windows = corners[local][:, None] + self.window  # (M, S*S)
-        m, s2 = windows.shape
-        obs = np.empty((m, self.channels, s2), dtype=np.float32)
-        obs[:, 0] = occupancy[windows]
-        obs[:, 0, s2 // 2] = 0.0  # the robot itself is not in its agent channel
-        static = np.take_along_axis(self.static, windows, axis=1)
-        for bit in range(5):
-            obs[:, 1 + bit] = (static >> bit) & 1
-        if self.distances is not None:
-            distances = np.take_along_axis(self.distances, windows, axis=1)
-            obs[:, COST_TO_GO_CHANNEL] = cost_to_go_channel(
-                cost_to_go_steps(distances, self.radius), self.radius)
-        return obs.reshape(m, self.channels, self.size, self.size)
 
 
 class StateWatch:
@@ -136,316 +86,11 @@ class StateWatch:
 
 
 HEARTBEAT_ROBOTS = 32  # heartbeats per status_period the fleet sends, about (see _heartbeat)
-TIMING_EVERY = 50  # log the hub's per-tick time split every this many decisions
-
-
-class TickTiming:
-    """Where a hub's tick goes (plain Python), for the log and benchmarks/bench_fleet.py:
-    `latency` from the state's stamp to its callback (the simulator's publish and DDS), `wake`
-    from the callback to the decision thread, then `observe`, `network` (torch), `send`
-    (publishing peer messages, DCC batch calls), `wait` (for the peers' messages) and `moves`
-    (ranking, publishing the moves); `begin` a tick, `mark(phase)` at the end of each piece."""
-
-    PHASES = ("latency", "wake", "observe", "network", "send", "wait", "moves")
-
-    def __init__(self):
-        self.ticks = 0
-        self.total = dict.fromkeys(self.PHASES, 0.0)
-        self._tick = dict.fromkeys(self.PHASES, 0.0)
-        self._last = None
-        self.recent: collections.deque = collections.deque(maxlen=TIMING_EVERY)  # decide s
-
-    def begin(self, started: float, arrived, stamp) -> None:
-        self._tick = dict.fromkeys(self.PHASES, 0.0)
-        arrived_at, arrived_wall = arrived
-        if arrived_at:
-            self._tick["wake"] = max(0.0, started - arrived_at)
-            sent = stamp.sec + stamp.nanosec * 1e-9
-            if sent > 0:
-                self._tick["latency"] = max(0.0, arrived_wall - sent)
-        self._started = started
-        self._last = started
-
-    def mark(self, phase: str) -> None:
-        if self._last is None:
-            return
-        now = time.perf_counter()
-        self._tick[phase] += now - self._last
-        self._last = now
-
-    def end(self) -> None:
-        if self._last is None:
-            return
-        self.ticks += 1
-        for phase, seconds in self._tick.items():
-            self.total[phase] += seconds
-        self.recent.append(self._last - self._started)
-        self._last = None
-
-    def text(self, sent: dict | None = None) -> str:
-        n = max(1, self.ticks)
-        parts = ", ".join(f"{p} {1000 * self.total[p] / n:.1f}" for p in self.PHASES)
-        recent = (f"; last {len(self.recent)} ticks: decide {1000 * np.mean(self.recent):.1f} ms"
-                  if self.recent else "")
-        counts = (f"; DCC messages local {sent['local']}, to other processes {sent['service']} "
-                  f"in {sent['batches']} batch calls, unsent {sent['unsent']}"
-                  if sent and (sent["local"] or sent["service"] or sent["unsent"]) else "")
-        return f"hub timing over {self.ticks} ticks, ms per tick: {parts}{recent}{counts}"
-
-
-class HubExchange:
-    """The per-tick exchange of the robots hosted in one process, without ROS: their FOV
-    observations, the network's batched pieces (the numbers of the batched evaluator: same
-    padding and masks), the peer messages through `link`, and the robots' ranked actions.
-    The process's `PolicyHub` is its ROS `link`; tests link several exchanges in memory
-    (test/ros/test_hub_exchange.py). `link` has:
-      publish_hidden(episode, tick, round, ids, vectors)   DHC: this process's vectors of a round
-      publish_announce(episode, tick, ids, targets)        DCC: whom its robots request
-      send(kind, episode, tick, entries) -> (sent, calls)  DCC requests / replies to robots of
-                                                           other processes: (sender, receiver,
-                                                           vector) entries
-      warn(text)
-    and delivers what comes from the others to `receive_hidden`, `receive_announce`,
-    `receive`."""
-
-    def __init__(self, model, ids, comm_timeout: float, preference_mode: str, link):
-        self.model = model.eval()
-        self.algo = model.config.algo
-        self.radius = int(model.config.obs_radius)
-        self.ids = np.array(ids, dtype=np.int64)
-        self.index_of = {int(r): m for m, r in enumerate(ids)}
-        self.comm_timeout = float(comm_timeout)
-        self.preference_mode = preference_mode
-        self.link = link
-        self.mailbox = Mailbox()
-        self._observer: LocalObserver | None = None
-        self._hidden: torch.Tensor | None = None  # (M, H) carried post-communication hidden
-        self._episode = None
-        self._tick = -1
-        self.decisions = 0
-        self.sent = {"local": 0, "service": 0, "batches": 0, "unsent": 0}
-        self.timing = TickTiming()
-
-    @property
-    def episode(self):
-        return self._episode
-
-    @property
-    def tick(self) -> int:
-        return self._tick
-
-    # ---- what the other processes send ----
-    def receive_hidden(self, episode: int, tick: int, round_index: int, ids, vectors) -> None:
-        if len(ids) and int(ids[0]) in self.index_of:
-            return  # our own message: delivered locally already
-        self.mailbox.put_many(episode, f"dhc{round_index}", tick, zip(ids, vectors))
-
-    def receive_announce(self, episode: int, tick: int, ids, targets) -> None:
-        if len(ids) and int(ids[0]) in self.index_of:
-            return
-        self.mailbox.put_many(episode, "announce", tick, zip(ids, targets))
-
-    def receive(self, kind: str, episode: int, tick: int, senders, receivers, vectors) -> int:
-        """DCC requests or replies for robots of this process; how many were stored."""
-        return sum(self.mailbox.put(episode, f"{kind}{int(r)}", tick, int(s), vectors[k])
-                   for k, (s, r) in enumerate(zip(senders, receivers))
-                   if int(r) in self.index_of)
-
-    # ---- one tick ----
-    def enter(self, episode: int, tick: int) -> None:
-        """The fleet is at `tick` of `episode`: older messages go; a new run, or a tick
-        skipped (joined mid-run, restarted), starts the robots with a fresh recurrent state."""
-        if episode != self._episode or tick != self._tick + 1:
-            self._hidden = None
-        self._episode, self._tick = episode, int(tick)
-        self.mailbox.set_tick(episode, int(tick))
-
-    def decide(self, grid, positions, goals, last_actions=None, started=None,
-               arrived=(None, None), stamp=None):
-        """The local robots' decisions of the tick entered: (preferences (M, 5), requested,
-        received, missing) per robot, or None when the fleet moved on meanwhile (stale)."""
-        tick = self._tick
-        started = time.perf_counter() if started is None else started
-        positions = np.asarray(positions, dtype=np.int64)
-        goals = np.asarray(goals, dtype=np.int64)
-        if int(self.ids.max()) >= len(positions):
-            raise ValueError(f"robot ids {self.ids.tolist()} do not fit a fleet of "
-                             f"{len(positions)} robots")
-        local_goals = goals[self.ids]
-        key = (grid.shape, grid.tobytes(), local_goals.tobytes())
-        if self._observer is None or self._observer.key != key:
-            self._observer = LocalObserver(grid, local_goals, self.radius,
-                                           self.model.config.observation)
-        obs = torch.from_numpy(self._observer.observe(positions, self.ids))
-        self.timing.begin(started, arrived, stamp)
-        self.timing.mark("observe")
-        if self._hidden is None:
-            self._hidden = torch.zeros(len(self.ids), self.model.config.hidden_dim)
-        with torch.no_grad():
-            if self.algo == "dhc":
-                h, requested, received, missing = self._dhc(tick, obs, positions)
-            else:
-                last = torch.as_tensor(np.asarray(last_actions, dtype=np.int64)[self.ids])
-                h, requested, received, missing = self._dcc(tick, obs, last, positions)
-            q = self.model.head(h).numpy()
-        self.timing.mark("network")
-        preferences = rank_actions(obs.numpy(), q, self.preference_mode,
-                                   ties=tie_breakers(self.ids, tick))
-        if self.mailbox.current_tick != tick:
-            return None  # the fleet moved on while we waited: this decision is stale
-        self._hidden = h
-        self.decisions += 1
-        return preferences, requested, received, missing
-
-    def _deadline(self) -> float:
-        return time.monotonic() + self.comm_timeout
-
-    # ---- DHC: two rounds over the shared topic ----
-    def _dhc(self, tick, obs, positions):
-        from mapf_fleet.models.comm import dhc_partners
-
-        model, m_count = self.model, len(self.ids)
-        h = model.encode_batch(obs, self._hidden)
-        self.timing.mark("network")
-        partners = dhc_partners(positions, self.radius, model.config.max_partners)[self.ids]
-        wanted = {int(j) for j in partners.reshape(-1) if j >= 0}
-        missing = [set() for _ in range(m_count)]
-        received = [0] * m_count
-        for r in range(model.config.comm_rounds):
-            vectors = h.numpy().copy()
-            self.mailbox.put_many(self._episode, f"dhc{r}", tick, zip(self.ids.tolist(), vectors))
-            self.link.publish_hidden(self._episode, tick, r, self.ids, vectors)
-            self.timing.mark("send")
-            box = self.mailbox.wait_for(f"dhc{r}", tick, wanted, self._deadline())
-            self.timing.mark("wait")
-            # members: self first, then the partners nearest first (as the batched step)
-            members = np.zeros((m_count, 1 + partners.shape[1], h.shape[1]), dtype=np.float32)
-            valid = np.zeros(members.shape[:2], dtype=bool)
-            members[:, 0], valid[:, 0] = vectors, True
-            for m in range(m_count):
-                for k, j in enumerate(partners[m]):
-                    if j < 0:
-                        continue
-                    if int(j) in box:
-                        members[m, 1 + k], valid[m, 1 + k] = box[int(j)], True
-                        received[m] += 1
-                    else:
-                        missing[m].add(int(j))
-            rows = torch.from_numpy(np.flatnonzero(valid[:, 1:].any(1)))
-            if rows.numel():
-                updated = model.round_batch(h[rows], torch.from_numpy(members)[rows],
-                                       torch.from_numpy(valid)[rows])
-                h = h.index_put((rows,), updated)
-            self.timing.mark("network")
-        requested = [[int(j) for j in row if j >= 0] for row in partners]
-        return h, requested, received, missing
-
-    # ---- DCC: announcements over a topic, requests and replies as services ----
-    def _dcc(self, tick, obs, last, positions):
-        model, m_count = self.model, len(self.ids)
-        delta = positions[None, :, :] - positions[self.ids][:, None, :]  # (M, N, 2)
-        inside = (np.abs(delta) <= self.radius).all(-1)
-        inside[np.arange(m_count), self.ids] = False
-        owner, neighbour = np.nonzero(inside)  # index order per robot, as the batched step
-        h, variant_actions = model.encode_with_variants(
-            obs, last, self._hidden, torch.from_numpy(owner),
-            torch.from_numpy(delta[owner, neighbour]))
-        own_actions = model.greedy_actions(h).numpy()
-        chosen = variant_actions.numpy() != own_actions[owner]
-        targets = [[] for _ in range(m_count)]
-        for m, j in zip(owner[chosen], neighbour[chosen]):
-            targets[m].append(int(j))
-        missing = [set() for _ in range(m_count)]
-        received = [0] * m_count
-        vectors = h.numpy().copy()
-        self.timing.mark("network")
-        self.mailbox.put_many(self._episode, "announce", tick, zip(self.ids.tolist(), targets))
-        self.link.publish_announce(self._episode, tick, self.ids, targets)
-        self._dispatch("request", tick, [(int(r), j, vectors[m])
-                                         for m, r in enumerate(self.ids) for j in targets[m]])
-        self.timing.mark("send")
-        # Requesters of a robot are among its FOV neighbours (the FOV is symmetric): their
-        # announcements tell how many requests to await. One deadline per phase, whatever the
-        # number of local robots.
-        neighbours = [set(neighbour[owner == m].tolist()) for m in range(m_count)]
-        deadline = self._deadline()
-        announced = self.mailbox.wait_for("announce", tick, set().union(*neighbours), deadline)
-        requests = []
-        for m, robot in enumerate(self.ids.tolist()):
-            missing[m].update(neighbours[m] - set(announced))
-            requesters = [i for i, t in announced.items() if i in neighbours[m] and robot in t]
-            got = self.mailbox.wait_for(f"request{robot}", tick, requesters, deadline)
-            missing[m].update(set(requesters) - set(got))
-            received[m] += len(got)
-            requests.append(got)
-        self.timing.mark("wait")
-        h1 = self._aggregate(model.request_comm, h, requests, positions)
-        vectors1 = h1.numpy().copy()
-        self.timing.mark("network")
-        self._dispatch("reply", tick, [(int(r), i, vectors1[m])
-                                       for m, r in enumerate(self.ids) for i in requests[m]])
-        self.timing.mark("send")
-        replies = []
-        deadline = self._deadline()
-        for m, robot in enumerate(self.ids.tolist()):
-            got = self.mailbox.wait_for(f"reply{robot}", tick, targets[m], deadline)
-            missing[m].update(set(targets[m]) - set(got))
-            received[m] += len(got)
-            replies.append(got)
-        self.timing.mark("wait")
-        h2 = self._aggregate(model.reply_comm, h1, replies, positions)
-        return h2, targets, received, missing
-
-    def _aggregate(self, layer, h, messages, positions):
-        """Run a DCC comm layer for the local robots that received messages (senders in index
-        order, padded and masked as in the batched step); the others keep h."""
-        from mapf_fleet.models.comm import relative_position_index
-
-        rows = [m for m in range(len(self.ids)) if messages[m]]
-        if not rows:
-            return h
-        width = max(len(messages[m]) for m in rows)
-        sender_h = np.zeros((len(rows), width, h.shape[1]), dtype=np.float32)
-        offsets = np.zeros((len(rows), width, 2), dtype=np.int64)
-        valid = np.zeros((len(rows), width), dtype=bool)
-        for k, m in enumerate(rows):
-            for s, sender in enumerate(sorted(messages[m])):
-                sender_h[k, s] = messages[m][sender]
-                offsets[k, s] = positions[sender] - positions[self.ids[m]]
-                valid[k, s] = True
-        index = torch.as_tensor(rows)
-        own = h[index]
-        sender_t = torch.from_numpy(sender_h)
-        position_index = relative_position_index(torch.from_numpy(offsets), self.radius)
-        valid_t = torch.from_numpy(valid)
-        if self.model.config.attend_self:
-            sender_t, position_index, valid_t = self.model.with_self(own, sender_t,
-                                                                      position_index, valid_t)
-        return h.index_put((index,), layer(own, sender_t, position_index, valid_t))
-
-    def _dispatch(self, kind: str, tick: int, messages) -> None:
-        """DCC messages (sender, receiver, vector) of this tick from local robots: to a local
-        receiver straight into the mailbox, the others through `link.send` (one call per
-        receiving process; fire and forget: the receiver only stores them, so nobody blocks
-        inside a callback and the protocol cannot deadlock; `comm_timeout` bounds every
-        wait)."""
-        remote = []
-        for sender, receiver, vector in messages:
-            if int(receiver) in self.index_of:
-                self.mailbox.put(self._episode, f"{kind}{int(receiver)}", tick, sender, vector)
-                self.sent["local"] += 1
-            else:
-                remote.append((int(sender), int(receiver), vector))
-        if remote:
-            sent, calls = self.link.send(kind, self._episode, tick, remote)
-            self.sent["service"] += sent
-            self.sent["unsent"] += len(remote) - sent
-            self.sent["batches"] += calls
 
 
 class PolicyHub:
     """The ROS side of one process's robots: subscriptions, heartbeats, the batch service and
-    its clients, the decision thread; the numbers are its `HubExchange`'s."""
+    its clients, the decision thread; the numbers are its `models.exchange.PolicyExchange`'s."""
 
     def __init__(self, nodes, model):
         from mapf_fleet_interfaces.msg import (DccAnnounce, DhcHidden, FleetState,
@@ -464,7 +109,8 @@ class PolicyHub:
         first = nodes[0]
         # the exchange's numbers; this hub is its ROS link (publish_hidden, publish_announce,
         # send, warn)
-        self.exchange = HubExchange(model, ids, first.comm_timeout, first.preference_mode, self)
+        self.exchange = PolicyExchange(model, ids, first.comm_timeout, first.preference_mode,
+                                       self)
         self.algo = self.exchange.algo
         self.ids = self.exchange.ids
         self.index_of = self.exchange.index_of
@@ -694,7 +340,7 @@ class PolicyHub:
                                    arrived, state.header.stamp)
         if decision is None:
             return  # the fleet moved on while we waited: this decision is stale
-        preferences, requested, received, missing = decision
+        preferences, requested, received, missing = decision[:4]
         from mapf_fleet_interfaces.msg import RobotMove
 
         tick = exchange.tick

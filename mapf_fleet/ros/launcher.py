@@ -33,7 +33,7 @@ from pathlib import Path
 from mapf_fleet.paths import data_root
 from mapf_fleet.ros import common
 from mapf_fleet.fleet.arbiter import CONFLICT_RULES, DEFAULT_CONFLICT_RULE
-from mapf_fleet.ros.instances import InstanceSource
+from mapf_fleet.fleet.instances import InstanceSource
 
 # where models/ lives: the install's share/mapf_fleet, else the checkout
 DATA_ROOT = data_root("models")

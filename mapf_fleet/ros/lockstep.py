@@ -20,7 +20,7 @@ import numpy as np
 from mapf_fleet.fleet.arbiter import DEFAULT_CONFLICT_RULE, ranking_problem, single_choice_ranking
 from mapf_fleet.fleet.record import Decisions
 from mapf_fleet.fleet.tasks import TASK_SOURCES
-from mapf_fleet.ros.instances import InstanceSource
+from mapf_fleet.fleet.instances import InstanceSource
 
 # name: (default, description); both nodes take their instance and their tick from these
 INSTANCE_PARAMETERS = {

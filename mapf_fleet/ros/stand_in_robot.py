@@ -39,7 +39,7 @@ def main(argv: list[str] | None = None) -> int:
     from geometry_msgs.msg import PoseStamped
     from rclpy.executors import SingleThreadedExecutor
 
-    from mapf_fleet.ros.instances import load_instance_yaml
+    from mapf_fleet.fleet.instances import load_instance_yaml
 
     instance = load_instance_yaml(args.instance)
     geometry = common.MapGeometry(args.resolution)

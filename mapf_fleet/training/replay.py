@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mapf_fleet.grid.env import COST_TO_GO_CHANNEL, cost_to_go_channel, steps_from_cost_to_go
+from mapf_fleet.grid.observation import COST_TO_GO_CHANNEL, cost_to_go_channel, steps_from_cost_to_go
 
 OBS_SHAPE = (6, 9, 9)
 OBS_RADIUS = (OBS_SHAPE[-1] - 1) // 2

@@ -53,7 +53,7 @@ class RecordedRun:
 # ---- the JSON record ----------------------------------------------------------------------------
 def _grid_field(path, value) -> np.ndarray:
     if isinstance(value, list) and value and all(isinstance(r, str) for r in value):
-        from mapf_fleet.ros.instances import FREE_CHARS, OBSTACLE_CHARS
+        from mapf_fleet.fleet.instances import FREE_CHARS, OBSTACLE_CHARS
 
         bad = sorted({ch for row in value for ch in row} - FREE_CHARS - OBSTACLE_CHARS)
         if bad or len({len(r) for r in value}) != 1:
@@ -68,7 +68,7 @@ def _grid_field(path, value) -> np.ndarray:
 
 def load_record(path, instance_options: dict) -> RecordedRun:
     """A JSON run record; the map from its `grid` field, else from `instance_options`
-    (ros.instances.InstanceSource fields)."""
+    (fleet.instances.InstanceSource fields)."""
     path = Path(path)
     try:
         record = json.loads(path.read_text())
@@ -90,7 +90,7 @@ def load_record(path, instance_options: dict) -> RecordedRun:
     if "grid" in record:
         grid = _grid_field(path, record["grid"])
     else:
-        from mapf_fleet.ros.instances import InstanceSource
+        from mapf_fleet.fleet.instances import InstanceSource
 
         try:
             instance = InstanceSource(num_robots=n, **instance_options).load()
@@ -149,31 +149,31 @@ def load_bag(path, namespace: str = "", episode: int | None = None) -> RecordedR
     from rosbags.rosbag2.errors import ReaderError
     from rosbags.typesys import Stores, get_typestore
 
-    from mapf_fleet.ros import common
+    from mapf_fleet.fleet import topics as names
 
     path = Path(path)
     bag_dir = path.parent if path.suffix == ".mcap" else path
-    topics = {name: common.in_namespace(name, namespace) for name in (
-        common.MAP_TOPIC, common.STATE_TOPIC, common.PROGRESS_TOPIC)}
+    topics = {name: names.in_namespace(name, namespace) for name in (
+        names.MAP_TOPIC, names.STATE_TOPIC, names.PROGRESS_TOPIC)}
     maps, states, progress = [], {}, {}
     try:
         with AnyReader([bag_dir], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
             wanted = [c for c in reader.connections if c.topic in topics.values()]
             for connection, stamp, raw in reader.messages(connections=wanted):
                 msg = reader.deserialize(raw, connection.msgtype)
-                if connection.topic == topics[common.MAP_TOPIC]:
+                if connection.topic == topics[names.MAP_TOPIC]:
                     maps.append((stamp, msg))
-                elif connection.topic == topics[common.STATE_TOPIC]:
+                elif connection.topic == topics[names.STATE_TOPIC]:
                     states.setdefault(int(msg.episode), {})[int(msg.tick)] = (stamp, msg)
                 elif hasattr(msg, "goals_reached"):
                     progress.setdefault(int(msg.episode), {})[int(msg.tick)] = int(msg.goals_reached)
     except (ReaderError, FileNotFoundError, OSError) as exc:
         raise RunFileError(f"{path}: not a readable rosbag2 ({exc})") from None
     if not states:
-        raise RunFileError(f"{path}: no {topics[common.STATE_TOPIC]} messages (a bag of "
+        raise RunFileError(f"{path}: no {topics[names.STATE_TOPIC]} messages (a bag of "
                            f"`mapf-fleet record`{' --namespace ' + namespace if namespace else ''}?)")
     if not maps:
-        raise RunFileError(f"{path}: no {topics[common.MAP_TOPIC]} message")
+        raise RunFileError(f"{path}: no {topics[names.MAP_TOPIC]} message")
     if episode is None:  # the run of the last state recorded
         episode = max(states, key=lambda e: max(stamp for stamp, _ in states[e].values()))
     elif episode not in states:
@@ -185,7 +185,7 @@ def load_bag(path, namespace: str = "", episode: int | None = None) -> RecordedR
     # the map published for this run: the last one before its first state (latched maps are
     # recorded when the recorder subscribes), else the first one
     before = [m for m in maps if m[0] <= first_stamp]
-    grid, _ = common.occupancy_to_grid((before[-1] if before else maps[0])[1])
+    grid, _ = names.occupancy_to_grid((before[-1] if before else maps[0])[1])
     positions = np.array([np.stack([by_tick[t][1].rows, by_tick[t][1].cols], 1) for t in ticks],
                          dtype=np.int64)
     goals = np.array([np.stack([by_tick[t][1].goal_rows, by_tick[t][1].goal_cols], 1)

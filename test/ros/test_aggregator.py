@@ -24,7 +24,7 @@ RUN = [sys.executable, "-m", "mapf_fleet.ros.run"]
 @pytest.mark.ros
 @pytest.mark.slow
 def test_aggregator_follows_stand_in_robots_and_rejects_off_grid(tmp_path, ros_env, checkpoints):
-    from mapf_fleet.ros.instances import load_instance_yaml
+    from mapf_fleet.fleet.instances import load_instance_yaml
 
     instance = load_instance_yaml(INSTANCE)
     record = tmp_path / "real.json"
@@ -99,7 +99,7 @@ def test_dense_map_slow_robots_never_collide(tmp_path, ros_env, checkpoints, rul
     cells) and followers wait for their cell to be vacated. The recorded poses never show two
     robots in one cell, a robot on an obstacle or a jump; the run ends with an outcome."""
     from mapf_fleet.grid.instance import generate_instance
-    from mapf_fleet.ros.instances import dump_instance_yaml
+    from mapf_fleet.fleet.instances import dump_instance_yaml
 
     instance = generate_instance(16, num_robots, 0.3, 21)
     path = tmp_path / "dense.yaml"

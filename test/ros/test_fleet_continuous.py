@@ -15,7 +15,7 @@ import time
 import numpy as np
 import pytest
 
-from mapf_fleet.ros.instances import InstanceSource
+from mapf_fleet.fleet.instances import InstanceSource
 
 UP = [sys.executable, "-m", "mapf_fleet.cli", "up", "--quiet"]
 # every process these tests start gets `ros_env` (test/conftest.py): its own ROS_DOMAIN_ID and
@@ -265,7 +265,7 @@ def test_simulated_fleet_takes_goals_at_run_time(tmp_path, ros_env, checkpoints)
 @pytest.mark.slow
 def test_real_robot_mode_takes_goals_at_run_time_and_robots_never_share_a_cell(
         tmp_path, ros_env, checkpoints):
-    from mapf_fleet.ros.instances import dump_instance_yaml
+    from mapf_fleet.fleet.instances import dump_instance_yaml
 
     instance = InstanceSource(num_robots=4, size=12, density=0.2, seed=3).load()
     path = tmp_path / "instance.yaml"

@@ -24,7 +24,7 @@ import time
 
 import pytest
 
-from mapf_fleet.ros.live_view import READY_PREFIX
+from mapf_fleet.view.live import READY_PREFIX
 
 CLI = [sys.executable, "-m", "mapf_fleet.cli"]
 SIZE, ROBOTS, SEED = 10, 4, 2

@@ -126,7 +126,7 @@ def test_pose_feeds_that_all_go_silent_end_the_run(tmp_path, ros_env, checkpoint
 @pytest.mark.slow
 def test_stand_ins_for_only_some_robots_end_in_one_line_and_exit_2(tmp_path, ros_env,
                                                                    checkpoints):
-    from mapf_fleet.ros.instances import dump_instance_yaml, load_instance_yaml
+    from mapf_fleet.fleet.instances import dump_instance_yaml, load_instance_yaml
 
     full = load_instance_yaml(INSTANCE)
     half = type(full)(full.grid, full.starts[:2], full.goals[:2])

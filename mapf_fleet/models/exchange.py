@@ -1,0 +1,524 @@
+"""The per-tick exchange of robots that decide with a learned policy, without ROS: the fleet's
+forward pass of DHC and DCC for the robots one process hosts, with the messages between robots
+going through a `link` (the ROS hub in `mapf_fleet.ros.hub`; tests and the checks below link
+exchanges in memory).
+
+- `PolicyExchange`: the robots' FOV observations (`grid.observation.ObservationBuilder`), the
+  network's batched pieces with the numbers of the batched `model.step` (same padding and
+  masks), the peer messages through the link and into the `Mailbox`, and the robots' ranked
+  actions (`coordination.preferences.rank_actions`, ties by `tie_breakers(robot id, tick)`).
+  DHC: `comm_rounds` rounds of hidden vectors to every process. DCC: whom each robot requests
+  (its decision-causal set) announced to every process, then requests and replies addressed
+  to the robots' processes.
+- `Mailbox`: the messages of lockstep ticks, thread-safe; stale ticks are dropped.
+- `TickTiming`: where a tick's time goes (the hub's log, benchmarks/bench_fleet.py).
+"""
+
+from __future__ import annotations
+
+import collections
+import threading
+import time
+from collections import defaultdict
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from mapf_fleet.coordination.preferences import rank_actions, tie_breakers
+from mapf_fleet.grid.observation import ObservationBuilder
+
+from .comm import dhc_partners
+
+TIMING_EVERY = 50  # the hub logs its per-tick time split every this many decisions
+
+
+class Decision(NamedTuple):
+    """The local robots' decisions of one tick, one row per robot (in the exchange's order)."""
+
+    preferences: np.ndarray  # int (M, 5): each robot's actions ranked, first choice first
+    requested: list  # per robot: whom it asked (DHC partners, DCC decision-causal set)
+    received: list  # per robot: how many peer messages it used
+    missing: list  # per robot: the set of peers whose message was left out (comm_timeout)
+    q: np.ndarray  # float32 (M, 5): the Q-values the ranking came from
+
+
+class PolicyExchange:
+    """The per-tick exchange of the robots hosted in one process, without ROS: their FOV
+    observations, the network's batched pieces (the numbers of the batched evaluator: same
+    padding and masks), the peer messages through `link`, and the robots' ranked actions.
+    The process's `ros.hub.PolicyHub` is its ROS `link`; tests link several exchanges in memory
+    (test/test_models_exchange.py). `link` has:
+      publish_hidden(episode, tick, round, ids, vectors)   DHC: this process's vectors of a round
+      publish_announce(episode, tick, ids, targets)        DCC: whom its robots request
+      send(kind, episode, tick, entries) -> (sent, calls)  DCC requests / replies to robots of
+                                                           other processes: (sender, receiver,
+                                                           vector) entries
+      warn(text)
+    and delivers what comes from the others to `receive_hidden`, `receive_announce`,
+    `receive`."""
+
+    def __init__(self, model, ids, comm_timeout: float, preference_mode: str, link):
+        self.model = model.eval()
+        self.algo = model.config.algo
+        self.radius = int(model.config.obs_radius)
+        self.ids = np.array(ids, dtype=np.int64)
+        self.index_of = {int(r): m for m, r in enumerate(ids)}
+        self.comm_timeout = float(comm_timeout)
+        self.preference_mode = preference_mode
+        self.link = link
+        self.mailbox = Mailbox()
+        self._observer: ObservationBuilder | None = None
+        self._hidden: torch.Tensor | None = None  # (M, H) carried post-communication hidden
+        self._episode = None
+        self._tick = -1
+        self.decisions = 0
+        self.sent = {"local": 0, "service": 0, "batches": 0, "unsent": 0}
+        self.timing = TickTiming()
+
+    @property
+    def episode(self):
+        return self._episode
+
+    @property
+    def tick(self) -> int:
+        return self._tick
+
+    # ---- what the other processes send ----
+    def receive_hidden(self, episode: int, tick: int, round_index: int, ids, vectors) -> None:
+        if len(ids) and int(ids[0]) in self.index_of:
+            return  # our own message: delivered locally already
+        self.mailbox.put_many(episode, f"dhc{round_index}", tick, zip(ids, vectors))
+
+    def receive_announce(self, episode: int, tick: int, ids, targets) -> None:
+        if len(ids) and int(ids[0]) in self.index_of:
+            return
+        self.mailbox.put_many(episode, "announce", tick, zip(ids, targets))
+
+    def receive(self, kind: str, episode: int, tick: int, senders, receivers, vectors) -> int:
+        """DCC requests or replies for robots of this process; how many were stored."""
+        return sum(self.mailbox.put(episode, f"{kind}{int(r)}", tick, int(s), vectors[k])
+                   for k, (s, r) in enumerate(zip(senders, receivers))
+                   if int(r) in self.index_of)
+
+    # ---- one tick ----
+    def enter(self, episode: int, tick: int) -> None:
+        """The fleet is at `tick` of `episode`: older messages go; a new run, or a tick
+        skipped (joined mid-run, restarted), starts the robots with a fresh recurrent state."""
+        if episode != self._episode or tick != self._tick + 1:
+            self._hidden = None
+        self._episode, self._tick = episode, int(tick)
+        self.mailbox.set_tick(episode, int(tick))
+
+    def decide(self, grid, positions, goals, last_actions=None, started=None,
+               arrived=(None, None), stamp=None) -> Decision | None:
+        """The local robots' `Decision` of the tick entered, from the fleet's state (every
+        robot's cell, goal and last executed action), or None when the fleet moved on meanwhile
+        (stale)."""
+        started = time.perf_counter() if started is None else started
+        positions = self._fleet_array(positions, "positions")
+        goals = self._fleet_array(goals, "goals")
+        local_goals = goals[self.ids]
+        observation = self.model.config.observation
+        key = (grid.shape, grid.tobytes(), local_goals.tobytes(), observation)
+        if self._observer is None or self._observer.key != key:
+            self._observer = ObservationBuilder.for_goals(grid, local_goals, self.radius,
+                                                          observation)
+        obs = self._observer.observe(positions, self.ids)
+        self.timing.begin(started, arrived, stamp)
+        self.timing.mark("observe")
+        return self.decide_on(obs, positions, last_actions)
+
+    def decide_on(self, obs, positions, last_actions=None) -> Decision | None:
+        """`decide` given the local robots' observations (M, C, S, S) (in `ids` order) and
+        every robot's cell (N, 2) and last action (N,) (None or -1: none)."""
+        tick = self._tick
+        positions = self._fleet_array(positions, "positions")
+        obs = torch.as_tensor(np.asarray(obs, dtype=np.float32))
+        if self._hidden is None:
+            self._hidden = torch.zeros(len(self.ids), self.model.config.hidden_dim)
+        with torch.no_grad():
+            if self.algo == "dhc":
+                h, requested, received, missing = self._dhc(tick, obs, positions)
+            else:
+                last = np.full(len(positions), -1, dtype=np.int64) if last_actions is None \
+                    else np.asarray(last_actions, dtype=np.int64)
+                h, requested, received, missing = self._dcc(
+                    tick, obs, torch.as_tensor(last[self.ids]), positions)
+            q = self.model.head(h).numpy()
+        self.timing.mark("network")
+        preferences = rank_actions(obs.numpy(), q, self.preference_mode,
+                                   ties=tie_breakers(self.ids, tick))
+        if self.mailbox.current_tick != tick:
+            return None  # the fleet moved on while we waited: this decision is stale
+        self._hidden = h
+        self.decisions += 1
+        return Decision(preferences, requested, received, missing, q)
+
+    def _fleet_array(self, values, name: str) -> np.ndarray:
+        values = np.asarray(values, dtype=np.int64)
+        if int(self.ids.max()) >= len(values):
+            raise ValueError(f"robot ids {self.ids.tolist()} do not fit a fleet of "
+                             f"{len(values)} robots ({name})")
+        return values
+
+    def _deadline(self) -> float:
+        return time.monotonic() + self.comm_timeout
+
+    # ---- DHC: two rounds over the shared topic ----
+    def _dhc(self, tick, obs, positions):
+        model, m_count = self.model, len(self.ids)
+        h = model.encode_batch(obs, self._hidden)
+        self.timing.mark("network")
+        partners = dhc_partners(positions, self.radius, model.config.max_partners)[self.ids]
+        wanted = {int(j) for j in partners.reshape(-1) if j >= 0}
+        missing = [set() for _ in range(m_count)]
+        received = [0] * m_count
+        for r in range(model.config.comm_rounds):
+            vectors = h.numpy().copy()
+            self.mailbox.put_many(self._episode, f"dhc{r}", tick, zip(self.ids.tolist(), vectors))
+            self.link.publish_hidden(self._episode, tick, r, self.ids, vectors)
+            self.timing.mark("send")
+            box = self.mailbox.wait_for(f"dhc{r}", tick, wanted, self._deadline())
+            self.timing.mark("wait")
+            # members: self first, then the partners nearest first (as the batched step)
+            members = np.zeros((m_count, 1 + partners.shape[1], h.shape[1]), dtype=np.float32)
+            valid = np.zeros(members.shape[:2], dtype=bool)
+            members[:, 0], valid[:, 0] = vectors, True
+            for m in range(m_count):
+                for k, j in enumerate(partners[m]):
+                    if j < 0:
+                        continue
+                    if int(j) in box:
+                        members[m, 1 + k], valid[m, 1 + k] = box[int(j)], True
+                        received[m] += 1
+                    else:
+                        missing[m].add(int(j))
+            rows = torch.from_numpy(np.flatnonzero(valid[:, 1:].any(1)))
+            if rows.numel():
+                updated = model.round_batch(h[rows], torch.from_numpy(members)[rows],
+                                       torch.from_numpy(valid)[rows])
+                h = h.index_put((rows,), updated)
+            self.timing.mark("network")
+        requested = [[int(j) for j in row if j >= 0] for row in partners]
+        return h, requested, received, missing
+
+    # ---- DCC: announcements over a topic, requests and replies as services ----
+    def _dcc(self, tick, obs, last, positions):
+        model, m_count = self.model, len(self.ids)
+        delta = positions[None, :, :] - positions[self.ids][:, None, :]  # (M, N, 2)
+        inside = (np.abs(delta) <= self.radius).all(-1)
+        inside[np.arange(m_count), self.ids] = False
+        owner, neighbour = np.nonzero(inside)  # index order per robot, as the batched step
+        h, variant_actions = model.encode_with_variants(
+            obs, last, self._hidden, torch.from_numpy(owner),
+            torch.from_numpy(delta[owner, neighbour]))
+        own_actions = model.greedy_actions(h).numpy()
+        chosen = variant_actions.numpy() != own_actions[owner]
+        targets = [[] for _ in range(m_count)]
+        for m, j in zip(owner[chosen], neighbour[chosen]):
+            targets[m].append(int(j))
+        missing = [set() for _ in range(m_count)]
+        received = [0] * m_count
+        vectors = h.numpy().copy()
+        self.timing.mark("network")
+        self.mailbox.put_many(self._episode, "announce", tick, zip(self.ids.tolist(), targets))
+        self.link.publish_announce(self._episode, tick, self.ids, targets)
+        self._dispatch("request", tick, [(int(r), j, vectors[m])
+                                         for m, r in enumerate(self.ids) for j in targets[m]])
+        self.timing.mark("send")
+        # Requesters of a robot are among its FOV neighbours (the FOV is symmetric): their
+        # announcements tell how many requests to await. One deadline per phase, whatever the
+        # number of local robots.
+        neighbours = [set(neighbour[owner == m].tolist()) for m in range(m_count)]
+        deadline = self._deadline()
+        announced = self.mailbox.wait_for("announce", tick, set().union(*neighbours), deadline)
+        requests = []
+        for m, robot in enumerate(self.ids.tolist()):
+            missing[m].update(neighbours[m] - set(announced))
+            requesters = [i for i, t in announced.items() if i in neighbours[m] and robot in t]
+            got = self.mailbox.wait_for(f"request{robot}", tick, requesters, deadline)
+            missing[m].update(set(requesters) - set(got))
+            received[m] += len(got)
+            requests.append(got)
+        self.timing.mark("wait")
+        h1 = self._aggregate(model.request_comm, h, requests, positions)
+        vectors1 = h1.numpy().copy()
+        self.timing.mark("network")
+        self._dispatch("reply", tick, [(int(r), i, vectors1[m])
+                                       for m, r in enumerate(self.ids) for i in requests[m]])
+        self.timing.mark("send")
+        replies = []
+        deadline = self._deadline()
+        for m, robot in enumerate(self.ids.tolist()):
+            got = self.mailbox.wait_for(f"reply{robot}", tick, targets[m], deadline)
+            missing[m].update(set(targets[m]) - set(got))
+            received[m] += len(got)
+            replies.append(got)
+        self.timing.mark("wait")
+        h2 = self._aggregate(model.reply_comm, h1, replies, positions)
+        return h2, targets, received, missing
+
+    def _aggregate(self, layer, h, messages, positions):
+        """Run a DCC comm layer for the local robots that received messages (senders in index
+        order, padded and masked as in the batched step); the others keep h."""
+        rows = [m for m in range(len(self.ids)) if messages[m]]
+        if not rows:
+            return h
+        width = max(len(messages[m]) for m in rows)
+        sender_h = np.zeros((len(rows), width, h.shape[1]), dtype=np.float32)
+        offsets = np.zeros((len(rows), width, 2), dtype=np.int64)
+        valid = np.zeros((len(rows), width), dtype=bool)
+        for k, m in enumerate(rows):
+            for s, sender in enumerate(sorted(messages[m])):
+                sender_h[k, s] = messages[m][sender]
+                offsets[k, s] = positions[sender] - positions[self.ids[m]]
+                valid[k, s] = True
+        index = torch.as_tensor(rows)
+        updated = self.model.receive(layer, h[index], torch.from_numpy(sender_h),
+                                     torch.from_numpy(offsets), torch.from_numpy(valid))
+        return h.index_put((index,), updated)
+
+    def _dispatch(self, kind: str, tick: int, messages) -> None:
+        """DCC messages (sender, receiver, vector) of this tick from local robots: to a local
+        receiver straight into the mailbox, the others through `link.send` (one call per
+        receiving process; fire and forget: the receiver only stores them, so nobody blocks
+        inside a callback and the protocol cannot deadlock; `comm_timeout` bounds every
+        wait)."""
+        remote = []
+        for sender, receiver, vector in messages:
+            if int(receiver) in self.index_of:
+                self.mailbox.put(self._episode, f"{kind}{int(receiver)}", tick, sender, vector)
+                self.sent["local"] += 1
+            else:
+                remote.append((int(sender), int(receiver), vector))
+        if remote:
+            sent, calls = self.link.send(kind, self._episode, tick, remote)
+            self.sent["service"] += sent
+            self.sent["unsent"] += len(remote) - sent
+            self.sent["batches"] += calls
+
+
+class LinkedExchanges:
+    """Exchanges of groups of robots (one per "process") linked by direct calls: the fleet's
+    exchange driven in one process, without ROS (the hub's deliveries without DDS), for the
+    tests and benchmarks that compare it with `model.step`. Each exchange decides in its own
+    thread, as each process would. `drop(kind, sender, receiver)` loses a DCC request or reply.
+    """
+
+    def __init__(self, model, groups, comm_timeout: float = 5.0, preference_mode: str = "q",
+                 drop=None):
+        self.drop = drop or (lambda kind, sender, receiver: False)
+        self.exchanges = [PolicyExchange(model, group, comm_timeout, preference_mode,
+                                         _MemoryLink(self, k))
+                          for k, group in enumerate(groups)]
+        self.owner = {int(r): ex for ex in self.exchanges for r in ex.ids}
+        self.calls = 0  # DCC batch calls between the groups
+
+    def tick(self, episode: int, tick: int, positions, last_actions=None, grid=None,
+             goals=None, obs=None) -> Decision:
+        """Every robot's decision at `tick`, rows in robot id order: from the state (`grid`,
+        `goals`) or from every robot's observation `obs` (N, C, S, S)."""
+        results, errors = {}, []
+
+        def run(k, ex):
+            try:
+                ex.enter(episode, tick)
+                if obs is None:
+                    results[k] = ex.decide(grid, positions, goals, last_actions)
+                else:
+                    results[k] = ex.decide_on(np.asarray(obs)[ex.ids], positions, last_actions)
+            except Exception as exc:  # raised below, in the caller's thread
+                errors.append(exc)
+
+        threads = [threading.Thread(target=run, args=(k, ex))
+                   for k, ex in enumerate(self.exchanges)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+        if errors:
+            raise errors[0]
+        n = len(self.owner)
+        rows = {}
+        for k, ex in enumerate(self.exchanges):
+            for m, robot in enumerate(ex.ids.tolist()):
+                rows[robot] = [results[k][field][m] for field in range(len(Decision._fields))]
+        ordered = [rows[i] for i in range(n)]
+        return Decision(np.array([r[0] for r in ordered]), [r[1] for r in ordered],
+                        [r[2] for r in ordered], [r[3] for r in ordered],
+                        np.array([r[4] for r in ordered]))
+
+
+class _MemoryLink:
+    """The link of exchange `index` of a `LinkedExchanges`: straight calls of the others."""
+
+    def __init__(self, fleet: LinkedExchanges, index: int):
+        self.fleet, self.index = fleet, index
+
+    def _others(self):
+        return [ex for k, ex in enumerate(self.fleet.exchanges) if k != self.index]
+
+    def publish_hidden(self, episode, tick, round_index, ids, vectors):
+        for ex in self._others():
+            ex.receive_hidden(episode, tick, round_index, ids.tolist(), vectors.copy())
+
+    def publish_announce(self, episode, tick, ids, targets):
+        for ex in self._others():
+            ex.receive_announce(episode, tick, ids.tolist(), [list(t) for t in targets])
+
+    def send(self, kind, episode, tick, entries):
+        by_owner = defaultdict(list)
+        for sender, receiver, vector in entries:
+            if not self.fleet.drop(kind, sender, receiver):
+                by_owner[id(self.fleet.owner[receiver])].append((sender, receiver, vector))
+        for batch in by_owner.values():
+            self.fleet.owner[batch[0][1]].receive(kind, episode, tick, [e[0] for e in batch],
+                                                  [e[1] for e in batch],
+                                                  np.stack([e[2] for e in batch]))
+            self.fleet.calls += 1
+        return sum(len(b) for b in by_owner.values()), len(by_owner)
+
+    def warn(self, text):
+        pass
+
+
+class Mailbox:
+    """Messages of lockstep ticks keyed by (kind, tick, sender): the link's deliveries `put`
+    them, the deciding thread `wait_for` the senders it needs until a deadline. Messages of a
+    tick older than the current one are stale: dropped and counted, never used; messages of a
+    later tick are kept, because a faster peer may already be there."""
+
+    def __init__(self):
+        self._cond = threading.Condition()
+        self._episode = None
+        self._current_tick = -1
+        self._boxes: dict[tuple, dict[int, object]] = defaultdict(dict)
+        self.stale_dropped = 0
+
+    def set_tick(self, episode: int, tick: int) -> None:
+        """Enter `tick` of `episode`: older ticks' messages are discarded."""
+        with self._cond:
+            # Messages that arrived before the node's first state (a faster peer's round 0) are
+            # kept when they belong to the episode entered; everything else older goes.
+            self._episode = episode
+            self._current_tick = tick
+            for key in [k for k in self._boxes if k[0] != episode or k[2] < tick]:
+                del self._boxes[key]
+            self._cond.notify_all()
+
+    @property
+    def current_tick(self) -> int:
+        return self._current_tick
+
+    def put(self, episode: int, kind: str, tick: int, sender: int, payload) -> bool:
+        """Store a message; False (and counted) when it is stale or of another episode."""
+        with self._cond:
+            if self._episode is not None and episode != self._episode:
+                # A message of a newer episode may arrive before the node saw the new state; we
+                # cannot tell newer from older here, so only the current episode is accepted.
+                self.stale_dropped += 1
+                return False
+            if tick < self._current_tick:
+                self.stale_dropped += 1
+                return False
+            self._boxes[(episode, kind, tick)][int(sender)] = payload
+            self._cond.notify_all()
+            return True
+
+    def put_many(self, episode: int, kind: str, tick: int, items) -> int:
+        """Store (sender, payload) pairs of one kind and tick at once (one lock, one notify: a
+        batched message of a whole process); how many were stored (0 when stale)."""
+        items = list(items)
+        with self._cond:
+            if (self._episode is not None and episode != self._episode) or \
+                    tick < self._current_tick:
+                self.stale_dropped += len(items)
+                return 0
+            box = self._boxes[(episode, kind, tick)]
+            for sender, payload in items:
+                box[int(sender)] = payload
+            self._cond.notify_all()
+            return len(items)
+
+    def wait_for(self, kind: str, tick: int, senders, deadline: float,
+                 count: int | None = None) -> dict[int, object]:
+        """Messages of `kind` for `tick`: wait until every sender in `senders` (or, when
+        `senders` is None, `count` messages from anyone) arrived or `deadline` (time.monotonic)
+        passed; returns what arrived (the caller reports the missing ones)."""
+        wanted = None if senders is None else {int(s) for s in senders}
+        with self._cond:
+            while True:
+                box = self._boxes.get((self._episode, kind, tick), {})
+                if wanted is not None and wanted.issubset(box.keys()):
+                    break
+                if wanted is None and count is not None and len(box) >= count:
+                    break
+                if self._current_tick > tick:  # the fleet moved on: nothing more will come
+                    break
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    break
+                self._cond.wait(remaining)
+            box = dict(self._boxes.get((self._episode, kind, tick), {}))
+        if wanted is not None:
+            box = {s: m for s, m in box.items() if s in wanted}
+        return box
+
+    def interrupt(self) -> None:
+        with self._cond:
+            self._cond.notify_all()
+
+
+class TickTiming:
+    """Where an exchange's tick goes (plain Python), for the hub's log and bench_fleet.py:
+    `latency` from the state's stamp to its callback (the simulator's publish and DDS), `wake`
+    from the callback to the decision thread, then `observe`, `network` (torch), `send`
+    (publishing peer messages, DCC batch calls), `wait` (for the peers' messages) and `moves`
+    (ranking, publishing the moves); `begin` a tick, `mark(phase)` at the end of each piece."""
+
+    PHASES = ("latency", "wake", "observe", "network", "send", "wait", "moves")
+
+    def __init__(self):
+        self.ticks = 0
+        self.total = dict.fromkeys(self.PHASES, 0.0)
+        self._tick = dict.fromkeys(self.PHASES, 0.0)
+        self._last = None
+        self.recent: collections.deque = collections.deque(maxlen=TIMING_EVERY)  # decide s
+
+    def begin(self, started: float, arrived, stamp) -> None:
+        self._tick = dict.fromkeys(self.PHASES, 0.0)
+        arrived_at, arrived_wall = arrived
+        if arrived_at:
+            self._tick["wake"] = max(0.0, started - arrived_at)
+            sent = stamp.sec + stamp.nanosec * 1e-9
+            if sent > 0:
+                self._tick["latency"] = max(0.0, arrived_wall - sent)
+        self._started = started
+        self._last = started
+
+    def mark(self, phase: str) -> None:
+        if self._last is None:
+            return
+        now = time.perf_counter()
+        self._tick[phase] += now - self._last
+        self._last = now
+
+    def end(self) -> None:
+        if self._last is None:
+            return
+        self.ticks += 1
+        for phase, seconds in self._tick.items():
+            self.total[phase] += seconds
+        self.recent.append(self._last - self._started)
+        self._last = None
+
+    def text(self, sent: dict | None = None) -> str:
+        n = max(1, self.ticks)
+        parts = ", ".join(f"{p} {1000 * self.total[p] / n:.1f}" for p in self.PHASES)
+        recent = (f"; last {len(self.recent)} ticks: decide {1000 * np.mean(self.recent):.1f} ms"
+                  if self.recent else "")
+        counts = (f"; DCC messages local {sent['local']}, to other processes {sent['service']} "
+                  f"in {sent['batches']} batch calls, unsent {sent['unsent']}"
+                  if sent and (sent["local"] or sent["service"] or sent["unsent"]) else "")
+        return f"hub timing over {self.ticks} ticks, ms per tick: {parts}{recent}{counts}"

@@ -1,0 +1,63 @@
+"""The one observation builder (`grid.observation.ObservationBuilder`): what a fleet process
+builds for the robots it hosts (`observe(positions, agents)`, built `for_goals` of those robots)
+equals the grid world's `observe` of the whole fleet, for both observations; a builder of
+several maps refuses the one-map call."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mapf_fleet.grid.env import EnvConfig, MAPFEnv, observe
+from mapf_fleet.grid.heuristic import bfs_distances_many, cached_heuristic_channels
+from mapf_fleet.grid.instance import generate_instance
+from mapf_fleet.grid.observation import ObservationBuilder
+
+
+def test_a_subset_of_robots_sees_what_observe_gives_them():
+    instance = generate_instance(12, 10, 0.3, 4)
+    grid, goals = np.asarray(instance.grid), np.asarray(instance.goals)
+    positions = np.asarray(instance.starts)
+    local = np.array([7, 2, 9])  # any order: rows follow `local`
+    expected = observe(grid, positions, goals, cached_heuristic_channels(grid, goals), 4)[local]
+    builder = ObservationBuilder.for_goals(grid, goals[local], 4)
+    np.testing.assert_array_equal(builder.observe(positions, local), expected)
+    # robots near the border see off-map cells as obstacles, and others in channel 0
+    assert expected[:, 0].sum() > 0
+    # every robot: the environment's observation
+    env = MAPFEnv(instance)
+    np.testing.assert_array_equal(ObservationBuilder.for_goals(grid, goals).observe(positions),
+                                  env.reset())
+
+
+def test_cost_to_go_observation_follows_the_goals():
+    """A model reading "cost_to_go" gets observe()'s 7th channel; goals given at run time make
+    a new builder (its key differs), whose distances are the new goals'."""
+    instance = generate_instance(12, 10, 0.3, 5)
+    grid, positions = np.asarray(instance.grid), np.asarray(instance.starts)
+    local = np.array([3, 8, 0])
+    keys = set()
+    for goals in (np.asarray(instance.goals), np.asarray(instance.goals)[::-1].copy()):
+        expected = observe(grid, positions, goals, cached_heuristic_channels(grid, goals), 4,
+                           distances=bfs_distances_many(grid, goals))[local]
+        builder = ObservationBuilder.for_goals(grid, goals[local], 4, "cost_to_go")
+        keys.add(builder.key)
+        assert builder.observe(positions, local).shape == (3, 7, 9, 9)
+        np.testing.assert_array_equal(builder.observe(positions, local), expected)
+        env = MAPFEnv(instance, EnvConfig(observation="cost_to_go"))
+        if goals is instance.goals:
+            np.testing.assert_array_equal(env.reset()[local], expected)
+    assert len(keys) == 2
+
+
+def test_bad_calls_say_what_is_wrong():
+    instance = generate_instance(8, 4, 0.2, 1)
+    builder = ObservationBuilder.for_goals(instance.grid, instance.goals[:2], 4)
+    with pytest.raises(ValueError, match="3 agents for a builder of 2"):
+        builder.observe(instance.starts, [0, 1, 2])
+    with pytest.raises(ValueError, match="observation must be one of"):
+        ObservationBuilder.for_goals(instance.grid, instance.goals, 4, "lidar")
+    two_maps = ObservationBuilder(np.stack([instance.grid] * 2), np.zeros((2, 8, 8), np.uint8),
+                                  4, np.array([0, 1]))
+    with pytest.raises(ValueError, match="one map"):
+        two_maps.observe(instance.starts[:2])
