@@ -1,7 +1,7 @@
 """DAgger behind the arbiter (mapf_fleet.training.dagger): labels, shards, resume, learner.
 
-Tiny maps, a few agents, the `small` DCC network: seconds in all, no Ray (the Ray path is the
-trainer's pattern and is exercised by the background runs)."""
+Tiny maps, a few agents, the `small` DCC network: seconds in all; Ray only in the slow test of the
+shared worker pool's Ray path."""
 
 from __future__ import annotations
 
@@ -291,3 +291,17 @@ def test_compare_runs_prints_the_ab_side_by_side(tmp_path, capsys):
     # not a run directory: one line naming it, exit 2
     assert dagger.main(["--compare", str(tmp_path / "nope")]) == 2
     assert "nope: not a DAgger run directory" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_a_round_on_two_ray_workers(small_checkpoint, tmp_path):
+    """The shared worker pool's Ray path: a local Ray with two workers plays and labels every
+    episode of the round."""
+    cfg = tiny_config(small_checkpoint, use_ray=True, num_cpus=2, num_workers=2,
+                      episodes_per_round=4)
+    result = dagger.Dagger(cfg, tmp_path / "run", log=lambda m: None).run()
+    assert result["round"] == 1
+    manifest = json.loads((tmp_path / "run" / "data" / "manifest.json").read_text())
+    assert sorted(manifest["shards"]) == [f"r000_e00{i}.npz" for i in range(4)]
+    assert result["counters"]["labels"] > 0
+    assert {m["job"]["episode"] for m in manifest["shards"].values()} == {0, 1, 2, 3}
