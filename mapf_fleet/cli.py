@@ -12,8 +12,6 @@ import sys
 COMMANDS = {
     "demo": ("mapf_fleet.grid.demo", "main", "grid-world demo with the non-learned policy"),
     "train": ("mapf_fleet.training.cli", "main", "Ape-X training with both curricula"),
-    "demos": ("mapf_fleet.training.demo_dataset", "main",
-              "demonstration dataset from LaCAM/PIBT, in resumable shards"),
     "dagger": ("mapf_fleet.training.dagger", "main", "DAgger behind the arbiter, LaCAM labels"),
     "evaluate": ("mapf_fleet.evaluation.cli", "main", "the paper's evaluation protocol"),
     "render": ("mapf_fleet.view.replay", "main",

@@ -9,8 +9,7 @@ from pathlib import Path
 from typing import BinaryIO, Callable
 
 # Every temporary file of `atomic_write` is named ".<name>.tmp-<random>" beside its target, so a
-# folder's leftovers of a killed writer are `folder.glob(f"*{TMP_MARK}*")` (demo_dataset removes
-# them on resume).
+# folder's leftovers of a killed writer are `folder.glob(f"*{TMP_MARK}*")`.
 TMP_MARK = ".tmp-"
 
 

@@ -29,13 +29,13 @@ def test_a_failing_writer_keeps_the_old_file_and_leaves_no_temporary(tmp_path):
     assert not list(tmp_path.glob(f"*{TMP_MARK}*"))
 
 
-def test_the_protocol_cache_and_the_demo_shards_use_it(monkeypatch, tmp_path):
-    """The two former copies now go through `files.atomic_write` (which fsyncs)."""
+def test_the_protocol_cache_and_the_dagger_shards_use_it(monkeypatch, tmp_path):
+    """The protocol cache and DAgger's shards go through `files.atomic_write` (which fsyncs)."""
     import numpy as np
 
     from mapf_fleet import files
     from mapf_fleet.evaluation import protocol
-    from mapf_fleet.training import demo_dataset
+    from mapf_fleet.training.dagger import data as dagger_data
 
     written = []
     real = files.atomic_write
@@ -45,10 +45,10 @@ def test_the_protocol_cache_and_the_demo_shards_use_it(monkeypatch, tmp_path):
         return real(path, write)
 
     monkeypatch.setattr(files, "atomic_write", spy)
-    monkeypatch.setattr(demo_dataset, "atomic_write", spy)
+    monkeypatch.setattr(dagger_data, "atomic_write", spy)
     grid = np.zeros((1, 4, 4), np.uint8)
     cells = np.zeros((1, 1, 2), np.int64)
     protocol._write_npz_atomic(tmp_path / "cache.npz", grid, cells, cells)
-    demo_dataset.write_shard(tmp_path / "shard.npz", {"x": np.arange(3)})
+    dagger_data.write_shard(tmp_path / "shard.npz", {"x": np.arange(3)}, {"file": "shard.npz"})
     assert written == ["cache.npz", "shard.npz"]
     assert np.load(tmp_path / "cache.npz")["maps"].shape == (1, 4, 4)

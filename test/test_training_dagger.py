@@ -1,7 +1,7 @@
 """DAgger behind the arbiter (mapf_fleet.training.dagger): labels, shards, resume, learner.
 
-Tiny maps, a few agents, the `small` DCC network: seconds in all, no Ray (the Ray path is the
-trainer's pattern and is exercised by the background runs)."""
+Tiny maps, a few agents, the `small` DCC network: seconds in all; Ray only in the slow test of the
+shared worker pool's Ray path."""
 
 from __future__ import annotations
 
@@ -50,13 +50,14 @@ def test_labels_are_lacam_first_moves():
     inst = generate_instance(10, 5, 0.1, 3)
     labeller = dagger.LaCAMLabeller(2.0, 3.0, 32)
     dist = bfs_distances_many(inst.grid, inst.goals)
-    labels, status = labeller.label(inst.grid, inst.starts, inst.goals, dist, 64)
+    state = dagger.LabelState(inst.grid, inst.starts, inst.goals, dist, 0, 64)
+    labels, status = labeller.label(state)
     plan = ClassicalPlanner("lacam", 2.0, 0).plan(inst.grid, inst.starts, inst.goals)
     assert status == "ok" and plan.complete
     assert labels.tolist() == positions_to_actions(plan.positions[:2])[0].tolist()
     # a plan longer than the filter allows gives no labels, and says why
     strict = dagger.LaCAMLabeller(2.0, 0.5, 0)
-    labels, status = strict.label(inst.grid, inst.starts, inst.goals, dist, 64)
+    labels, status = strict.label(state)
     assert status == "too_long" and (labels == -1).all()
     assert labeller.plan_limit(10, 256) == 62 and labeller.plan_limit(100, 128) == 128
 
@@ -239,9 +240,9 @@ def test_labelling_backs_off_after_failed_states(small_checkpoint):
     class Failing:
         calls: list = []
 
-        def label(self, grid, positions, goals, distances, step_limit):
-            self.calls.append(len(self.calls))
-            return np.full(len(positions), -1, np.int64), "unsolved"
+        def label(self, state):
+            self.calls.append(state.step)
+            return dagger.Labels(np.full(len(state.positions), -1, np.int64), "unsolved")
 
     model, _ = load_checkpoint(small_checkpoint)
     inst = generate_instance(12, 6, 0.2, 5)
@@ -254,6 +255,7 @@ def test_labelling_backs_off_after_failed_states(small_checkpoint):
         wait = min(wait * 2, 8)
         t += wait
     assert out["label_calls"] == len(expected) == out["unsolved"]
+    assert labeller.calls == expected  # the labeller is told the step of each state
     assert out["labels"] == 0 and (out["arrays"]["labels"] == -1).all()
 
 
@@ -289,3 +291,17 @@ def test_compare_runs_prints_the_ab_side_by_side(tmp_path, capsys):
     # not a run directory: one line naming it, exit 2
     assert dagger.main(["--compare", str(tmp_path / "nope")]) == 2
     assert "nope: not a DAgger run directory" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_a_round_on_two_ray_workers(small_checkpoint, tmp_path):
+    """The shared worker pool's Ray path: a local Ray with two workers plays and labels every
+    episode of the round."""
+    cfg = tiny_config(small_checkpoint, use_ray=True, num_cpus=2, num_workers=2,
+                      episodes_per_round=4)
+    result = dagger.Dagger(cfg, tmp_path / "run", log=lambda m: None).run()
+    assert result["round"] == 1
+    manifest = json.loads((tmp_path / "run" / "data" / "manifest.json").read_text())
+    assert sorted(manifest["shards"]) == [f"r000_e00{i}.npz" for i in range(4)]
+    assert result["counters"]["labels"] > 0
+    assert {m["job"]["episode"] for m in manifest["shards"].values()} == {0, 1, 2, 3}

@@ -77,7 +77,7 @@ def test_one_agent_on_10x10_learns_past_0_9(tmp_path):
 def test_cpu_meter_adds_each_actor_process_once_and_not_the_driver_twice():
     import os
 
-    from mapf_fleet.training.trainer import CpuMeter
+    from mapf_fleet.training.ray_pool import CpuMeter
 
     meter = CpuMeter()
     meter.actor_report({"pid": 101, "process_cpu_seconds": 5.0})

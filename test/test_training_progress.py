@@ -7,7 +7,9 @@ import time
 from pathlib import Path
 
 from mapf_fleet.training import trainer as trainer_module
+from mapf_fleet.training.actor import EpisodeWorker
 from mapf_fleet.training.config import load_config
+from mapf_fleet.training.ray_pool import LocalPool
 
 CONFIGS = Path(__file__).resolve().parents[1] / "config" / "training"
 CALL_SECONDS = 0.4  # one actor call; the log interval below is 8x shorter
@@ -16,24 +18,24 @@ STOP_AFTER_BURSTS = 8
 TRAINERS: list = []  # the trainer under test (its stop flag ends the run)
 
 
-class BurstyActors(trainer_module._LocalActors):
+class BurstyActors(LocalPool):
     """In-process actors whose results arrive at most every CALL_SECONDS, like a Ray actor whose
     remote call takes longer than the trainer's log interval."""
 
     def __init__(self, cfg):
-        super().__init__(cfg)
+        super().__init__(EpisodeWorker, [(cfg, i) for i in range(cfg.num_actors)])
         self.ready_at = time.monotonic() + CALL_SECONDS
 
-    def poll(self, task, block):
+    def ready(self, block):
         wait = self.ready_at - time.monotonic()
         if wait > 0:
             if not block:
                 return []
             time.sleep(wait)
-        results = super().poll(task, block)
+        results = super().ready(block)
         self.ready_at = time.monotonic() + CALL_SECONDS
         if results:
-            BURSTS.append(sum(r["agent_steps"] for r in results))
+            BURSTS.append(sum(r["agent_steps"] for _, r in results))
             if len(BURSTS) >= STOP_AFTER_BURSTS:  # ends the run by bursts, not by wall time,
                 TRAINERS[-1].stop_signal = "test"  # so a loaded machine still logs enough
         return results
@@ -41,7 +43,7 @@ class BurstyActors(trainer_module._LocalActors):
 
 def test_actor_rate_is_never_zero_between_bursts(tmp_path, monkeypatch, capsys):
     BURSTS.clear()
-    monkeypatch.setattr(trainer_module, "_LocalActors", BurstyActors)
+    monkeypatch.setattr(trainer_module, "actor_pool", BurstyActors)
     logged = []
     real = trainer_module.Trainer._write_scalars
 

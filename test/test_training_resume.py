@@ -19,10 +19,19 @@ REPO = Path(__file__).resolve().parent.parent
 CONFIGS = REPO / "config" / "training"
 
 
-@pytest.mark.parametrize("name", ["dhc_paper", "dcc_paper", "dhc_cpu", "dcc_cpu", "dhc_cpu_demo", "dcc_cpu_demo",
-                                  "dhc_cpu_lacam", "dcc_cpu_lacam", "tiny"])
-def test_shipped_configs_load(name):
-    cfg = load_config(CONFIGS / f"{name}.yaml")
+TRAIN_CONFIGS = sorted(p for p in [*CONFIGS.glob("*.yaml"), *CONFIGS.glob("experiments/*.yaml")]
+                       if not p.name.startswith("dagger_"))  # dagger_*: DAgger's (own test)
+
+
+def test_the_configs_to_train_with_are_there():
+    names = {p.stem for p in TRAIN_CONFIGS if p.parent == CONFIGS}
+    assert names == {"dhc_paper", "dcc_paper", "dhc_cpu", "dcc_cpu", "dhc_cpu_lacam",
+                     "dcc_cpu_lacam", "tiny"}
+
+
+@pytest.mark.parametrize("path", TRAIN_CONFIGS, ids=lambda p: str(p.relative_to(CONFIGS)))
+def test_shipped_configs_load(path):
+    cfg = load_config(path)
     assert cfg.algo in ("dhc", "dcc")
 
 

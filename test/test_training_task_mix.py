@@ -134,7 +134,7 @@ def test_short_train_run_on_a_mix_passes_both_gates(tmp_path):
 
 
 def test_sample_config_dcc_mix_loads():
-    cfg = load_config(CONFIGS / "dcc_mix.yaml")
+    cfg = load_config(CONFIGS / "experiments" / "dcc_mix.yaml")
     mix = TaskMix.from_dict(cfg.task_mix)
     assert cfg.algo == "dcc" and set(mix.kinds) == {"random", "maze", "rooms", "warehouse"}
     assert max(mix.sizes) >= 40 and max(mix.agents) == 64 <= cfg.final_agents

@@ -1,8 +1,8 @@
 """Ape-X actor: plays episodes with an epsilon-greedy copy of the network and returns them
 as replay sequences.
 
-`EpisodeWorker` is a plain class (tests and `use_ray: false` run it in-process); the trainer
-wraps it with `ray.remote` to run one per Ray worker. Rewards are the grid environment's
+`EpisodeWorker` is a plain class (tests and `use_ray: false` run it in-process); the trainer's
+worker pool (`ray_pool.py`) runs one per Ray actor. Rewards are the grid environment's
 individual rewards combined by Eq. 2 (`CooperativeReward(alpha)`, neighbours in the 9x9 FOV at
 the positions after the step) with the alpha of the current task.
 
@@ -186,6 +186,11 @@ class EpisodeWorker:
             ranking = np.take_along_axis(ranking, order, axis=1)
             executed[slot, :n] = e["shield"].step(env.positions, ranking).actions
         return executed
+
+    def play(self, task: Task, num_steps: int) -> dict:
+        """`set_task(task)`, then `run(num_steps)`: one call of the worker pool."""
+        self.set_task(task)
+        return self.run(num_steps)
 
     def run(self, num_steps: int) -> dict:
         """Step every environment `num_steps` times; return the sequences and statistics of

@@ -41,10 +41,9 @@ class TrainConfig:
     # epsilon per actor (the paper, where each actor runs one environment).
     epsilon_per_env: bool = True
     # False (the reference's Ape-X scheme): epsilon on agent 0 only; every agent is still trained.
-    # True: every agent epsilon-greedy. Measured (issue 8): with every agent exploring, waiting
-    # beside a neighbour pays in training (exploring neighbours step aside at random) and the
-    # greedy policy deadlocks at test time; agent-0 exploration lifted DHC on 40x40 from 0.48 to
-    # 0.61 at 8 agents and 0.105 to 0.235 at 16.
+    # True: every agent epsilon-greedy. Why not: with every agent exploring, waiting beside a
+    # neighbour pays in training (exploring neighbours step aside at random) and the greedy
+    # policy deadlocks at test time (docs/results.md, the shipped checkpoints' table).
     explore_all_agents: bool = False
     # "pibt": actors act through the coordination layer (mapf_fleet.coordination.pibt): each
     # agent's ranking (`shield_preferences` over its Q-values; an exploring agent's random action
@@ -57,7 +56,7 @@ class TrainConfig:
     shield_preferences: str = "q"
     # With shield "pibt", which action the replay trains Q on. "executed" (above): Q of the move
     # PIBT let happen; a first choice PIBT overrode is never trained, so a policy that keeps
-    # asking for blocked moves is never told (measured, issue 18: no gain over no shield).
+    # asking for blocked moves is never told (it did not beat no shield: docs/results.md).
     # "preferred": each agent's own first choice (its greedy or exploring action), with the
     # reward and next observation of what the shield made of it: the shield is part of the
     # environment, as it is at deployment, and Q(s, a) learns what asking for `a` under PIBT
@@ -93,8 +92,9 @@ class TrainConfig:
     updates_per_poll: int = 1  # learner updates between polls of the actors
     # Sequences sampled per sequence added to the replay, at most (0 = no limit, Ape-X's
     # learner runs flat out). Why: on a few CPU cores a small task's learner outruns its actors
-    # and reuses each sample many times; measured on issue 18, fine-tuning at 40x40 density
-    # collapsed at a ratio of ~13 and held at ~2. With a limit the learner waits for the actors.
+    # and reuses each sample many times, and fine-tuning at 40x40 density collapsed at a high
+    # ratio (docs/results.md, "Training at the evaluation's density"). With a limit the learner
+    # waits for the actors.
     max_replay_ratio: float = 0.0
 
     # --- replay -------------------------------------------------------------------------------
@@ -116,7 +116,7 @@ class TrainConfig:
     demo_pretrain_updates: int = 1000  # learner updates on demonstrations before stage 1
     demo_margin: float = 0.8  # large margin of J_E (DQfD)
     demo_weight: float = 1.0  # lambda: loss = n-step TD + demo_weight * J_E
-    # The warm start's loss (issue 18 asks to measure both): "margin" = DQfD, n-step TD plus
+    # The warm start's loss: "margin" = DQfD, n-step TD plus
     # demo_weight x the large-margin loss J_E; "cross_entropy" = behaviour cloning, demo_weight
     # x the cross-entropy of the demonstrator's action under softmax(Q) and no TD term (the
     # outputs become action logits; their order is what the PIBT shield's ranking reads).
@@ -129,7 +129,7 @@ class TrainConfig:
     # the curricula a demonstration update (TD + margin loss), as DQfD keeps its demo data.
     demo_interleave: int = 0
 
-    # --- training mix over map kinds (issue 18; mapf_fleet.grid.maps.TaskMix) ----------------
+    # --- training mix over map kinds (mapf_fleet.grid.maps.TaskMix) ---------------------------
     # {} = unused (the curriculum's random maps). Otherwise {kinds: {random|maze|rooms|warehouse:
     # weight}, sizes: [map sides], agents: [agent counts]}, every count fitting every kind and
     # size and at most final_agents (the replay's width). Every actor episode, in both stages,

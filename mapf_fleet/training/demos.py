@@ -1,4 +1,4 @@
-"""Demonstration warm start (issue 8 item 4), DQfD-style (Hester et al. 2018), off by default.
+"""Demonstration warm start, DQfD-style (Hester et al. 2018), off by default.
 
 Before stage 1 the learner trains for `demo_pretrain_updates` updates on demonstration episodes
 only, with the n-step TD loss of normal training plus `demo_weight` x the large-margin loss
@@ -7,8 +7,8 @@ only, with the n-step TD loss of normal training plus `demo_weight` x the large-
 
 which pushes the demonstrator's action a_E above every other action by the margin m
 (`demo_margin`). With `demo_loss: cross_entropy` the warm start is behaviour cloning instead:
-`demo_weight` x the cross-entropy of a_E under softmax(Q), no TD term (issue 18 asks which of the
-two serves the shield's rankings better). Demonstrators (`demo_source`):
+`demo_weight` x the cross-entropy of a_E under softmax(Q), no TD term (which of the two serves the
+shield's rankings better: docs/results.md). Demonstrators (`demo_source`):
   - "heuristic": the non-learned reference `mapf_fleet.grid.policies.heuristic_policy`;
   - "planner":   LaCAM (`mapf_fleet.coordination.planners.ClassicalPlanner`, pymapf), whose joint
     plan is replayed through `MAPFEnv` (agents of unsolved regions stay; plans longer than the

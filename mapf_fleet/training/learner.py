@@ -28,8 +28,8 @@ masks, as the reference learner does; both unrolls use them, the bootstrap inclu
 but the actor does not record masks yet (see benchmarks/bench_training.py for the cost of each).
 Window steps outside the episode (burn-in before its start, n-step padding after its end) are
 masked out of each step (`_step_agents`): their padded agents all stand on one cell, and the
-causal check used to run on every pair of them (DCC paper preset, 16 agents, issue 18: 0.89 ->
-0.26 CPU s per sequence on 24-step episodes, 0.30 -> 0.23 on 256-step ones; same loss).
+causal check used to run on every pair of them (several times the CPU per sequence on short
+episodes, the same loss: docs/results.md, "Performance").
 
 Correctness of the alignment (obs/action/reward/next obs, stored hidden + burn-in, padding of
 short sequences, terminal cut, time-limit bootstrap) is checked against an independent

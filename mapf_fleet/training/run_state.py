@@ -25,6 +25,8 @@ import torch
 
 from mapf_fleet.files import atomic_write
 
+from .config import TrainConfig, config_from_dict, load_config
+
 CONFIG_FILE = "config.yaml"
 STATE_FILE = "train_state.pt"
 RESULT_FILE = "result.json"
@@ -69,3 +71,25 @@ def load_replay(run_dir: Path) -> dict[str, np.ndarray] | None:
             return {name: data[name] for name in data.files}
     except (OSError, ValueError, zipfile.BadZipFile, EOFError) as err:
         raise ValueError(f"{path}: not a readable replay file ({err})") from err
+
+
+def earlier_overrides(run_dir: str | Path) -> dict:
+    """The `--set` overrides of the run's earlier resumed sessions, merged in order (a later
+    session's value wins)."""
+    merged: dict = {}
+    for session in load_state(Path(run_dir)).get("code_versions", []):
+        merged.update(session.get("overrides") or {})
+    return merged
+
+
+def resumed_config(run_dir: str | Path) -> TrainConfig:
+    """The config a resume continues with: config.yaml (the starting config) with the overrides
+    of earlier resumed sessions applied, so a run goes on as it was left; a resume without --set
+    does not silently return to the starting config."""
+    run_dir = Path(run_dir)
+    cfg = load_config(run_dir / CONFIG_FILE)
+    earlier = earlier_overrides(run_dir)
+    if earlier:
+        cfg = config_from_dict({**cfg.to_dict(), **earlier},
+                               source=f"{run_dir / STATE_FILE} (overrides of earlier sessions)")
+    return cfg

@@ -23,14 +23,11 @@ gathered since the last replay save.
 from __future__ import annotations
 
 import logging
-import math
-import os
 import signal
 import threading
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from mapf_fleet.version import code_version
@@ -41,7 +38,9 @@ from .config import TrainConfig, config_from_dict, load_config, save_config
 from .curriculum import AlphaCurriculum, ScaleCurriculum, SuccessWindow
 from .learner import Learner
 from .modelio import hidden_dim
+from .ray_pool import CpuMeter, make_pool
 from .replay import PrioritizedSequenceReplay
+from .run_state import earlier_overrides, resumed_config  # noqa: F401 (the trainer's API)
 
 STAGE_SCALE, STAGE_ALPHA, STAGE_DONE = "scale", "alpha", "done"
 # counters copied into every checkpoint's metadata (extra.counters)
@@ -49,105 +48,44 @@ CHECKPOINT_COUNTERS = ("elapsed_seconds", "cpu_seconds", "cpu_measured_from_elap
                        "demo_seconds", "episodes", "env_steps", "agent_steps")
 
 
-class CpuMeter:
-    """CPU time the run really used (for the cards' compute): the driver process (learner,
-    replay, warm start; every thread) plus every actor process, which reports its own cumulative
-    process time with each result. Wall time x reserved CPUs overstates it when runs share a
-    machine. Not counted: Ray's own daemons (raylet, GCS)."""
-
-    def __init__(self):
-        self.driver_start = time.process_time()
-        self.actor_seconds = 0.0
-        self._last: dict[int, float] = {}  # actor pid -> cumulative seconds already counted
-
-    def actor_report(self, result: dict) -> None:
-        pid, cumulative = result.get("pid"), result.get("process_cpu_seconds")
-        if pid is None or cumulative is None or pid == os.getpid():
-            return  # in-process actors are in the driver's own time
-        self.actor_seconds += max(0.0, float(cumulative) - self._last.get(pid, 0.0))
-        self._last[pid] = float(cumulative)
-
-    def seconds(self) -> float:
-        return time.process_time() - self.driver_start + self.actor_seconds
+def actor_pool(cfg: TrainConfig):
+    """The Ape-X actors: `num_actors` EpisodeWorkers in the shared worker pool (ray_pool.py)."""
+    return make_pool(EpisodeWorker, [(cfg, i) for i in range(cfg.num_actors)], cfg.use_ray,
+                     cfg.ray_address, cfg.num_cpus)
 
 
-class _LocalActors:
-    """Actors run in-process, one call at a time (tests, debugging, `use_ray: false`)."""
+class _Pace:
+    """The loop's clocks and rates: elapsed and CPU time into the counters, and when the next
+    log, state save and replay save are due. Actor results arrive in bursts (one per actor call,
+    which may outlast a log interval): the actor rate spans from the last log that had results."""
 
-    def __init__(self, cfg: TrainConfig):
-        self.workers = [EpisodeWorker(cfg, i) for i in range(cfg.num_actors)]
-        self.weights = None
-        self.cursor = 0
+    def __init__(self, counters: dict, cpu: CpuMeter, cpu0: float, updates: int):
+        self.counters, self.cpu, self.cpu0 = counters, cpu, cpu0
+        self.start = self.last_log = self.last_state_time = self.last_replay = time.monotonic()
+        self.elapsed0 = counters["elapsed_seconds"]
+        self.last_state = updates
+        self.steps, self.updates, self.rate_t, self.steps_t = 0, 0, self.start, self.start
 
-    def broadcast(self, weights: dict, version: int) -> None:
-        self.weights = (weights, version)
+    def wall(self) -> float:
+        return time.monotonic() - self.start
 
-    def poll(self, task: Task, block: bool) -> list[dict]:
-        worker = self.workers[self.cursor]
-        self.cursor = (self.cursor + 1) % len(self.workers)
-        if self.weights is not None and worker.weights_version != self.weights[1]:
-            worker.set_weights(*self.weights)
-        worker.set_task(task)
-        return [worker.run(worker.cfg.actor_steps_per_call)]
+    def tick(self) -> float:
+        now = time.monotonic()
+        self.counters["elapsed_seconds"] = self.elapsed0 + now - self.start
+        self.counters["cpu_seconds"] = self.cpu0 + self.cpu.seconds()
+        return now
 
-    def close(self) -> None:
-        pass
-
-
-class _RayActors:
-    """Ape-X actors as Ray actors; results are collected with ray.wait as they finish."""
-
-    def __init__(self, cfg: TrainConfig):
-        import ray
-
-        from .ray_pool import actor_cpus, init_ray
-
-        self.ray = ray
-        self.started_ray = init_ray(cfg.ray_address, cfg.num_cpus)
-        cpus = actor_cpus(cfg.ray_address, cfg.num_cpus, cfg.num_actors)
-        remote_cls = ray.remote(num_cpus=cpus)(EpisodeWorker)
-        self.actors = [remote_cls.remote(cfg, i) for i in range(cfg.num_actors)]
-        self.cfg = cfg
-        self.weights_ref = None
-        self.weights_version = -1
-        self.actor_versions = [-2] * len(self.actors)
-        self.pending: dict = {}  # object ref -> actor index
-
-    def broadcast(self, weights: dict, version: int) -> None:
-        self.weights_ref = self.ray.put(weights)
-        self.weights_version = version
-
-    def _submit(self, index: int, task: Task) -> None:
-        actor = self.actors[index]
-        if self.weights_ref is not None and self.actor_versions[index] != self.weights_version:
-            actor.set_weights.remote(self.weights_ref, self.weights_version)
-            self.actor_versions[index] = self.weights_version
-        actor.set_task.remote(task)
-        self.pending[actor.run.remote(self.cfg.actor_steps_per_call)] = index
-
-    def poll(self, task: Task, block: bool) -> list[dict]:
-        busy = set(self.pending.values())
-        for index in range(len(self.actors)):
-            if index not in busy:
-                self._submit(index, task)
-        ready, _ = self.ray.wait(list(self.pending), num_returns=1, timeout=None if block else 0)
-        if ready:  # take every finished one without waiting more
-            more, _ = self.ray.wait([r for r in self.pending if r not in ready],
-                                    num_returns=len(self.pending) - len(ready), timeout=0)
-            ready = ready + more
-        results = []
-        for ref in ready:
-            index = self.pending.pop(ref)
-            results.append(self.ray.get(ref))
-            self._submit(index, task)
-        return results
-
-    def close(self) -> None:
-        for actor in self.actors:
-            self.ray.kill(actor)
-        self.pending.clear()
-        if self.started_ray:
-            self.ray.shutdown()
+    def rates(self, now: float) -> dict:
+        """The rates since the last log, and start the next span."""
+        rates = {"learner_updates_per_s": self.updates / max(now - self.rate_t, 1e-9)}
+        if self.counters["added_sequences"]:
+            rates["replay_ratio"] = (self.counters["sampled_sequences"]
+                                     / self.counters["added_sequences"])
+        if self.steps:  # no result since the last log: no new actor rate, not 0
+            rates["actor_agent_steps_per_s"] = self.steps / max(now - self.steps_t, 1e-9)
+            self.steps, self.steps_t = 0, now
+        self.updates, self.rate_t, self.last_log = 0, now, now
+        return rates
 
 
 def _stage2_scheme(config: dict) -> str:
@@ -388,7 +326,64 @@ class Trainer:
                                          f"{stats.get('demo_agreement', 0.0):.2f}")
 
     def run(self) -> dict:
+        """Ape-X (Horgan et al. 2018) under the paper's curricula: actors play the current task
+        with the latest weights into a prioritized replay; the learner samples it, updates the
+        network and the priorities and broadcasts its weights every `actor_update_interval`
+        updates; the gate actors' episodes move the curricula until stage 2 is done."""
         cfg = self.cfg
+        writer = self._begin_session()
+        restore_early = self._catch_stop_signals()  # honoured once the loop starts
+        cpu, cpu0 = CpuMeter(), self._cpu_seconds_so_far()
+        self._demo_warm_start(writer, cpu, cpu0)
+        actors = actor_pool(cfg)
+        restore_signals = self._catch_stop_signals()  # after ray.init, which installs its own
+        pace, stats = _Pace(self.counters, cpu, cpu0, self.learner.updates), {}
+        actors.broadcast(self.learner.cpu_weights(), self.learner.updates)
+        stop_reason = ""
+        try:
+            while self.stage != STAGE_DONE and not (stop_reason := self._stop_reason(pace)):
+                # 1. actors: experience into the replay, finished episodes into the curricula
+                block = not (self._learning_started() and self._replay_ratio_allows())
+                for result in self._play(actors, block):
+                    pace.steps += self._absorb(result, cpu)
+                    if self.stage == STAGE_DONE:
+                        break
+                if self.stage == STAGE_DONE:
+                    break
+                # 2. learner: prioritized replay -> n-step double-Q update -> new priorities
+                if self._learning_started():
+                    for _ in range(cfg.updates_per_poll):
+                        if self._demo_turn():
+                            demos.demo_update(self.learner, self.demo_replay, cfg, writer)
+                        elif not self._replay_ratio_allows():
+                            break  # the actors first: poll again (blocking) for new sequences
+                        else:
+                            batch = self.replay.sample(cfg.batch_size, cfg.priority_beta)
+                            priorities, stats = self.learner.update(batch)
+                            self.replay.update_priorities(batch.indices, priorities)
+                            self.counters["sampled_sequences"] += cfg.batch_size
+                        pace.updates += 1
+                        if self.bar is not None:
+                            self.bar.update(1)
+                        # 3. the actors get the new weights every actor_update_interval updates
+                        if self.learner.updates % cfg.actor_update_interval == 0:
+                            actors.broadcast(self.learner.cpu_weights(), self.learner.updates)
+                    self._check_stage2_budget()
+                # 4. logs, state and replay saves when due
+                self._bookkeeping(writer, pace, stats)
+        finally:
+            restore_signals()
+            restore_early()
+            actors.close()
+            pace.tick()
+            if self.bar is not None:
+                self.bar.close()
+        return self._finish(stop_reason, writer)
+
+    # -- the loop's helpers ---------------------------------------------------------------------
+    def _begin_session(self):
+        """TensorBoard writer (None without tensorboard), progress bar, and this session's entry
+        in the run's record of code versions."""
         writer = None
         try:
             from torch.utils.tensorboard import SummaryWriter
@@ -396,10 +391,10 @@ class Trainer:
             writer = SummaryWriter(str(self.run_dir / run_state.TB_DIR))
         except ImportError:  # tensorboard missing: train anyway, say so
             logging.getLogger(__name__).warning("tensorboard not installed: no scalars written")
-        if cfg.progress_bar:
+        if self.cfg.progress_bar:
             from tqdm import tqdm
 
-            self.bar = tqdm(total=cfg.max_updates, initial=self.learner.updates, unit="upd",
+            self.bar = tqdm(total=self.cfg.max_updates, initial=self.learner.updates, unit="upd",
                             dynamic_ncols=True)
         self.demo_replay = None
         session = {**code_version(), "from_update": int(self.learner.updates)}
@@ -407,129 +402,109 @@ class Trainer:
             session["overrides"] = dict(self.session_overrides)
             self._log_event(f"resumed with overrides {self.session_overrides}")
         self.code_versions.append(session)
-        # caught from here on, so a stop asked during the warm start is not lost (a background
-        # job of a non-interactive shell starts with SIGINT ignored); honoured when the loop starts
-        restore_early = self._catch_stop_signals()
-        cpu = CpuMeter()
+        return writer
+
+    def _cpu_seconds_so_far(self) -> float:
         if "cpu_seconds" not in self.counters:  # runs begun before CPU time was measured
             self.counters["cpu_seconds"] = 0.0
             self.counters["cpu_measured_from_elapsed_seconds"] = self.counters["elapsed_seconds"]
-        cpu0 = self.counters["cpu_seconds"]
+        return self.counters["cpu_seconds"]
+
+    def _demo_warm_start(self, writer, cpu: CpuMeter, cpu0: float) -> None:
+        """The demonstration warm start (demos.py), before any actor plays: the first broadcast
+        then carries the warm-started weights. With `demo_interleave` the demonstrations stay
+        for the curricula's demo updates."""
+        cfg = self.cfg
         pretrained = bool(self.counters.get("demo_pretrained"))
-        if cfg.demo_source != "none" and (not pretrained or cfg.demo_interleave):
-            # before any actor plays: the first broadcast then carries the warm-started weights.
-            # The learner keeps learner_threads meanwhile: more threads than free cores (another
-            # run on the machine) made oneDNN's thread barrier 10x slower (measured 13 s/update).
-            demo_start = time.monotonic()
-            self.demo_replay, info = demos.make_demo_replay(self.learner, cfg, log=self._log_event)
-            summary = None
-            if not pretrained:
-                summary = demos.pretrain(self.learner, cfg, writer, replay=self.demo_replay,
-                                         on_update=self._warm_start_progress)
-                summary.update({k: v for k, v in info.items() if k != "settings"})
-                self.counters["demo_pretrained"] = 1
-            # demonstrations (and the warm start) are part of the run's compute (cards' CPU-hours)
-            spent = time.monotonic() - demo_start
-            self.counters["demo_seconds"] = self.counters.get("demo_seconds", 0.0) + spent
-            self.counters["elapsed_seconds"] += spent
-            self.counters["cpu_seconds"] = cpu0 + cpu.seconds()
-            if summary is not None:
-                self._log_event(f"demo warm start done in {spent:.0f} s: {summary}")
-                self.save_checkpoint("demo_warm_start.pt", alpha=0.0)
-                self.save_state()
-            if not cfg.demo_interleave:
-                self.demo_replay = None
-        actors = _RayActors(cfg) if cfg.use_ray else _LocalActors(cfg)
-        restore_signals = self._catch_stop_signals()  # after ray.init, which installs its own
-        start = time.monotonic()
-        elapsed0 = self.counters["elapsed_seconds"]
-        last_state, last_log = self.learner.updates, time.monotonic()
-        last_state_time = last_replay_time = time.monotonic()
-        rate_steps, rate_updates, rate_t = 0, 0, time.monotonic()
-        # Actor results arrive in bursts (one per actor call, which may outlast a log interval):
-        # the actor rate spans from the last log that had results, not from the last log.
-        steps_t = rate_t
-        last_stats: dict = {}
-        actors.broadcast(self.learner.cpu_weights(), self.learner.updates)
-        stop_reason = ""
-        try:
-            while self.stage != STAGE_DONE:
-                if self.learner.updates >= cfg.max_updates:
-                    stop_reason = f"max_updates {cfg.max_updates} reached"
-                    break
-                if self.stop_signal:
-                    stop_reason = f"stopped by {self.stop_signal} (resume with --resume)"
-                    break
-                if cfg.max_wall_seconds and time.monotonic() - start >= cfg.max_wall_seconds:
-                    stop_reason = f"max_wall_seconds {cfg.max_wall_seconds:g} reached"
-                    break
-                can_learn = (self.replay.added_steps >= cfg.learning_starts
-                             and len(self.replay) > 0 and self._replay_ratio_allows())
-                for result in actors.poll(self.task, block=not can_learn):
-                    cpu.actor_report(result)
-                    for seq in result["sequences"]:
-                        self.replay.add(seq)
-                    self.counters["added_sequences"] += len(result["sequences"])
-                    self.counters["agent_steps"] += result["agent_steps"]
-                    rate_steps += result["agent_steps"]
-                    for ep in result["episodes"]:
-                        self.counters["env_steps"] += ep["steps"]
-                        self._record_episode(ep)
-                        if self.stage == STAGE_DONE:
-                            break
-                    if self.stage == STAGE_DONE:
-                        break
-                if self.stage == STAGE_DONE:
-                    break
-                if self.replay.added_steps >= cfg.learning_starts and len(self.replay) > 0:
-                    for _ in range(cfg.updates_per_poll):
-                        if (self.demo_replay is not None
-                                and (self.learner.updates + 1) % cfg.demo_interleave == 0):
-                            demos.demo_update(self.learner, self.demo_replay, cfg, writer)
-                        elif not self._replay_ratio_allows():
-                            break  # the actors first: poll again (blocking) for new sequences
-                        else:
-                            batch = self.replay.sample(cfg.batch_size, cfg.priority_beta)
-                            priorities, last_stats = self.learner.update(batch)
-                            self.replay.update_priorities(batch.indices, priorities)
-                            self.counters["sampled_sequences"] += cfg.batch_size
-                        rate_updates += 1
-                        if self.bar is not None:
-                            self.bar.update(1)
-                        if self.learner.updates % cfg.actor_update_interval == 0:
-                            actors.broadcast(self.learner.cpu_weights(), self.learner.updates)
-                    if self.stage == STAGE_ALPHA and self.alpha.check_budget(self.learner.updates):
-                        self.stage = STAGE_DONE
-                        self._log_event(f"stage 2 done: {self.alpha.stop_reason}")
-                now = time.monotonic()
-                self.counters["elapsed_seconds"] = elapsed0 + now - start
-                self.counters["cpu_seconds"] = cpu0 + cpu.seconds()
-                if now - last_log >= cfg.log_interval_seconds:
-                    span = max(now - rate_t, 1e-9)
-                    rates = {"learner_updates_per_s": rate_updates / span}
-                    if self.counters["added_sequences"]:
-                        rates["replay_ratio"] = (self.counters["sampled_sequences"]
-                                                 / self.counters["added_sequences"])
-                    if rate_steps:  # no result since the last log: no new actor rate, not 0
-                        rates["actor_agent_steps_per_s"] = rate_steps / max(now - steps_t, 1e-9)
-                        rate_steps, steps_t = 0, now
-                    self._write_scalars(writer, last_stats, rates)
-                    rate_updates, rate_t, last_log = 0, now, now
-                if (self.learner.updates - last_state >= cfg.state_interval_updates
-                        or now - last_state_time >= cfg.state_interval_seconds):
-                    self.save_state()
-                    last_state, last_state_time = self.learner.updates, now
-                if cfg.replay_interval_seconds and now - last_replay_time >= cfg.replay_interval_seconds:
-                    self.save_replay()
-                    last_replay_time = now
-        finally:
-            restore_signals()
-            restore_early()
-            actors.close()
-            self.counters["elapsed_seconds"] = elapsed0 + time.monotonic() - start
-            self.counters["cpu_seconds"] = cpu0 + cpu.seconds()
-            if self.bar is not None:
-                self.bar.close()
+        if cfg.demo_source == "none" or (pretrained and not cfg.demo_interleave):
+            return
+        # The learner keeps learner_threads meanwhile: more threads than free cores (another run
+        # on the machine) made oneDNN's thread barrier many times slower.
+        demo_start = time.monotonic()
+        self.demo_replay, info = demos.make_demo_replay(self.learner, cfg, log=self._log_event)
+        summary = None
+        if not pretrained:
+            summary = demos.pretrain(self.learner, cfg, writer, replay=self.demo_replay,
+                                     on_update=self._warm_start_progress)
+            summary.update({k: v for k, v in info.items() if k != "settings"})
+            self.counters["demo_pretrained"] = 1
+        # demonstrations (and the warm start) are part of the run's compute (cards' CPU-hours)
+        spent = time.monotonic() - demo_start
+        self.counters["demo_seconds"] = self.counters.get("demo_seconds", 0.0) + spent
+        self.counters["elapsed_seconds"] += spent
+        self.counters["cpu_seconds"] = cpu0 + cpu.seconds()
+        if summary is not None:
+            self._log_event(f"demo warm start done in {spent:.0f} s: {summary}")
+            self.save_checkpoint("demo_warm_start.pt", alpha=0.0)
+            self.save_state()
+        if not cfg.demo_interleave:
+            self.demo_replay = None
+
+    def _stop_reason(self, pace: _Pace) -> str:
+        """Why the loop stops now ("" = go on)."""
+        cfg = self.cfg
+        if self.learner.updates >= cfg.max_updates:
+            return f"max_updates {cfg.max_updates} reached"
+        if self.stop_signal:
+            return f"stopped by {self.stop_signal} (resume with --resume)"
+        if cfg.max_wall_seconds and pace.wall() >= cfg.max_wall_seconds:
+            return f"max_wall_seconds {cfg.max_wall_seconds:g} reached"
+        return ""
+
+    def _learning_started(self) -> bool:
+        return self.replay.added_steps >= self.cfg.learning_starts and len(self.replay) > 0
+
+    def _play(self, actors, block: bool) -> list[dict]:
+        """Keep every idle actor playing the current task; the calls that finished."""
+        steps = self.cfg.actor_steps_per_call
+        for index in actors.idle():
+            actors.submit(index, "play", self.task, steps)
+        results = [result for _, result in actors.ready(block)]
+        if actors.in_background:  # Ray actors play on while the learner updates
+            for index in actors.idle():
+                actors.submit(index, "play", self.task, steps)
+        return results
+
+    def _absorb(self, result: dict, cpu: CpuMeter) -> int:
+        """One actor call's sequences into the replay and episodes into the curricula; returns
+        its agent-steps."""
+        cpu.actor_report(result)
+        for seq in result["sequences"]:
+            self.replay.add(seq)
+        self.counters["added_sequences"] += len(result["sequences"])
+        self.counters["agent_steps"] += result["agent_steps"]
+        for ep in result["episodes"]:
+            self.counters["env_steps"] += ep["steps"]
+            self._record_episode(ep)
+            if self.stage == STAGE_DONE:
+                break
+        return result["agent_steps"]
+
+    def _demo_turn(self) -> bool:
+        """With `demo_interleave` n, every n-th update trains on the demonstrations."""
+        return (self.demo_replay is not None
+                and (self.learner.updates + 1) % self.cfg.demo_interleave == 0)
+
+    def _check_stage2_budget(self) -> None:
+        if self.stage == STAGE_ALPHA and self.alpha.check_budget(self.learner.updates):
+            self.stage = STAGE_DONE
+            self._log_event(f"stage 2 done: {self.alpha.stop_reason}")
+
+    def _bookkeeping(self, writer, pace: _Pace, stats: dict) -> None:
+        cfg = self.cfg
+        now = pace.tick()
+        if now - pace.last_log >= cfg.log_interval_seconds:
+            self._write_scalars(writer, stats, pace.rates(now))
+        if (self.learner.updates - pace.last_state >= cfg.state_interval_updates
+                or now - pace.last_state_time >= cfg.state_interval_seconds):
+            self.save_state()
+            pace.last_state, pace.last_state_time = self.learner.updates, now
+        if cfg.replay_interval_seconds and now - pace.last_replay >= cfg.replay_interval_seconds:
+            self.save_replay()
+            pace.last_replay = now
+
+    def _finish(self, stop_reason: str, writer) -> dict:
+        """The final checkpoint, state (and replay, unless finished) and result.json."""
         if self.stage == STAGE_DONE and not stop_reason:
             stop_reason = self.alpha.stop_reason or "stage 2 done"
         self.save_checkpoint("final.pt")
@@ -584,28 +559,6 @@ class Trainer:
                 writer.add_scalar(f"success_rate/{key}", window.rate, step)
         writer.add_scalar("replay/sequences", len(self.replay), step)
         writer.flush()
-
-
-def earlier_overrides(run_dir: str | Path) -> dict:
-    """The `--set` overrides of the run's earlier resumed sessions, merged in order (a later
-    session's value wins)."""
-    merged: dict = {}
-    for session in run_state.load_state(Path(run_dir)).get("code_versions", []):
-        merged.update(session.get("overrides") or {})
-    return merged
-
-
-def resumed_config(run_dir: str | Path) -> TrainConfig:
-    """The config a resume continues with: config.yaml (the starting config) with the overrides
-    of earlier resumed sessions applied, so a run goes on as it was left; a resume without --set
-    does not silently return to the starting config."""
-    run_dir = Path(run_dir)
-    cfg = load_config(run_dir / run_state.CONFIG_FILE)
-    earlier = earlier_overrides(run_dir)
-    if earlier:
-        cfg = config_from_dict({**cfg.to_dict(), **earlier},
-                               source=f"{run_dir / run_state.STATE_FILE} (overrides of earlier sessions)")
-    return cfg
 
 
 def train(config_path: str | Path | None = None, run_dir: str | Path | None = None,

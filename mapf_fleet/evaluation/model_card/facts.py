@@ -25,7 +25,8 @@ def model_summary(model, metadata: dict) -> dict:
 
 def training_config_diff(training_config: dict) -> tuple[list[tuple[str, Any, Any]], str | None, str | None]:
     """(fields that differ from the paper's recipe for the algorithm as (name, value, paper value),
-    the closest config file of config/training/ and how it differs), or ([], None, None) when the
+    the closest config file of config/training/ or its experiments/ and how it differs; on a tie
+    the one a user trains with), or ([], None, None) when the
     training config is not a TrainConfig."""
     try:
         from mapf_fleet.training.config import TrainConfigError, config_from_dict, load_config
@@ -38,7 +39,9 @@ def training_config_diff(training_config: dict) -> tuple[list[tuple[str, Any, An
         return [], None, None
     diff = [(k, v, paper.get(k)) for k, v in config.items() if paper.get(k) != v]
     best, best_diff = None, None
-    for path in sorted(paths.data_path("config", "training").glob("*.yaml")):
+    shipped_dir = paths.data_path("config", "training")
+    for path in [*sorted(shipped_dir.glob("*.yaml")),
+                 *sorted(shipped_dir.glob("experiments/*.yaml"))]:
         try:
             shipped = load_config(path).to_dict()
         except (TrainConfigError, OSError):
@@ -49,7 +52,7 @@ def training_config_diff(training_config: dict) -> tuple[list[tuple[str, Any, An
     if best is None:
         return diff, None, None
     note = "identical" if not best_diff else "differs in " + ", ".join(f"`{k}`" for k in best_diff)
-    return diff, f"config/training/{best.name}", note
+    return diff, f"config/training/{best.relative_to(shipped_dir).as_posix()}", note
 
 
 def _trained_with_text(metadata: dict) -> str:

@@ -1,0 +1,110 @@
+"""DAgger's data and loss. Each episode is one shard `data/r{round}_e{index}.npz`: observations as
+the policy saw them, bit-packed (for the "cost_to_go" observation its cost-to-go channel beside
+them as int8 steps, `ctg`), positions, last-action inputs, labels (-1 = none) and the policy's
+hidden state at every window start; written atomically. `LabelledData` holds the aggregate of
+every round and indexes its labelled windows; `window_loss` unrolls one window (R2D2 burn-in)
+and scores it against the labels."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from mapf_fleet.files import atomic_write
+
+from ..modelio import model_step
+from ..replay import unpack_obs
+
+# the per-episode counts a shard's manifest entry carries (summed into the run's counters)
+SHARD_COUNTERS = ("labelled_states", "labels", "unsolved", "too_long", "expert_steps",
+                  "label_seconds", "disagree", "disagree_off_goal", "off_goal_labels")
+
+
+def shard_name(round_index: int, episode: int) -> str:
+    return f"r{round_index:03d}_e{episode:03d}.npz"
+
+
+def write_shard(path: Path, arrays: dict, meta: dict) -> None:
+    def write(handle):
+        np.savez_compressed(handle, **arrays, meta=np.array(json.dumps(meta)))
+
+    atomic_write(path, write)
+
+
+def read_shard(path: Path) -> tuple[dict, dict]:
+    with np.load(path, allow_pickle=False) as data:
+        arrays = {k: data[k] for k in data.files if k != "meta"}
+        meta = json.loads(str(data["meta"]))
+    return arrays, meta
+
+
+def write_json(path: Path, data) -> None:
+    atomic_write(path, lambda f: f.write((json.dumps(data, indent=1) + "\n").encode()))
+
+
+class LabelledData:
+    """The aggregate: every shard's arrays in memory, and an index of labelled windows."""
+
+    def __init__(self, seq_len: int, burn_in: int):
+        self.seq_len, self.burn_in = seq_len, burn_in
+        self.episodes: list[dict] = []
+        self.windows: list[tuple[int, int]] = []  # (episode, window j)
+        self.names: set[str] = set()
+
+    def add(self, name: str, arrays: dict) -> None:
+        if name in self.names:
+            return
+        self.names.add(name)
+        e = len(self.episodes)
+        self.episodes.append(arrays)
+        labels = arrays["labels"]
+        for j in range(len(arrays["hidden_starts"])):
+            if (labels[j * self.seq_len:(j + 1) * self.seq_len] >= 0).any():
+                self.windows.append((e, j))
+
+    def window(self, e: int, j: int) -> dict:
+        """Window j of episode e: steps [start, (j+1) L), the loss on [j L, (j+1) L)."""
+        ep = self.episodes[e]
+        start = int(ep["hidden_starts"][j])
+        end = min(len(ep["labels"]), (j + 1) * self.seq_len)
+        ctg = ep["ctg"][start:end] if "ctg" in ep else None
+        return {"obs": unpack_obs(ep["obs_bits"][start:end], ctg),
+                "positions": ep["positions"][start:end].astype(np.int64),
+                "last": ep["last_actions"][start:end].astype(np.int64),
+                "labels": ep["labels"][start:end].astype(np.int64),
+                "burn": j * self.seq_len - start, "hidden": ep["hidden"][j].astype(np.float32)}
+
+
+def window_loss(model, algo: str, win: dict, device, loss: str, margin: float):
+    """(summed loss over the labelled (step, agent) pairs, their count, agreements): the unroll
+    from the stored hidden state, `burn` steps without gradient, then the trained steps."""
+    from ..demos import cross_entropy_loss, margin_loss
+
+    t = lambda x: torch.as_tensor(x, device=device)  # noqa: E731
+    obs, pos, last = t(win["obs"]), t(win["positions"]), t(win["last"])
+    h = t(win["hidden"])[None]
+    burn = win["burn"]
+    with torch.no_grad():
+        for s in range(burn):
+            h = model_step(model, algo, obs[s][None], pos[s][None], h, last[s][None]).hidden
+    qs = []
+    for s in range(burn, len(obs)):
+        out = model_step(model, algo, obs[s][None], pos[s][None], h, last[s][None])
+        h = out.hidden
+        qs.append(out.q[0])
+    q = torch.stack(qs)  # (L, N, 5)
+    labels = t(win["labels"][burn:])
+    mask = (labels >= 0).float()
+    target = labels.clamp(min=0)
+    count = mask.sum()
+    if loss == "cross_entropy":
+        value = cross_entropy_loss(q, target, mask) * count
+    else:
+        value = margin_loss(q, target, mask, margin) * count
+    agree = ((q.argmax(-1) == target).float() * mask).sum()
+    return value, float(count), float(agree)
+
+

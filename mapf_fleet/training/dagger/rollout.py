@@ -1,0 +1,197 @@
+"""Rollouts: one episode of the policy under the arbiter, labelled by the expert at the states it
+visits (with DAgger's mixing), recorded as a shard's arrays; plain PIBT for the baseline; and
+`DaggerWorker`, the worker pool's unit that plays them (a Ray actor, or in-process)."""
+
+from __future__ import annotations
+
+import os
+import time
+
+import numpy as np
+import torch
+
+from ..replay import pack_cost_to_go, pack_obs
+from .config import DaggerConfig
+from .labeller import LabelState, Labeller, make_labeller
+
+
+def window_starts(length: int, seq_len: int, burn_in: int) -> np.ndarray:
+    """Step index where window j's unroll begins (its stored hidden state): max(0, j L - B)."""
+    return np.maximum(0, np.arange(0, length, seq_len) - burn_in).astype(np.int64)
+
+
+def play_episode(model, instance, max_steps: int, shield_rule: str, preferences: str,
+                 device, labeller: Labeller | None = None, beta: float = 0.0,
+                 label_interval: int = 1, rng: np.random.Generator | None = None,
+                 seq_len: int = 16, burn_in: int = 8, record: bool = True,
+                 backoff_max: int = 1) -> dict:
+    """One episode of `model` under the shield; with a labeller, the visited states are labelled
+    (and the expert's ranking executed with probability `beta` at labelled steps). Returns the
+    outcome and, with `record`, the arrays of a shard (`data.py`)."""
+    from mapf_fleet.coordination.pibt import make_shield
+    from mapf_fleet.coordination.preferences import rank_actions, tie_breakers
+    from mapf_fleet.grid.env import EnvConfig, MAPFEnv
+    from mapf_fleet.grid.heuristic import bfs_distances_many
+    from mapf_fleet.models.policy import LearnedPolicy
+
+    rng = np.random.default_rng(0) if rng is None else rng
+    cost_to_go = model.config.observation == "cost_to_go"
+    env = MAPFEnv(instance, EnvConfig(max_steps=max_steps, observation=model.config.observation))
+    obs = env.reset()
+    n = instance.num_agents
+    shield = make_shield(shield_rule, instance.grid, instance.goals)
+    policy = LearnedPolicy(model, device)
+    policy.reset(1, n)
+    distances = bfs_distances_many(instance.grid, instance.goals) if labeller else None
+    ties_agents = np.arange(n)
+    rec_obs, rec_ctg, rec_pos, rec_last, rec_labels, hiddens = [], [], [], [], [], []
+    stats = {"labelled_states": 0, "labels": 0, "unsolved": 0, "too_long": 0,
+             "expert_steps": 0, "label_seconds": 0.0, "disagree": 0, "disagree_off_goal": 0,
+             "off_goal_labels": 0, "label_calls": 0}
+    done, info = (env.on_goal().all(), {"success": bool(env.on_goal().all()), "steps": 0})
+    next_label, wait = 0, label_interval
+    while not done:
+        t = env.steps
+        if record:
+            rec_obs.append(pack_obs(obs))
+            if cost_to_go:
+                rec_ctg.append(pack_cost_to_go(obs))
+            rec_pos.append(env.positions.astype(np.int16))
+            rec_last.append(env.last_actions.astype(np.int8))
+            hiddens.append(policy.hidden[0].detach().to("cpu", torch.float16).numpy())
+        policy.act(obs[None].astype(np.float32), env.positions[None])
+        q = policy.q_values[0]
+        ties = tie_breakers(ties_agents, t)
+        ranking = rank_actions(obs, q, preferences, ties=ties)
+        label = np.full(n, -1, np.int8)
+        if labeller is not None and t >= next_label:
+            began = time.perf_counter()
+            expert, status = labeller.label(LabelState(instance.grid, env.positions,
+                                                       instance.goals, distances, t, max_steps))
+            stats["label_seconds"] += time.perf_counter() - began
+            stats["label_calls"] += 1
+            if status != "ok":
+                stats[status] += 1
+            if 2 * int((expert >= 0).sum()) >= n:  # most agents labelled (a pocket may not be)
+                wait = label_interval
+            else:  # back off (config: label_backoff_max)
+                wait = min(max(wait, label_interval) * 2, max(backoff_max, label_interval))
+            next_label = t + wait
+            have = expert >= 0
+            if have.any():
+                label[have] = expert[have]
+                stats["labelled_states"] += 1
+                stats["labels"] += int(have.sum())
+                off_goal = ~env.on_goal() & have
+                differ = (ranking[:, 0] != expert) & have
+                stats["disagree"] += int(differ.sum())
+                stats["disagree_off_goal"] += int((differ & off_goal).sum())
+                stats["off_goal_labels"] += int(off_goal.sum())
+                if beta > 0 and rng.random() < beta:  # DAgger's mixing: the expert drives
+                    # the expert's move first, then the distance order; unlabelled agents
+                    # keep the policy's ranking
+                    onehot = (np.arange(5) == expert[:, None]).astype(np.float64)
+                    ranked = rank_actions(obs, onehot, "q_then_distance", ties=ties)
+                    ranking = np.where(have[:, None], ranked, ranking)
+                    stats["expert_steps"] += 1
+        if record:
+            rec_labels.append(label)
+        executed = shield.step(env.positions, ranking).actions
+        policy.set_last_actions(executed[None])
+        obs, _, done, info = env.step(executed)
+    out = {"success": bool(info["success"]), "steps": int(info["steps"]),
+           "num_agents": n, **stats}
+    if record:
+        length = len(rec_obs)
+        starts = window_starts(length, seq_len, burn_in) if length else np.zeros(0, np.int64)
+        hidden = (np.stack([hiddens[s] for s in starts]) if length
+                  else np.zeros((0, n, model.config.hidden_dim), np.float16))
+        out["arrays"] = {
+            "obs_bits": np.stack(rec_obs) if length else np.zeros((0, n, 61), np.uint8),
+            "positions": np.stack(rec_pos) if length else np.zeros((0, n, 2), np.int16),
+            "last_actions": np.stack(rec_last) if length else np.zeros((0, n), np.int8),
+            "labels": np.stack(rec_labels) if length else np.zeros((0, n), np.int8),
+            "hidden_starts": starts, "hidden": hidden,
+        }
+        if cost_to_go:
+            fov = obs.shape[-1]
+            out["arrays"]["ctg"] = np.stack(rec_ctg) if length else np.zeros((0, n, fov, fov),
+                                                                               np.int8)
+    return out
+
+
+def make_instance(task: dict, seed_words: list[int]):
+    from mapf_fleet.grid.maps import generate_kind_instance
+
+    return generate_kind_instance(task["kind"], task["size"], task["agents"],
+                                  np.random.default_rng(seed_words))
+
+
+def kind_code(kind: str) -> int:
+    from mapf_fleet.grid.maps import GENERATED_KINDS
+
+    return GENERATED_KINDS.index(kind)
+
+
+class DaggerWorker:
+    """Plays episodes (a Ray actor, or in-process): rollouts with labels, and held-out checks."""
+
+    def __init__(self, cfg: DaggerConfig, model_config: dict):
+        from mapf_fleet.models.checkpoint import build_model
+        from mapf_fleet.models.config import ModelConfig
+
+        torch.set_num_threads(cfg.threads)
+        os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+        self.cfg = cfg
+        self.model = build_model(ModelConfig.from_dict(model_config)).eval()
+        # inference on the CPU: batch 1, one agent set at a time, the GPU would not pay
+        self.device = torch.device("cpu")
+        self.labeller = make_labeller(cfg)
+        self.version = None
+
+    def set_weights(self, state_dict: dict, version) -> None:
+        self.model.load_state_dict(state_dict)
+        self.version = version
+
+    def collect(self, job: dict) -> dict:
+        cfg = self.cfg
+        instance = make_instance(job["task"], job["seed_words"])
+        out = play_episode(self.model, instance, job["task"]["max_steps"], cfg.shield,
+                           cfg.preferences, self.device, self.labeller, job["beta"],
+                           cfg.label_interval, np.random.default_rng(job["seed_words"] + [1]),
+                           cfg.seq_len, cfg.burn_in, record=True,
+                           backoff_max=cfg.label_backoff_max)
+        return {**out, "job": job, "pid": os.getpid(),
+                "process_cpu_seconds": time.process_time()}
+
+    def heldout(self, job: dict) -> dict:
+        """One held-out episode; `job["heuristic"]`: plain PIBT (distance ranking, no network)."""
+        cfg = self.cfg
+        instance = make_instance(job["task"], job["seed_words"])
+        if job.get("heuristic"):
+            out = play_plain_pibt(instance, job["task"]["max_steps"], cfg.shield)
+        else:
+            out = play_episode(self.model, instance, job["task"]["max_steps"], cfg.shield,
+                               cfg.preferences, self.device, record=False)
+        return {**out, "job": job, "pid": os.getpid(),
+                "process_cpu_seconds": time.process_time()}
+
+
+def play_plain_pibt(instance, max_steps: int, shield_rule: str) -> dict:
+    """The baseline: the shield over distance rankings (the heuristic checkpoint's rows)."""
+    from mapf_fleet.coordination.pibt import make_shield
+    from mapf_fleet.coordination.preferences import rank_actions, tie_breakers
+    from mapf_fleet.grid.env import EnvConfig, MAPFEnv
+
+    env = MAPFEnv(instance, EnvConfig(max_steps=max_steps))
+    obs = env.reset()
+    shield = make_shield(shield_rule, instance.grid, instance.goals)
+    agents = np.arange(instance.num_agents)
+    done, info = bool(env.on_goal().all()), {"success": bool(env.on_goal().all()), "steps": 0}
+    while not done:
+        ranking = rank_actions(obs, mode="distance", ties=tie_breakers(agents, env.steps))
+        obs, _, done, info = env.step(shield.step(env.positions, ranking).actions)
+    return {"success": bool(info["success"]), "steps": int(info["steps"]),
+            "num_agents": instance.num_agents}
+
+
