@@ -38,7 +38,7 @@ import numpy as np
 
 from .arbiter import DEFAULT_CONFLICT_RULE, Resolution, TickArbiter
 from .record import Decisions, GoalEvent, RunRecorder
-from .tasks import Task, TaskSource
+from .tasks import Task, TaskSource, unreachable_problem
 
 
 class FleetRun:
@@ -215,6 +215,12 @@ class FleetRun:
         if task.robot is not None and not 0 <= task.robot < self.num_robots:
             event = GoalEvent(self.tick, -1, "rejected", task.goals[0], task.source, task.task_id,
                               f"unknown robot {task.robot} (robots 0..{self.num_robots - 1})")
+            self.recorder.add_events([event])
+            return event
+        problem = unreachable_problem(task.goals, self.grid, self.positions, task.robot)
+        if problem:  # an enclosed cell would stay queued forever
+            event = GoalEvent(self.tick, -1 if task.robot is None else task.robot, "rejected",
+                              task.goals[0], task.source, task.task_id, problem)
             self.recorder.add_events([event])
             return event
         self.queue.append(task)

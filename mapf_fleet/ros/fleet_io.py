@@ -20,15 +20,19 @@ from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.executors import SingleThreadedExecutor
 from visualization_msgs.msg import Marker, MarkerArray
 
-from mapf_fleet.ros import common
+from mapf_fleet.ros import common, parameters
 from mapf_fleet.ros.lockstep import FleetTicker
 
 
 def declare_parameters(node, table: dict) -> dict:
-    """Declare `table` ({name: (default, description)}) on `node`; {name: value}."""
-    for name, (default, text) in table.items():
-        node.declare_parameter(name, default, ParameterDescriptor(description=text))
-    return {name: node.get_parameter(name).value for name in table}
+    """Declare the parameters of `table` (ros.parameters: name -> Param) on `node` and check
+    them (ValueError, one line, for the first refused); {name: value}."""
+    for name, param in table.items():
+        when = "changeable at run time" if param.runtime else "read at start-up"
+        node.declare_parameter(name, param.default,
+                               ParameterDescriptor(description=f"{param.description} ({when})"))
+    values = {name: node.get_parameter(name).value for name in table}
+    return parameters.check_values(table, values)
 
 
 class FleetChannels:

@@ -24,15 +24,18 @@ import contextlib
 import glob
 import json
 import os
+import re
 import shutil
 import sys
 import tempfile
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from mapf_fleet.paths import data_root
 from mapf_fleet.ros import common
-from mapf_fleet.fleet.arbiter import CONFLICT_RULES, DEFAULT_CONFLICT_RULE
+from mapf_fleet.ros import parameters as P
+from mapf_fleet.fleet.arbiter import CONFLICT_RULES
 from mapf_fleet.ros.instances import InstanceSource
 
 # where models/ lives: the install's share/mapf_fleet, else the checkout
@@ -75,7 +78,16 @@ class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
         return f"{text} (default: %(default)s)"
 
 
+def _default(table_name: str) -> str:
+    """' (default: X)' of a parameter, from the nodes' table (one truth)."""
+    return f" (default: {P.SIMULATOR.get(table_name, P.POLICY.get(table_name)).default})"
+
+
 def build_parser() -> argparse.ArgumentParser:
+    """`up`'s options. Those that set a node parameter default to None (not given: the
+    parameter's value comes from its table, a params file or -p); their help states the table's
+    default."""
+    sim = P.SIMULATOR
     parser = argparse.ArgumentParser(prog="mapf-fleet up", description=__doc__,
                                      formatter_class=_HelpFormatter)
     parser.add_argument("--checkpoint", default=None,
@@ -84,12 +96,16 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--num-robots", type=int, default=None,
                         help="robots of a generated instance, or the first N entries of --scen "
                              "(default: 8 generated, every entry of --scen)")
-    parser.add_argument("--size", type=int, default=16, help="side of a generated map")
-    parser.add_argument("--density", type=float, default=0.3,
-                        help="obstacle density of a generated map, in [0, 1)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of a generated instance")
-    parser.add_argument("--instance", default="", help="instance YAML (grid, starts, goals)")
-    parser.add_argument("--map", default="",
+    parser.add_argument("--size", type=int, default=None,
+                        help="side of a generated map" + _default("size"))
+    parser.add_argument("--density", type=float, default=None,
+                        help="obstacle density of a generated map, in [0, 1)"
+                             + _default("density"))
+    parser.add_argument("--seed", type=int, default=None,
+                        help="seed of a generated instance" + _default("seed"))
+    parser.add_argument("--instance", default=None,
+                        help="instance YAML (grid, starts, goals)")
+    parser.add_argument("--map", default=None,
                         help="the map: a MovingAI .map (with --scen for starts and goals), or a "
                              "building's Nav2 map_server YAML (image, resolution, origin, ...; "
                              "see --cell-size); without --scen, starts and goals are drawn from "
@@ -97,8 +113,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--cell-size", type=float, default=None, metavar="M",
                         help="Nav2 map YAML: metres per grid cell, a whole number of image "
                              "pixels (default: one pixel per cell); a cell is blocked when any "
-                             "of its pixels is occupied or unknown")
-    parser.add_argument("--task-source", nargs="+", default=["instance"],
+                             "of its pixels is occupied or unknown (grey); with --map F.yaml "
+                             "only")
+    parser.add_argument("--task-source", nargs="+", default=None,
                         metavar="SOURCE [FILE]",
                         help="where goals come from: instance (the one-shot episode: every "
                              "robot to its goal, then the run ends), lifelong (a new random goal "
@@ -106,35 +123,38 @@ def build_parser() -> argparse.ArgumentParser:
                              "goals or pickup/dropoff pairs for the nearest idle robot), "
                              "external (robots idle until goals come over ROS: goal_pose, "
                              "navigate_to_pose, mapf-fleet goal); goals given at run time work "
-                             "with every source")
+                             "with every source (default: instance)")
     parser.add_argument("--goal-seed", type=int, default=None,
                         help="seed of the lifelong goal stream (default: --seed)")
-    parser.add_argument("--scen", default="", help="MovingAI .scen (with --map)")
+    parser.add_argument("--scen", default=None, help="MovingAI .scen (with --map)")
     parser.add_argument("--max-steps", type=int, default=None,
                         help="tick limit (>= 1): a one-shot run fails when the robots are not "
-                             "all on goal by then; a continuous one ends there (default: 256; "
-                             "with --task-source external: none, 0, the run goes on until "
-                             "Ctrl-C)")
-    parser.add_argument("--decision-timeout", type=float, default=10.0,
+                             f"all on goal by then; a continuous one ends there (default: "
+                             f"{sim['max_steps'].default}; with --task-source external: none, "
+                             f"0, the run goes on until Ctrl-C)")
+    parser.add_argument("--decision-timeout", type=float, default=None,
                         help="seconds the simulator waits for a robot's move; a missing one is "
-                             "stay, reported (> 0)")
-    parser.add_argument("--comm-timeout", type=float, default=5.0,
+                             "stay, reported (> 0)" + _default("decision_timeout"))
+    parser.add_argument("--comm-timeout", type=float, default=None,
                         help="seconds a robot waits for a peer's message before leaving it out "
-                             "(> 0)")
-    parser.add_argument("--startup-timeout", type=float, default=120.0,
+                             "(> 0)" + _default("comm_timeout"))
+    parser.add_argument("--startup-timeout", type=float, default=None,
                         help="seconds to wait for every robot to report ready before tick 0 "
-                             "(> 0)")
-    parser.add_argument("--conflict-rule", choices=CONFLICT_RULES, default=DEFAULT_CONFLICT_RULE,
+                             "(> 0)" + _default("startup_timeout"))
+    parser.add_argument("--conflict-rule", choices=CONFLICT_RULES, default=None,
                         help="how the arbiter resolves a tick: pibt (PIBT over the robots' "
                              "ranked actions), pibt_anchor (the same, the top-priority robot on "
-                             "its distance order) or revert (the paper's rules on first choices)")
-    parser.add_argument("--preference-mode", default=None,
+                             "its distance order) or revert (the paper's rules on first choices)"
+                             + _default("conflict_rule"))
+    parser.add_argument("--ranking", choices=P.RANKINGS, default=None,
                         help="how policy nodes rank their actions from Q-values (default: "
-                             "the policy nodes' preference_mode if a params file sets it, else "
+                             "the policy nodes' ranking if a params file sets it, else "
                              "the ranking the checkpoint records for the conflict rule "
                              "(metadata rankings, e.g. a DAgger round's), else the rule's, "
                              "coordination.preferences.default_q_mode: confidence under "
                              "pibt_anchor, q under pibt and revert)")
+    parser.add_argument("--preference-mode", dest="preference_mode", choices=P.RANKINGS,
+                        default=None, help="deprecated spelling of --ranking")
     parser.add_argument("--nodes-per-process", type=int, default=1,
                         help="robots' policy nodes hosted per process (one hub each; 32 for "
                              "large fleets)")
@@ -143,12 +163,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--real-robots", action="store_true",
                         help="real-robot mode: the aggregator (robots' own /robot_<i>/pose "
                         "feeds) instead of the simulator")
-    parser.add_argument("--arrival-timeout", type=float, default=10.0,
+    parser.add_argument("--arrival-timeout", type=float, default=None,
                         help="real-robot mode: seconds for robots to reach their waypoints "
-                             "(> 0)")
+                             "(> 0)" + f" (default: {P.AGGREGATOR['arrival_timeout'].default})")
     parser.add_argument("--resolution", type=float, default=None,
-                        help="metres per cell of the map and the poses (default: 1.0, or the "
-                             "nodes' resolution parameter)")
+                        help="metres per cell of the map and the poses, not with a Nav2 map "
+                             "(it has its own)" + _default("resolution"))
     parser.add_argument("--origin", type=float, nargs=2, default=None, metavar=("X", "Y"),
                         help="real-robot mode: x, y (metres) of the map's corner, where cell "
                              "(0, 0) starts (default: 0 0)")
@@ -163,7 +183,9 @@ def build_parser() -> argparse.ArgumentParser:
                              "and kept, with its path printed, after a failed one)")
     parser.add_argument("--domain-id", type=int, default=None,
                         help="ROS_DOMAIN_ID to use, 0-232 (default: the environment's)")
-    parser.add_argument("--params-file", default="", help="ROS parameters YAML for all nodes")
+    parser.add_argument("--params-file", default="",
+                        help="ROS parameters YAML for the nodes (config/fleet/fleet.yaml shows "
+                             "every parameter); the options above and --ros-args -p win over it")
     parser.add_argument("--namespace", default="",
                         help="ROS namespace of the whole fleet (e.g. /fleet_a: topics "
                              "/fleet_a/fleet/state, /fleet_a/robot_0/pose, ...), so fleets in "
@@ -180,122 +202,205 @@ SIM_OPTION_PARAMS = {"instance": "instance_file", "map": "map_file", "scen": "sc
                      "decision_timeout": "decision_timeout", "startup_timeout": "startup_timeout",
                      "conflict_rule": "conflict_rule", "arrival_timeout": "arrival_timeout",
                      "record": "record_file", "resolution": "resolution",
-                     "task_source": "task_source", "goal_seed": "goal_seed",
-                     "cell_size": "cell_size"}
+                     "task_source": "task_source", "task_file": "task_file",
+                     "goal_seed": "goal_seed", "cell_size": "cell_size"}
 POLICY_OPTION_PARAMS = {"checkpoint": "checkpoint", "comm_timeout": "comm_timeout",
-                        "preference_mode": "preference_mode"}
-
-
-def apply_parameter_sources(own: list[str], args, ros_args: list[str]) -> None:
-    """Precedence as `ros2 launch` users expect: command line > params file > `up`'s defaults.
-    Sets each option of `args` to the value its node will really get (the params file
-    `--params-file F`, then `up`'s options given on the command line, then the user's
-    `--ros-args` rules and files, in that order; see mapf_fleet.ros.params), and records what
-    `_ros_args` needs: `args.ros_args`, `args.explicit_params`, `args.fixed_params`."""
-    from mapf_fleet.ros import params as rp
-
-    explicit_parser = build_parser()
-    for action in explicit_parser._actions:
-        action.default = argparse.SUPPRESS
-    explicit = set(vars(explicit_parser.parse_args(own)))
-    types = {action.dest: action.type for action in explicit_parser._actions if action.type}
-    rules, ros_files, ros_namespace = rp.ros_arg_rules(ros_args)
-    files = ([args.params_file] if args.params_file else [])
-    for path in files + ros_files:
-        rp.read_params_file(path)  # a missing or malformed file: one line, exit 2
-    namespace = ros_namespace or getattr(args, "namespace", "") or "/"
-    sim_name = "mapf_aggregator" if args.real_robots else "mapf_simulator"
-    args.ros_args = list(ros_args)
-    args.explicit_params = {param for table in (SIM_OPTION_PARAMS, POLICY_OPTION_PARAMS)
-                            for option, param in table.items() if option in explicit}
-    args.fixed_params = {}
-    args.node_values = {}  # kind -> {parameter: value} from the params files, options and -p
-    for kind, table, names in (("sim", SIM_OPTION_PARAMS, [sim_name]),
-                               ("policy", POLICY_OPTION_PARAMS,
-                                [f"mapf_policy_{i}" for i in range(1024)])):
-        fixed: set[str] = set()
-        for name in names:
-            fqn = rp.node_fqn(name, namespace)
-            fixed |= set(rp.params_file_values(files + ros_files, fqn))
-            fixed |= set(rp.command_line_values(rules, name))
-        args.fixed_params[kind] = fixed
-        # the value the first node of this kind gets, in command-line order
-        fqn = rp.node_fqn(names[0], namespace)
-        values = rp.params_file_values(files, fqn)
-        values.update({table[o]: getattr(args, o) for o in table if o in explicit})
-        for index, arg in enumerate(ros_args[:-1]):
-            if arg == "--params-file":
-                values.update(rp.params_file_values([ros_args[index + 1]], fqn))
-            elif arg in ("-p", "--param"):
-                values.update(rp.command_line_values(rp.ros_arg_rules(
-                    ["-p", ros_args[index + 1]])[0], names[0]))
-        args.node_values[kind] = values
-        for option, param in table.items():
-            if param in values:
-                value = values[param]
-                try:
-                    value = types[option](value) if option in types else value
-                except (TypeError, ValueError):
-                    raise ValueError(f"parameter {param}: expected {types[option].__name__}, "
-                                     f"got {value!r}") from None
-                setattr(args, option, value)
-    args.fixed_params["both"] = args.fixed_params["sim"] | args.fixed_params["policy"]
-
-
-# What a node refuses at start-up (or, for the simulator's runtime parameters, at its first
-# tick), checked by `up` before anything starts: (node kind, parameter, check, condition)
-VALUE_CHECKS = [
-    ("sim", "max_steps", lambda v: v >= 0, ">= 1 (0: no limit, continuous task sources)"),
-    ("sim", "cell_size", lambda v: v >= 0, "> 0"),
-    ("sim", "decision_timeout", lambda v: v > 0, "> 0"),
-    ("sim", "startup_timeout", lambda v: v > 0, "> 0"),
-    ("sim", "arrival_timeout", lambda v: v > 0, "> 0"),
-    ("sim", "resolution", lambda v: v > 0, "> 0"),
-    ("sim", "tick_period", lambda v: v >= 0, ">= 0"),
-    ("sim", "progress_every", lambda v: v >= 1, ">= 1"),
-    ("sim", "start_tick", lambda v: v >= 0, ">= 0"),
-    ("sim", "state_subscribers", lambda v: v >= 0, ">= 0"),
-    ("policy", "comm_timeout", lambda v: v > 0, "> 0"),
-    ("policy", "service_timeout", lambda v: v > 0, "> 0"),
-    ("policy", "status_period", lambda v: v > 0, "> 0"),
-    ("policy", "episode_timeout", lambda v: v > 0, "> 0"),
-]
+                        "ranking": "ranking"}
 MAX_DOMAIN_ID = 232  # the largest ROS_DOMAIN_ID whose Fast DDS ports are valid
+# a ROS namespace: tokens of letters, digits and _, none starting with a digit
+NAMESPACE_RE = re.compile(r"/?([A-Za-z_][A-Za-z0-9_]*)(/[A-Za-z_][A-Za-z0-9_]*)*/?")
 
 
-def value_problem(args) -> str:
-    """The first value a node of this fleet would refuse ("" when none), as one line naming the
-    option (or the parameter and where it came from) and the value: every value is checked
-    before anything starts (issue 23, defect 5)."""
-    options = {param: option for table in (SIM_OPTION_PARAMS, POLICY_OPTION_PARAMS)
-               for option, param in table.items()}
-    for kind, param, check, condition in VALUE_CHECKS:
-        values = dict(getattr(args, "node_values", {}).get(kind, {}))
-        table = SIM_OPTION_PARAMS if kind == "sim" else POLICY_OPTION_PARAMS
-        values.update({p: getattr(args, o) for o, p in table.items()
-                       if getattr(args, o, None) is not None})
-        if param not in values:
-            continue
-        value = values[param]
-        option = options.get(param)
-        name = (f"--{option.replace('_', '-')}" if option and param in args.explicit_params
-                else f"parameter {param}" + ("" if option else " (params file or -p)"))
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            return f"{name} must be a number {condition}, got {value!r}"
-        if not check(value):
-            return f"{name} must be {condition}, got {value!r}"
-    source = getattr(args, "task_source", "instance")
-    if args.max_steps == 0 and source == "instance":
-        name = "--max-steps" if "max_steps" in args.explicit_params else "parameter max_steps"
-        return (f"{name} must be >= 1 with --task-source instance (0, no limit, is for the "
-                f"continuous sources lifelong, tasks, external), got 0")
+class UpError(ValueError):
+    """A value `up` refuses before anything starts: one line, exit 2."""
+
+
+def _is_up_option(arg: str) -> bool:
+    option = arg.split("=", 1)[0]
+    return option.startswith("--") and any(
+        option in a.option_strings for a in build_parser()._actions)
+
+
+def _option_name(dest: str) -> str:
+    return "--" + dest.replace("_", "-")
+
+
+@dataclass
+class Plan:
+    """What `up` starts, every value checked: the nodes' resolved parameters ({node name:
+    {name: value}}), where each came from, the fleet's namespace and the ROS arguments passed
+    on as they are."""
+    sim_name: str
+    values: dict
+    origin: dict
+    namespace: str
+    passed: list
+    warnings: list = field(default_factory=list)
+    params_path: str = ""
+
+    @property
+    def sim(self) -> dict:
+        return self.values[self.sim_name]
+
+    @property
+    def policy(self) -> dict:
+        return self.values.get("mapf_policy_0", {})
+
+    def ros_args(self) -> list[str]:
+        """A node's ROS arguments: the fleet's namespace and the merged params file."""
+        out = ["--ros-args"]
+        if self.namespace.strip("/"):
+            out += ["-r", f"__ns:=/{self.namespace.strip('/')}"]
+        if self.params_path:
+            out += ["--params-file", self.params_path]
+        return out + list(self.passed)
+
+
+def explicit_options(args) -> dict:
+    """{node kind: {parameter: (value, option)}} of the options given on the command line."""
+    out = {"sim": {}, "policy": {}}
+    for kind, table in (("sim", SIM_OPTION_PARAMS), ("policy", POLICY_OPTION_PARAMS)):
+        for option, param in table.items():
+            value = getattr(args, option, None)
+            if value is not None and value != "":
+                out[kind][param] = (value, _option_name(option).replace("--task-file",
+                                                                        "--task-source tasks"))
+    if args.origin is not None:
+        out["sim"]["origin_x"] = (args.origin[0], "--origin")
+        out["sim"]["origin_y"] = (args.origin[1], "--origin")
+    return out
+
+
+def plan_parameters(args, ros_argv: list[str]) -> Plan:
+    """Every node's parameters, resolved (defaults < params file < options < --ros-args) and
+    checked; UpError with one line for anything refused. Sets `args`' options to the values
+    the nodes will get."""
+    if args.preference_mode is not None:
+        print("mapf-fleet up: --preference-mode is deprecated, use --ranking", file=sys.stderr)
+        if args.ranking is None:
+            args.ranking = args.preference_mode
+    problem = task_source_problem(args)
+    if problem:
+        raise UpError(problem)
+    try:
+        ros = P.read_ros_args(ros_argv, _is_up_option)
+    except ValueError as exc:
+        raise UpError(str(exc)) from None
+    if args.namespace and ros.namespace and args.namespace.strip("/") != ros.namespace.strip("/"):
+        raise UpError(f"--namespace {args.namespace} and --ros-args -r __ns:={ros.namespace} "
+                      f"disagree")
+    namespace = ros.namespace or args.namespace
+    if namespace and not NAMESPACE_RE.fullmatch(namespace):
+        raise UpError(f"--namespace must be a ROS namespace (tokens of letters, digits and _, "
+                      f"none starting with a digit, separated by /), got {namespace!r}")
     if args.domain_id is not None and not 0 <= args.domain_id <= MAX_DOMAIN_ID:
-        return f"--domain-id must be in 0-{MAX_DOMAIN_ID}, got {args.domain_id}"
+        raise UpError(f"--domain-id must be in 0-{MAX_DOMAIN_ID}, got {args.domain_id}")
     if args.nodes_per_process < 1:
-        return f"--nodes-per-process must be >= 1, got {args.nodes_per_process}"
-    if args.origin is not None and not args.real_robots:
-        return ("--origin applies to --real-robots (the simulator's map has its corner at "
-                "0, 0)")
+        raise UpError(f"--nodes-per-process must be >= 1, got {args.nodes_per_process}")
+    not_applying = options_not_applying(args)
+    if not_applying:
+        raise UpError(not_applying)
+    sim_name = "mapf_aggregator" if args.real_robots else "mapf_simulator"
+    user_files = [args.params_file] if args.params_file else []
+    options = explicit_options(args)
+    try:
+        values, origin, warnings = P.merged_values([sim_name], namespace, user_files, options,
+                                                   ros)
+    except FileNotFoundError as exc:
+        raise UpError(str(exc)) from None
+    except ValueError as exc:
+        raise UpError(str(exc)) from None
+    sim = values[sim_name]
+    if origin[sim_name]["max_steps"] == "default" and sim["task_source"] == "external":
+        sim["max_steps"] = 0  # external goals come when they come: no tick limit
+    if sim["max_steps"] == 0 and sim["task_source"] == "instance":
+        where = origin[sim_name]["max_steps"]
+        raise UpError(f"{where}: max_steps must be >= 1 with task_source instance (0, no limit, "
+                      f"is for the continuous sources lifelong, tasks, external), got 0"
+                      .replace("--max-steps: max_steps", "--max-steps"))
+    if args.goal_seed is not None and sim["task_source"] != "lifelong":
+        raise UpError("--goal-seed applies to --task-source lifelong")
+    if sim["task_source"] == "tasks" and not sim["task_file"]:
+        raise UpError("task_source tasks needs a task file: --task-source tasks FILE")
+    if args.bag:
+        sim["state_subscribers"] = (policy_processes(max(1, int(sim["num_robots"])),
+                                                     args.single_process,
+                                                     args.nodes_per_process) + 1)
+    for option, param in SIM_OPTION_PARAMS.items():
+        if param in sim:
+            setattr(args, option, sim[param])
+    args.task_source = sim["task_source"]
+    args.namespace = namespace
+    return Plan(sim_name, values, origin, namespace, ros.passed, warnings)
+
+
+def plan_policy_parameters(plan: Plan, args, ros_argv: list[str], num_robots: int,
+                           checkpoint: str) -> None:
+    """The policy nodes' resolved parameters into `plan` (their conflict rule follows the
+    simulator's unless set for them; the checkpoint defaults to `checkpoint`)."""
+    ros = P.read_ros_args(ros_argv, _is_up_option)
+    names = [f"mapf_policy_{i}" for i in range(num_robots)]
+    user_files = [args.params_file] if args.params_file else []
+    defaults = {"policy": {"conflict_rule": plan.sim["conflict_rule"],
+                           "checkpoint": checkpoint}}
+    options = explicit_options(args)
+    try:
+        values, origin, warnings = P.merged_values([plan.sim_name] + names, plan.namespace,
+                                                   user_files, options, ros, defaults)
+    except ValueError as exc:
+        raise UpError(str(exc)) from None
+    for name in names:
+        plan.values[name] = values[name]
+        plan.origin[name] = origin[name]
+    plan.warnings += [w for w in warnings if w not in plan.warnings]
+
+
+def options_not_applying(args) -> str:
+    """The first option given that the run would not use ("" when none)."""
+    nav2 = bool(args.map) and str(args.map).lower().endswith((".yaml", ".yml"))
+    rules = [
+        (args.origin is not None and not args.real_robots,
+         "--origin applies to --real-robots (the simulator's map has its corner at 0, 0)"),
+        (args.arrival_timeout is not None and not args.real_robots,
+         "--arrival-timeout applies to --real-robots"),
+        (args.cell_size is not None and not nav2,
+         "--cell-size applies to a Nav2 map (--map F.yaml)"),
+        (args.resolution is not None and nav2,
+         "--resolution does not apply to a Nav2 map: its YAML gives the resolution (use "
+         "--cell-size for metres per grid cell)"),
+        (args.origin is not None and nav2,
+         "--origin does not apply to a Nav2 map: its YAML gives the origin"),
+        (args.num_robots is not None and bool(args.instance),
+         "--num-robots does not apply to --instance: the instance file gives the robots"),
+        (bool(args.scen) and not args.map, "--scen needs --map (the .map it was made for)"),
+        (bool(args.instance) and bool(args.map), "--instance and --map: give one of them"),
+        (any(getattr(args, o) is not None for o in ("size", "density"))
+         and bool(args.instance or args.map),
+         "--size and --density apply to a generated map, not to --instance or --map"),
+    ]
+    for refused, text in rules:
+        if refused:
+            return text
+    return ""
+
+
+def record_problem(path: str, option: str = "--record") -> str:
+    """Why the run's record cannot be written at `path` ("" when it can): checked by creating
+    and removing a file beside it, so a directory, a missing or read-only folder or /proc is
+    refused before anything starts."""
+    target = Path(path)
+    if target.is_dir():
+        return f"{option} {path}: is a directory"
+    parent = target.parent
+    if not parent.is_dir():
+        return f"{option} {path}: folder {parent} does not exist"
+    if target.exists() and not os.access(target, os.W_OK):
+        return f"{option} {path}: not writable"
+    try:
+        with tempfile.NamedTemporaryFile(dir=parent, prefix=f".{target.name}.", delete=True):
+            pass
+    except OSError as exc:
+        return f"{option} {path}: cannot write in {parent} ({exc.strerror or exc})"
     return ""
 
 
@@ -305,23 +410,7 @@ def default_robot_count(args) -> int:
         from mapf_fleet.grid.movingai import read_scen
 
         return len(read_scen(args.scen))
-    return 8
-
-
-def _ros_args(params: dict, args, kind: str) -> list[str]:
-    """A node's ROS arguments: the params file, `up`'s defaults that no params file or `-p`
-    rule sets for it, the options given on `up`'s command line, the user's `--ros-args`
-    (rcl: a later value replaces an earlier one)."""
-    out = ["--ros-args"]
-    if getattr(args, "namespace", ""):
-        out += ["-r", f"__ns:=/{args.namespace.strip('/')}"]
-    if args.params_file:
-        out += ["--params-file", args.params_file]
-    fixed = args.fixed_params.get(kind, set())
-    for name, value in params.items():
-        if name in args.explicit_params or name not in fixed:
-            out += ["-p", f"{name}:={value}"]
-    return out + list(args.ros_args)
+    return P.SIMULATOR["num_robots"].default
 
 
 def task_source_problem(args) -> str:
@@ -329,8 +418,11 @@ def task_source_problem(args) -> str:
     ("" when none)."""
     from mapf_fleet.fleet.tasks import TASK_SOURCES
 
+    if args.task_source is None:
+        args.task_file = None
+        return ""
     source, rest = args.task_source[0], args.task_source[1:]
-    args.task_source, args.task_file = source, rest[0] if rest else ""
+    args.task_source, args.task_file = source, rest[0] if rest else None
     if source not in TASK_SOURCES:
         return f"--task-source must be one of {', '.join(TASK_SOURCES)}, got {source!r}"
     if source == "tasks":
@@ -343,86 +435,107 @@ def task_source_problem(args) -> str:
     return ""
 
 
+def prepare(argv: list[str]):
+    """(args, plan, instance source) of `up` with every value checked, nothing started;
+    UpError (one line) for anything refused."""
+    own, ros_argv = common.split_ros_args(argv)
+    args = build_parser().parse_args(own)
+    plan = plan_parameters(args, ros_argv)
+    if args.record:
+        problem = record_problem(args.record)
+        if problem:
+            raise UpError(problem)
+    elif plan.origin[plan.sim_name]["record_file"] != "default":
+        problem = record_problem(plan.sim["record_file"],
+                                 plan.origin[plan.sim_name]["record_file"] + ": record_file")
+        if problem:
+            raise UpError(problem)
+    given = args.checkpoint
+    if given is None:
+        policy_checkpoint = _policy_value(args, ros_argv, "checkpoint")
+        given = policy_checkpoint or None
+    checkpoint = given or default_checkpoint()
+    if not checkpoint or not Path(checkpoint).is_file():
+        if given:
+            problem = f"checkpoint not found: {given!r}"
+        else:
+            problem = f"no checkpoint in {DATA_ROOT / 'models'} (default {DEFAULT_CHECKPOINT.name})"
+        raise UpError(f"{problem}. Pass --checkpoint FILE.pt (a file written by "
+                      f"mapf_fleet.models.save_checkpoint, e.g. by training), or put one at "
+                      f"{DEFAULT_CHECKPOINT}.")
+    if args.real_robots and args.single_process:
+        raise UpError("--real-robots runs the aggregator in its own process; drop "
+                      "--single-process")
+    problem = checkpoint_problem(checkpoint)
+    if problem:  # before anything starts: the policy processes would die one by one
+        raise UpError(problem)
+    sim = plan.sim
+    try:
+        if plan.origin[plan.sim_name]["num_robots"] == "default":
+            sim["num_robots"] = args.num_robots = default_robot_count(args)
+        source = InstanceSource(sim["instance_file"], sim["map_file"], sim["scen_file"],
+                                sim["num_robots"], sim["size"], sim["density"], sim["seed"],
+                                sim["cell_size"])
+        instance = source.load()
+        num_robots = instance.num_agents
+    except (ValueError, OSError) as exc:
+        raise UpError(f"bad instance: {exc}") from None
+    if args.bag:
+        sim["state_subscribers"] = (
+            policy_processes(num_robots, args.single_process, args.nodes_per_process) + 1)
+    if sim["task_file"]:  # a bad or unreachable task: one line naming file, line, task, field
+        from mapf_fleet.fleet.tasks import TaskFileError, load_task_file
+
+        geometry = common.MapGeometry(*(source.geometry() or (
+            sim["resolution"], sim.get("origin_x", 0.0), sim.get("origin_y", 0.0))))
+        try:
+            load_task_file(sim["task_file"], num_robots=num_robots, cell_of=geometry.xy_to_cell,
+                           grid=instance.grid, starts=instance.starts)
+        except TaskFileError as exc:
+            raise UpError(str(exc)) from None
+    problem = layout_problem(num_robots, args.single_process, args.nodes_per_process)
+    if problem:
+        raise UpError(problem)
+    if args.bag and Path(args.bag).exists():
+        raise UpError(f"--bag {args.bag} exists already: a rosbag2 is written into a new "
+                      f"directory")
+    plan_policy_parameters(plan, args, ros_argv, num_robots, checkpoint)
+    return args, plan, num_robots
+
+
+def _policy_value(args, ros_argv, name):
+    """The value a params file or -p gives the first policy node's `name` ("" when none)."""
+    ros = P.read_ros_args(ros_argv, _is_up_option)
+    files = [args.params_file] if args.params_file else []
+    try:
+        values, origin, _ = P.merged_values(["mapf_simulator", "mapf_policy_0"], args.namespace,
+                                            files, {}, ros)
+    except ValueError as exc:
+        raise UpError(str(exc)) from None
+    return values["mapf_policy_0"][name] if origin["mapf_policy_0"][name] != "default" else ""
+
+
 def main(argv: list[str] | None = None) -> int:
     from mapf_fleet.ros.processes import stop_signals
 
     signals = stop_signals()  # first thing: SIGINT / SIGTERM while loading are kept, no traceback
     argv = list(sys.argv[1:] if argv is None else argv)
-    own, ros_args = common.split_ros_args(argv)
-    parser = build_parser()
-    args = parser.parse_args(own)
-    problem = task_source_problem(args)
-    if problem:
-        print(f"mapf-fleet up: {problem}", file=sys.stderr)
-        return 2
-    apply_parameter_sources(own, args, ros_args)
-    if args.max_steps is None:  # external goals come when they come: no tick limit
-        args.max_steps = 0 if args.task_source == "external" else 256
-    problem = value_problem(args)
-    if problem:  # before anything starts (a node would refuse it, some only after seconds)
-        print(f"mapf-fleet up: {problem}", file=sys.stderr)
-        return 2
-    checkpoint = args.checkpoint or default_checkpoint()
-    if not checkpoint or not Path(checkpoint).is_file():
-        if args.checkpoint:
-            problem = f"checkpoint not found: {args.checkpoint!r}"
-        else:
-            problem = f"no checkpoint in {DATA_ROOT / 'models'} (default {DEFAULT_CHECKPOINT.name})"
-        print(f"mapf-fleet up: {problem}. Pass --checkpoint FILE.pt (a file written by "
-              f"mapf_fleet.models.save_checkpoint, e.g. by training), or put one at "
-              f"{DEFAULT_CHECKPOINT}.", file=sys.stderr)
-        return 2
-    if args.real_robots and args.single_process:
-        print("mapf-fleet up: --real-robots runs the aggregator in its own process; drop "
-              "--single-process", file=sys.stderr)
-        return 2
-    if args.preference_mode is not None:
-        from mapf_fleet.coordination.preferences import PREFERENCE_MODES
-
-        if args.preference_mode not in PREFERENCE_MODES:
-            print(f"mapf-fleet up: --preference-mode must be one of "
-                  f"{', '.join(PREFERENCE_MODES)}", file=sys.stderr)
-            return 2
-    problem = checkpoint_problem(checkpoint)
-    if problem:  # before anything starts: the policy processes would die one by one
-        print(f"mapf-fleet up: {problem}", file=sys.stderr)
-        return 2
     try:
-        if args.num_robots is None:
-            args.num_robots = default_robot_count(args)
-        source = InstanceSource(args.instance, args.map, args.scen, args.num_robots, args.size,
-                                args.density, args.seed, args.cell_size or 0.0)
-        num_robots = source.load().num_agents
-    except (ValueError, OSError) as exc:
-        print(f"mapf-fleet up: bad instance: {exc}", file=sys.stderr)
+        args, plan, num_robots = prepare(argv)
+    except UpError as exc:  # before anything starts (a node would refuse it, some only late)
+        print(f"mapf-fleet up: {exc}", file=sys.stderr)
         return 2
-    if args.task_file:  # a bad task file: one line naming file, task and field, before anything
-        from mapf_fleet.fleet.tasks import TaskFileError, load_task_file
-
-        geometry = common.MapGeometry(*(source.geometry() or (
-            args.resolution or 1.0, *(args.origin or (0.0, 0.0)))))
-        try:
-            load_task_file(args.task_file, num_robots=num_robots, cell_of=geometry.xy_to_cell)
-        except TaskFileError as exc:
-            print(f"mapf-fleet up: {exc}", file=sys.stderr)
-            return 2
-    problem = layout_problem(num_robots, args.single_process, args.nodes_per_process)
-    if problem:
-        print(f"mapf-fleet up: {problem}", file=sys.stderr)
-        return 2
+    for warning in plan.warnings:
+        print(f"mapf-fleet up: {warning}", file=sys.stderr)
     warning = layout_warning(num_robots, args.single_process, args.nodes_per_process,
                              recorder=bool(args.bag))
     if warning:
         print(f"mapf-fleet up: {warning}", file=sys.stderr)
-    if args.bag and Path(args.bag).exists():
-        print(f"mapf-fleet up: --bag {args.bag} exists already: a rosbag2 is written into a new "
-              f"directory", file=sys.stderr)
-        return 2
     env = common.prepare_environment(dict(os.environ))
     if args.domain_id is not None:
         env["ROS_DOMAIN_ID"] = str(args.domain_id)
-    # the default record and the policy processes' logs (in --log-dir when given); removed when
-    # `up` ends after a successful run, kept after a failed one
+    # the default record, the merged parameters and the policy processes' logs (in --log-dir
+    # when given); removed when `up` ends after a successful run, kept after a failed one
     work = tempfile.mkdtemp(prefix="mapf_fleet_")
     args.work_dir = args.log_dir or work
     if args.log_dir:
@@ -432,18 +545,21 @@ def main(argv: list[str] | None = None) -> int:
             print(f"mapf-fleet up: --log-dir {args.log_dir}: {exc.strerror or exc}",
                   file=sys.stderr)
             return 2
-    record = args.record or os.path.join(work, "run.json")
-    sim_params, policy_params = node_parameters(args, checkpoint, record, num_robots)
+    if not plan.sim["record_file"]:
+        plan.sim["record_file"] = os.path.join(work, "run.json")
+    record = plan.sim["record_file"]
+    plan.params_path = os.path.join(work, "parameters.yaml")
+    P.write_params_file(plan.params_path, plan.values, plan.namespace)
     started = time.monotonic()
     result = 1
     try:
         if args.single_process:
             os.environ.update(env)
-            code, problem = run_single_process(num_robots, sim_params, policy_params, args)
+            code, problem = run_single_process(num_robots, plan, args)
         else:
-            code, problem = run_processes(num_robots, sim_params, policy_params, args, env)
+            code, problem = run_processes(num_robots, plan, args, env)
         elapsed = time.monotonic() - started
-        result = finish(code, problem, record, elapsed, bool(args.record))
+        result = finish(code, problem, record, elapsed, record != os.path.join(work, "run.json"))
         return result
     finally:
         # a run stopped by the user (Ctrl-C, SIGTERM: 130 / 143) did not fail: nothing to keep
@@ -461,41 +577,6 @@ def keep_logs(work: str, log_dir: str, failed: bool) -> None:
     if log_dir and glob.glob(os.path.join(log_dir, "*.log")):
         print(f"mapf-fleet up: the policy processes' logs are in {log_dir}", file=sys.stderr)
     shutil.rmtree(work, ignore_errors=True)
-
-
-def node_parameters(args, checkpoint: str, record: str, num_robots: int) -> tuple[dict, dict]:
-    """The parameters `up` gives the simulator (or aggregator) and the policy nodes, from its
-    options (`_ros_args` leaves out those a params file or -p rule sets, unless the option was
-    given)."""
-    sim_params = {"instance_file": args.instance, "map_file": args.map, "scen_file": args.scen,
-                  "num_robots": args.num_robots, "size": args.size, "density": args.density,
-                  "seed": args.seed, "max_steps": args.max_steps,
-                  "task_source": args.task_source, "task_file": args.task_file,
-                  "decision_timeout": args.decision_timeout,
-                  "startup_timeout": args.startup_timeout, "record_file": record,
-                  "conflict_rule": args.conflict_rule}
-    sim_params = {k: v for k, v in sim_params.items() if v != ""}
-    if args.resolution is not None:
-        sim_params["resolution"] = args.resolution
-    for option in ("goal_seed", "cell_size"):
-        if getattr(args, option) is not None:
-            sim_params[option] = getattr(args, option)
-    if args.real_robots:
-        sim_params = {k: v for k, v in sim_params.items() if k in _aggregator_parameters()}
-        sim_params["arrival_timeout"] = args.arrival_timeout
-        if args.origin is not None:
-            sim_params["origin_x"], sim_params["origin_y"] = args.origin
-    if args.bag:  # tick 0 waits until the hubs and the recorder hear the state: no tick missed
-        sim_params["state_subscribers"] = (
-            policy_processes(num_robots, args.single_process, args.nodes_per_process) + 1)
-    # the policy nodes' default preference_mode follows the checkpoint and the arbiter's rule (a
-    # params file's or the command line's preference_mode still wins: up passes none unless
-    # --preference-mode)
-    policy_params = {"checkpoint": checkpoint, "comm_timeout": args.comm_timeout,
-                     "conflict_rule": args.conflict_rule}
-    if args.preference_mode is not None:
-        policy_params["preference_mode"] = args.preference_mode
-    return sim_params, policy_params
 
 
 def checkpoint_problem(path: str) -> str:
@@ -559,13 +640,7 @@ def finish(code: int, problem: str, record: str, elapsed: float, keep_record: bo
     return 1 if problem else result
 
 
-def _aggregator_parameters() -> set[str]:
-    from mapf_fleet.ros.aggregator_node import PARAMETERS
-
-    return set(PARAMETERS)
-
-
-def run_processes(num_robots, sim_params, policy_params, args, env) -> tuple[int, str]:
+def run_processes(num_robots, plan, args, env) -> tuple[int, str]:
     """Start the policy processes and the simulator (or aggregator) and supervise them
     (`processes.supervise`): the simulator's output is shown (unless --quiet), each policy
     process's goes to a log in `args.work_dir`, reported (its last lines) if it dies; SIGINT /
@@ -589,11 +664,11 @@ def run_processes(num_robots, sim_params, policy_params, args, env) -> tuple[int
                 ids = f"{first}-{min(first + k, num_robots) - 1}"
                 children.append(Child(
                     f"policy process (robots {ids})",
-                    runner + ["policy", "--robots", ids] + _ros_args(policy_params, args, "policy"),
+                    runner + ["policy", "--robots", ids] + plan.ros_args(),
                     env, log_path=os.path.join(args.work_dir, f"policy_{ids}.log")))
             name = "aggregator" if args.real_robots else "simulator"
             echo = None if args.quiet else (lambda line: print(line, flush=True))
-            main = Child(name, runner + [name] + _ros_args(sim_params, args, "sim"), env,
+            main = Child(name, runner + [name] + plan.ros_args(), env,
                          echo=echo)
         except BaseException:
             stop_children(children)
@@ -618,11 +693,10 @@ def bag_recording(args, env, signals, ready_timeout: float = 120.0):
         return
     import threading
 
-    from mapf_fleet.ros import params as rp
     from mapf_fleet.ros.bag import READY_PREFIX, recorder_command, stop_recorder
     from mapf_fleet.ros.processes import Child
 
-    namespace = rp.ros_arg_rules(list(getattr(args, "ros_args", [])))[2] or args.namespace
+    namespace = args.namespace
     ready = threading.Event()
 
     def echo(line: str) -> None:
@@ -651,7 +725,7 @@ def bag_recording(args, env, signals, ready_timeout: float = 120.0):
             print(f"mapf-fleet up: {recorder.report()}", file=sys.stderr)
 
 
-def run_single_process(num_robots, sim_params, policy_params, args) -> tuple[int, str]:
+def run_single_process(num_robots, plan, args) -> tuple[int, str]:
     """The simulator and every policy node in this process (with --bag, the recorder beside it
     as a child process). (exit code, problem) as `run_processes`."""
     from mapf_fleet.ros.processes import stop_signals
@@ -660,10 +734,10 @@ def run_single_process(num_robots, sim_params, policy_params, args) -> tuple[int
     with bag_recording(args, dict(os.environ), signals) as recorder:
         if recorder is False:
             return (signals.exit_code or 2), ""
-        return _run_in_this_process(num_robots, sim_params, policy_params, args)
+        return _run_in_this_process(num_robots, plan, args)
 
 
-def _run_in_this_process(num_robots, sim_params, policy_params, args) -> tuple[int, str]:
+def _run_in_this_process(num_robots, plan, args) -> tuple[int, str]:
     import rclpy
 
     from mapf_fleet.ros.common import init_process
@@ -672,11 +746,11 @@ def _run_in_this_process(num_robots, sim_params, policy_params, args) -> tuple[i
 
     # the same ROS arguments (and precedence) as the processes get, for every node of this one
     # SIGINT / SIGTERM stop the simulator's run (record, "stopped at tick k"): exit 130 / 143
-    signals = init_process(["up"] + _ros_args({**sim_params, **policy_params}, args, "both"))
+    signals = init_process(["up"] + plan.ros_args())
     try:
         simulator = SimulatorNode()
         options = host_kwargs(num_robots)
-        first = PolicyNode(robot_id=0, checkpoint=policy_params["checkpoint"], **options)
+        first = PolicyNode(robot_id=0, **options)
         policies = [first] + [PolicyNode(robot_id=i, model=first.model,
                                          metadata=first.checkpoint_metadata, **options)
                               for i in range(1, num_robots)]
