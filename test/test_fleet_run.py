@@ -237,3 +237,47 @@ def test_an_idle_robot_in_a_dead_end_clears_a_busy_robots_goal(rule):
             break
     assert run.tasks_done[1] == 1 and tuple(run.positions[1]) == (0, 0)
     assert not run.active[0] and tuple(run.positions[0]) != (0, 0)
+
+
+# a 5x5 map: cell (4, 4) is free but walled in; robots stand at (0, 0) and (0, 4)
+WALLED = np.zeros((5, 5), dtype=np.uint8)
+WALLED[3, 3:] = 1
+WALLED[4, 3] = 1
+WALLED_STARTS = np.array([[0, 0], [0, 4]])
+
+
+def test_unreachable_task_goals_are_refused_with_file_line_and_task_index(tmp_path):
+    cases = {"- {goal: [1, 1]}\n- {goal: [3, 3]}\n": "tasks.yaml:2: task 1: goal (3, 3) is "
+                                                      "an obstacle",
+             "- {goal: [1, 1]}\n- {goal: [1, 2]}\n- {goal: [4, 4]}\n":
+                 "tasks.yaml:3: task 2: goal (4, 4) cannot be reached by any robot",
+             "tasks:\n  - {goal: [9, 0]}\n": "tasks.yaml:2: task 0: goal (9, 0) is off the 5x5 "
+                                              "map",
+             "- {pickup: [1, 1], dropoff: [4, 4]}\n": "task 0: dropoff (4, 4) cannot be reached "
+                                                      "from the pickup (1, 1)",
+             "- {goal: [0, 0]}\n- {goal: [1, 2], robot: 1}\n- {goal: [4, 4], robot: 0}\n":
+                 "tasks.yaml:3: task 2: goal (4, 4) cannot be reached by robot 0"}
+    path = tmp_path / "tasks.yaml"
+    for text, message in cases.items():
+        path.write_text(text)
+        with pytest.raises(TaskFileError) as info:
+            load_task_file(str(path), num_robots=2, grid=WALLED, starts=WALLED_STARTS)
+        assert message in str(info.value), (text, str(info.value))
+    # the same file is fine without the map (the run checks it)
+    path.write_text("- {goal: [1, 1]}\n- {goal: [2, 2]}\n")
+    tasks = load_task_file(str(path), num_robots=2, grid=WALLED, starts=WALLED_STARTS)
+    assert [t.task_id for t in tasks] == ["tasks-0", "tasks-1"]
+
+
+def test_a_submitted_task_no_robot_can_reach_is_rejected_at_once():
+    run = FleetRun(WALLED, WALLED_STARTS, ExternalTasks(), rule="pibt", max_steps=0)
+    for task, reason in [(Task(((4, 4),)), "cannot be reached by any robot"),
+                         (Task(((3, 3),)), "is an obstacle"),
+                         (Task(((1, 1), (4, 4))), "cannot be reached from the pickup"),
+                         (Task(((7, 0),)), "off the 5x5 map")]:
+        event = run.submit_task(task)
+        assert event.event == "rejected" and reason in event.reason, (task, event)
+    assert not run.queue
+    assert run.submit_task(Task(((2, 2),))).event == "queued"
+    event = run.request_goal(0, (4, 4), "goal_pose")
+    assert event.event == "rejected" and "unreachable" in event.reason
