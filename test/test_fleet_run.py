@@ -281,3 +281,37 @@ def test_a_submitted_task_no_robot_can_reach_is_rejected_at_once():
     assert run.submit_task(Task(((2, 2),))).event == "queued"
     event = run.request_goal(0, (4, 4), "goal_pose")
     assert event.event == "rejected" and "unreachable" in event.reason
+
+
+def test_a_killed_run_keeps_every_tick_in_its_journal(tmp_path):
+    """The record is rewritten whole only every few seconds; the journal beside it gets every
+    tick as it ends, so a simulator killed (-9) between two rewrites loses none, and the rate
+    read back is the journal's (ticks over the time of the last one)."""
+    import os
+
+    from mapf_fleet.fleet.record import journal_path, read_record
+
+    path = tmp_path / "run.json"
+    run = FleetRun(OPEN, np.array([[0, 0], [5, 5]]), LifelongTasks(grid=OPEN, seed=0),
+                   np.array([[0, 5], [5, 0]]), rule="pibt", max_steps=0,
+                   series=("executed", "overridden"))
+    run.recorder.open_journal(path)
+    for _ in range(3):
+        run.step(distance_decisions(run))
+    run.recorder.checkpoint(path, run.tick)  # the last whole rewrite
+    for _ in range(4):
+        run.step(distance_decisions(run))
+    run.recorder._journal.close()  # killed: no final write
+    with open(journal_path(path), "a") as f:
+        f.write('{"t": 9.9, "steps"')  # the line being written when it died
+    record = read_record(path)
+    assert record["incomplete"] and record["steps"] == 7, record["summary"]
+    assert len(record["positions"]) == 8 and len(record["executed"]) == 7
+    assert record["positions"][-1] == run.positions.tolist()
+    assert len(record["goal_events"]) == len(run.recorder.record["goal_events"])
+    assert 0 < record["run_seconds"] < 9.9
+    # finished normally: the record is whole and the journal gone
+    run.finish()
+    run.recorder.write(path)
+    run.recorder.close_journal(path)
+    assert not os.path.exists(journal_path(path)) and read_record(path)["steps"] == 7

@@ -276,7 +276,9 @@ class FleetRun:
         self._apply_requests()
         self._assign_queued()
         self._sync_goals()
-        return self.take_events()
+        events = self.take_events()
+        self.recorder.end_tick()
+        return events
 
     def _arrivals(self) -> None:
         """Active robots on their goals: count the arrival and move each on (its task's next

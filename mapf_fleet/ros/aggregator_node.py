@@ -195,7 +195,8 @@ class FleetStateAggregator(Node):
             unready = self.ticker.wait_ready(
                 min(WAIT_LOG_PERIOD_S, max(left, 0.0)),
                 also=lambda: bool((self.positions[:, 0] >= 0).all())
-                and self.channels.state_heard(subscribers))
+                and self.channels.state_heard(subscribers,
+                                              str(self.params["state_recorder"])))
             with self._cond:
                 unposed = np.flatnonzero(self.positions[:, 0] < 0).tolist()
             if (not unposed and not unready) or left <= WAIT_LOG_PERIOD_S:

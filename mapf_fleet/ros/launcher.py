@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import glob
-import json
 import os
 import re
 import shutil
@@ -206,7 +205,8 @@ SIM_OPTION_PARAMS = {"instance": "instance_file", "map": "map_file", "scen": "sc
                      "goal_seed": "goal_seed", "cell_size": "cell_size"}
 POLICY_OPTION_PARAMS = {"checkpoint": "checkpoint", "comm_timeout": "comm_timeout",
                         "ranking": "ranking"}
-MAX_DOMAIN_ID = 232  # the largest ROS_DOMAIN_ID whose Fast DDS ports are valid
+MAX_DOMAIN_ID = 232
+OUTCOME_WAIT_S = 15.0  # longest wait at the end for the bag recorder to write the outcome  # the largest ROS_DOMAIN_ID whose Fast DDS ports are valid
 # a ROS namespace: tokens of letters, digits and _, none starting with a digit
 NAMESPACE_RE = re.compile(r"/?([A-Za-z_][A-Za-z0-9_]*)(/[A-Za-z_][A-Za-z0-9_]*)*/?")
 
@@ -322,10 +322,6 @@ def plan_parameters(args, ros_argv: list[str]) -> Plan:
         raise UpError("--goal-seed applies to --task-source lifelong")
     if sim["task_source"] == "tasks" and not sim["task_file"]:
         raise UpError("task_source tasks needs a task file: --task-source tasks FILE")
-    if args.bag:
-        sim["state_subscribers"] = (policy_processes(max(1, int(sim["num_robots"])),
-                                                     args.single_process,
-                                                     args.nodes_per_process) + 1)
     for option, param in SIM_OPTION_PARAMS.items():
         if param in sim:
             setattr(args, option, sim[param])
@@ -480,9 +476,12 @@ def prepare(argv: list[str]):
         num_robots = instance.num_agents
     except (ValueError, OSError) as exc:
         raise UpError(f"bad instance: {exc}") from None
-    if args.bag:
+    if args.bag:  # tick 0 waits until the hubs and the recorder hear the state: no tick missed
+        from mapf_fleet.ros.bag import RECORDER_NODE
+
         sim["state_subscribers"] = (
             policy_processes(num_robots, args.single_process, args.nodes_per_process) + 1)
+        sim["state_recorder"] = RECORDER_NODE
     if sim["task_file"]:  # a bad or unreachable task: one line naming file, line, task, field
         from mapf_fleet.fleet.tasks import TaskFileError, load_task_file
 
@@ -630,7 +629,9 @@ def finish(code: int, problem: str, record: str, elapsed: float, keep_record: bo
     parameters, with its message above)."""
     if code not in (0, 1) and code < 128 and not problem:
         return code
-    if code >= 128 and not Path(record).exists():
+    from mapf_fleet.fleet.record import journal_path
+
+    if code >= 128 and not Path(record).exists() and not Path(journal_path(record)).exists():
         print(f"mapf-fleet up: stopped by signal {code - 128} before the run started",
               file=sys.stderr)
         return code
@@ -675,6 +676,8 @@ def run_processes(num_robots, plan, args, env) -> tuple[int, str]:
             raise
         code, problem = supervise(main, children, signals, echoed=not args.quiet,
                                   watched=[recorder] if recorder else [])
+        if recorder:  # the simulator published its outcome: the recorder is waited for
+            recorder.fleet_ended = code in (0, 1) and not problem
     if signals.requested:
         return signals.exit_code, problem
     return (1 if problem else code), problem
@@ -693,15 +696,20 @@ def bag_recording(args, env, signals, ready_timeout: float = 120.0):
         return
     import threading
 
-    from mapf_fleet.ros.bag import READY_PREFIX, recorder_command, stop_recorder
+    from mapf_fleet.ros.bag import (OUTCOME_PREFIX, READY_PREFIX, recorder_command,
+                                    stop_recorder)
     from mapf_fleet.ros.processes import Child
 
     namespace = args.namespace
     ready = threading.Event()
 
+    outcome = threading.Event()
+
     def echo(line: str) -> None:
         if line.startswith(READY_PREFIX):
             ready.set()
+        elif line.startswith(OUTCOME_PREFIX):
+            outcome.set()
         elif not args.quiet or line.startswith("mapf-fleet record:"):
             print(line, flush=True)
 
@@ -719,6 +727,10 @@ def bag_recording(args, env, signals, ready_timeout: float = 120.0):
     try:
         yield recorder
     finally:
+        # the outcome is the fleet's last message: once the recorder wrote it, the rest is in
+        # (a loaded machine may take seconds to deliver a short run's ticks)
+        if getattr(recorder, "fleet_ended", False):
+            outcome.wait(OUTCOME_WAIT_S)
         code = stop_recorder(recorder.proc)
         recorder.wait_output()
         if code != 0:
@@ -734,7 +746,10 @@ def run_single_process(num_robots, plan, args) -> tuple[int, str]:
     with bag_recording(args, dict(os.environ), signals) as recorder:
         if recorder is False:
             return (signals.exit_code or 2), ""
-        return _run_in_this_process(num_robots, plan, args)
+        code, problem = _run_in_this_process(num_robots, plan, args)
+        if recorder:
+            recorder.fleet_ended = code in (0, 1) and not problem
+        return code, problem
 
 
 def _run_in_this_process(num_robots, plan, args) -> tuple[int, str]:
@@ -770,8 +785,10 @@ def _run_in_this_process(num_robots, plan, args) -> tuple[int, str]:
 def report(record_path: str, elapsed: float, show_path: bool = True) -> int:
     """Print the run's outcome and its speed; 0 on success, else 1. The ticks/s are measured
     from the first tick (the record's `run_seconds`), not over start-up."""
-    try:
-        record = json.loads(Path(record_path).read_text())
+    from mapf_fleet.fleet.record import read_record
+
+    try:  # a simulator killed mid-run leaves its journal: every tick it ran
+        record = read_record(record_path)
     except (OSError, ValueError) as exc:
         print(f"mapf-fleet up: no outcome ({exc})", file=sys.stderr)
         return 1

@@ -136,6 +136,10 @@ _RUN = {
                                   "fleet state has this many matched subscribers (`up --bag`: "
                                   "the policy processes and the recorder, so the bag misses no "
                                   "tick); 0: no wait", lambda v: v >= 0, ">= 0"),
+    "state_recorder": Param("", "before tick 0, also wait (up to startup_timeout) until the "
+                                "node of this name (`up --bag`: mapf_fleet_recorder) has a "
+                                "subscription matched to the fleet state, so the bag has every "
+                                "tick; empty: no wait"),
 }
 
 SIMULATOR = {

@@ -99,7 +99,8 @@ class SimulatorNode(Node):
     def _run(self):
         subscribers = int(self.params["state_subscribers"])
         missing = self.ticker.wait_ready(float(self.params["startup_timeout"]),
-                                         also=lambda: self.channels.state_heard(subscribers))
+                                         also=lambda: self.channels.state_heard(
+                                             subscribers, str(self.params["state_recorder"])))
         if self.ticker.stopped:
             self.get_logger().info(f"stopped while waiting for robots {missing}")
         elif missing:

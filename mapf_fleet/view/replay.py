@@ -70,8 +70,10 @@ def load_record(path, instance_options: dict) -> RecordedRun:
     """A JSON run record; the map from its `grid` field, else from `instance_options`
     (ros.instances.InstanceSource fields)."""
     path = Path(path)
-    try:
-        record = json.loads(path.read_text())
+    from mapf_fleet.fleet.record import read_record
+
+    try:  # with the ticks a killed fleet left in its journal
+        record = read_record(path)
     except FileNotFoundError:
         raise RunFileError(f"{path}: no such file") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
