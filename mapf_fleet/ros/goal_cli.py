@@ -28,7 +28,9 @@ def build_parser() -> argparse.ArgumentParser:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("robot", nargs="?", help="robot id, or `any` for the nearest idle robot")
     where = p.add_mutually_exclusive_group()
-    where.add_argument("--cell", nargs=2, type=int, metavar=("ROW", "COL"), help="goal cell")
+    where.add_argument("--cell", nargs=2, type=int, metavar=("ROW", "COL"),
+                       help="goal cell; row 0 is the map's bottom row (docs/fleet.md, Rows and "
+                            "columns)")
     where.add_argument("--xy", nargs=2, type=float, metavar=("X", "Y"),
                        help="goal in metres, map frame")
     where.add_argument("--tasks", metavar="FILE",
