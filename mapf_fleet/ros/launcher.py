@@ -206,6 +206,7 @@ SIM_OPTION_PARAMS = {"instance": "instance_file", "map": "map_file", "scen": "sc
 POLICY_OPTION_PARAMS = {"checkpoint": "checkpoint", "comm_timeout": "comm_timeout",
                         "ranking": "ranking"}
 MAX_DOMAIN_ID = 232
+START_MARGIN_S = 120.0  # a process's own start-up (imports, DDS) on a loaded machine
 OUTCOME_WAIT_S = 15.0  # longest wait at the end for the bag recorder to write the outcome  # the largest ROS_DOMAIN_ID whose Fast DDS ports are valid
 # a ROS namespace: tokens of letters, digits and _, none starting with a digit
 NAMESPACE_RE = re.compile(r"/?([A-Za-z_][A-Za-z0-9_]*)(/[A-Za-z_][A-Za-z0-9_]*)*/?")
@@ -530,6 +531,9 @@ def main(argv: list[str] | None = None) -> int:
                              recorder=bool(args.bag))
     if warning:
         print(f"mapf-fleet up: {warning}", file=sys.stderr)
+    from mapf_fleet.ros.processes import remove_stale_shm
+
+    remove_stale_shm()  # an empty port file left by a killed run freezes every later fleet
     env = common.prepare_environment(dict(os.environ))
     if args.domain_id is not None:
         env["ROS_DOMAIN_ID"] = str(args.domain_id)
@@ -674,8 +678,17 @@ def run_processes(num_robots, plan, args, env) -> tuple[int, str]:
         except BaseException:
             stop_children(children)
             raise
+        from mapf_fleet.fleet.record import journal_path
+
+        record = plan.sim["record_file"]
+        started = (lambda: os.path.exists(journal_path(record))  # noqa: E731
+                   or os.path.exists(record))
+        # the run starts within startup_timeout of the simulator's start (robots not ready
+        # then: it starts without them), plus its start-up on a loaded machine
+        deadline = float(plan.sim["startup_timeout"]) + START_MARGIN_S
         code, problem = supervise(main, children, signals, echoed=not args.quiet,
-                                  watched=[recorder] if recorder else [])
+                                  watched=[recorder] if recorder else [], running=started,
+                                  start_deadline=deadline)
         if recorder:  # the simulator published its outcome: the recorder is waited for
             recorder.fleet_ended = code in (0, 1) and not problem
     if signals.requested:
