@@ -2,7 +2,7 @@
 progress, print the outcome and exit 0 on success.
 
 Process layout: by default each policy node runs in its own process; `--nodes-per-process K`
-hosts K robots' nodes per process (needed past ~32 processes, DESIGN.md section 2);
+hosts K robots' nodes per process (needed past ~32 processes: Fast DDS discovery on loopback);
 `--single-process` runs the simulator and every policy node in this process. The policy nodes of
 one process share one hub (one subscription per shared topic, batched inference). With
 `--real-robots` the aggregator replaces the simulator: the robots publish their own poses on
@@ -50,7 +50,7 @@ DEFAULT_CHECKPOINT = DATA_ROOT / "models" / "default.pt"
 # about an hour before the first tick.
 MAX_NODES_PER_PROCESS = 512
 # ROS processes of one fleet on one domain that Fast DDS discovery on loopback was measured to
-# handle (../shared/DESIGN.md, "Scale limits": about 32 are discovered; with 64 half never see
+# handle (docs/fleet.md, Process layouts: about 32 are discovered; with 64 half never see
 # each other and the shared-memory transport can deadlock). Above it `up` warns, not refuses.
 MAX_DISCOVERED_PROCESSES = 32
 
