@@ -315,3 +315,34 @@ def test_a_killed_run_keeps_every_tick_in_its_journal(tmp_path):
     run.recorder.write(path)
     run.recorder.close_journal(path)
     assert not os.path.exists(journal_path(path)) and read_record(path)["steps"] == 7
+
+
+@pytest.mark.slow
+def test_the_readmes_32_robot_example_is_solved_by_the_fleet_core():
+    """README's second example (`up --num-robots 32 --size 24 ...`): its generated instance is
+    solved by the fleet's core (FleetRun under the default rule, the shipped policy with the
+    ranking it records), as the fleet runs it. On the 16x16 default map two robots end stuck
+    in a dead end (docs/fleet.md)."""
+    import re
+    import shlex
+    from pathlib import Path
+
+    from mapf_fleet.coordination.preferences import default_q_mode
+    from mapf_fleet.evaluation.lifelong import rollout
+    from mapf_fleet.evaluation.policies import CheckpointBatchPolicy
+    from mapf_fleet.models.checkpoint import load_checkpoint
+    from mapf_fleet.ros import launcher
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    line = next(x for x in readme.splitlines() if re.match(r"mapf-fleet up --num-robots 32", x))
+    argv = shlex.split(line.split("#")[0])[2:]
+    args = launcher.build_parser().parse_args(argv)
+    size, density, seed = args.size or 16, args.density or 0.3, args.seed or 0
+    checkpoint = launcher.default_checkpoint()
+    _, metadata = load_checkpoint(checkpoint)
+    inst = generate_instance(size, args.num_robots, density, seed)
+    run = FleetRun(inst.grid, inst.starts, InstanceTasks(), inst.goals, rule="pibt_anchor",
+                   max_steps=256)
+    ranking = default_q_mode("pibt_anchor", metadata.get("rankings"))
+    rollout(CheckpointBatchPolicy(checkpoint, preference_mode=ranking), [run], shielded=True)
+    assert run.on_goal().all(), f"{int(run.on_goal().sum())}/{run.num_robots} on goal"
