@@ -242,6 +242,9 @@ def build_parser() -> argparse.ArgumentParser:
     group.add_argument("--instance", default="", help="instance YAML")
     group.add_argument("--map", default="", help="map file (MovingAI .map or Nav2 YAML)")
     group.add_argument("--scen", default="", help="MovingAI .scen (with --map)")
+    group.add_argument("--cell-size", type=float, default=0.0, metavar="M",
+                       help="a Nav2 --map: metres per grid cell, as given to `up` (default: one "
+                            "pixel per cell)")
     group.add_argument("--size", type=int, default=16, help="generated map side (default 16)")
     group.add_argument("--density", type=float, default=0.3, help="default 0.3")
     group.add_argument("--seed", type=int, default=0, help="default 0")
@@ -256,7 +259,8 @@ def render_run(argv: list[str]) -> int:
         print(f"mapf-fleet render: --fps must be > 0, got {args.fps:g}", file=sys.stderr)
         return 2
     options = {"instance_file": args.instance, "map_file": args.map, "scen_file": args.scen,
-               "size": args.size, "density": args.density, "seed": args.seed}
+               "size": args.size, "density": args.density, "seed": args.seed,
+               "cell_size": args.cell_size}
     try:
         check_out(args.out)
         run = load_run(args.run, options, args.namespace, args.episode)
