@@ -180,7 +180,8 @@ def check_picture(image, grid, robots, colours, cell: int) -> None:
             problems.append(f"free cell {(row, col)} looks like an obstacle: {pixel}")
     for i, (row, col) in enumerate(robots):
         want = tuple(int(colours[i][k:k + 2], 16) for k in (1, 3, 5))
-        pixel = cell_pixel(image, row, col, cell, height=grid.shape[0])
+        # on the disc above its centre: the robot's number is drawn at the centre
+        pixel = cell_pixel(image, row, col, cell, 0.5, 0.25, grid.shape[0])
         if not close_to(pixel, want):
             problems.append(f"robot {i} at {(row, col)}: pixel {pixel}, expected {want}")
     assert not problems, "\n".join(problems[:20])

@@ -323,3 +323,10 @@ def test_idle_robots_and_robots_starting_on_their_goal_reach_nothing():
     p.set_state(6, 3, [(1, 1), (2, 3)], [(0, 3), (2, 3)])  # robot 0 gets a task
     p.set_state(6, 4, [(0, 3), (2, 3)], [(0, 3), (2, 3)])  # and reaches it
     assert p.reached == 2
+
+
+def test_a_favicon_request_gets_no_content_and_no_traceback(served, capfd):
+    _, server = served
+    status, _, body = _get(server.url + "favicon.ico")
+    assert status == 204 and body == b""
+    assert "Traceback" not in capfd.readouterr().err
