@@ -142,6 +142,11 @@ def test_a_rosbag_the_last_run_or_the_one_asked_for(tmp_path, capsys):
     with pytest.raises(RunFileError, match="no /fleet_a/fleet/state messages"):
         load_bag(bag, namespace="/fleet_a")
     out = tmp_path / "bag.gif"
+    capsys.readouterr()
+    assert mapf_fleet(["render", "--run", str(bag), "--namespace", "/wrong", "--out",
+                       str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "no /wrong/fleet/state messages" in err and len(err.strip().splitlines()) == 1
     assert mapf_fleet(["render", "--run", str(bag), "--out", str(out), "--fps", "4"]) == 0
     assert _frames(out) == 6
 

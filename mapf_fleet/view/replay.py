@@ -161,7 +161,9 @@ def load_bag(path, namespace: str = "", episode: int | None = None) -> RecordedR
     try:
         with AnyReader([bag_dir], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
             wanted = [c for c in reader.connections if c.topic in topics.values()]
-            for connection, stamp, raw in reader.messages(connections=wanted):
+            # none wanted (another namespace): read nothing (no connections means all of them)
+            for connection, stamp, raw in (reader.messages(connections=wanted) if wanted
+                                           else ()):
                 msg = reader.deserialize(raw, connection.msgtype)
                 if connection.topic == topics[common.MAP_TOPIC]:
                     maps.append((stamp, msg))
