@@ -22,6 +22,8 @@ import time
 
 from mapf_fleet.ros import common
 
+STATE_WAIT_S = 3.0  # longest wait for a fleet state before sending a robot's goal
+
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="mapf-fleet goal", description=__doc__,
@@ -121,6 +123,16 @@ class GoalClient:
 
         self.events_sub = node.create_subscription(GoalEvent, common.rel(GOAL_EVENTS_TOPIC),
                                                    self._on_event, common.reliable_qos(200))
+        from mapf_fleet_interfaces.msg import FleetState
+
+        self.robots = None  # how many robots the fleet state names (None: no state heard)
+        node.create_subscription(FleetState, common.rel(common.STATE_TOPIC), self._on_state,
+                                 common.reliable_qos(10))
+
+    def _on_state(self, msg):
+        with self.cond:
+            self.robots = len(msg.rows)
+            self.cond.notify_all()
 
     def _on_map(self, msg):
         with self.cond:
@@ -184,6 +196,13 @@ class GoalClient:
 
             return self._submit(json.dumps([goal]), signals)
         robot = int(args.robot)
+        # the fleet's state names its robots (a tick, or every few seconds when idle): an id
+        # past them is refused at once instead of after --timeout
+        self._wait(lambda: self.robots is not None, min(args.timeout, STATE_WAIT_S), signals)
+        if self.robots is not None and robot >= self.robots:
+            print(f"mapf-fleet goal: robot {robot}: the fleet has {self.robots} robots "
+                  f"(0..{self.robots - 1})", file=sys.stderr)
+            return 2
         if args.cancel:
             return self._cancel(robot, signals)
         pose = self._pose(signals)
