@@ -112,8 +112,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--cell-size", type=float, default=None, metavar="M",
                         help="Nav2 map YAML: metres per grid cell, a whole number of image "
                              "pixels (default: one pixel per cell); a cell is blocked when any "
-                             "of its pixels is occupied or unknown (grey); with --map F.yaml "
-                             "only")
+                             "of its pixels is occupied or unknown (as the YAML's thresholds "
+                             "read them: under Nav2's free_thresh 0.25 map_saver's unknown grey "
+                             "205 reads as free, and up warns); with --map F.yaml only")
     parser.add_argument("--task-source", nargs="+", default=None,
                         metavar="SOURCE [FILE]",
                         help="where goals come from: instance (the one-shot episode: every "
@@ -477,6 +478,9 @@ def prepare(argv: list[str]):
         num_robots = instance.num_agents
     except (ValueError, OSError) as exc:
         raise UpError(f"bad instance: {exc}") from None
+    warning = unknown_as_free_warning(sim["map_file"])
+    if warning:
+        plan.warnings.append(warning)
     if args.bag:  # tick 0 waits until the hubs and the recorder hear the state: no tick missed
         from mapf_fleet.ros.bag import RECORDER_NODE
 
@@ -501,6 +505,22 @@ def prepare(argv: list[str]):
                       f"directory")
     plan_policy_parameters(plan, args, ros_argv, num_robots, checkpoint)
     return args, plan, num_robots
+
+
+def unknown_as_free_warning(map_file: str) -> str:
+    """A warning ("" when none) for a Nav2 map whose thresholds read map_saver's unknown grey
+    as free (its cells do not block)."""
+    if not str(map_file).lower().endswith((".yaml", ".yml")):
+        return ""
+    from mapf_fleet.grid.nav2_map import read_nav2_yaml, saver_unknown_read_as_free
+
+    meta = read_nav2_yaml(map_file)
+    count = saver_unknown_read_as_free(meta)
+    if not count:
+        return ""
+    return (f"warning: {map_file}: {count} pixels of grey 205 (map_saver's unknown) read as "
+            f"free under free_thresh {meta.free_thresh:g}, as Nav2's map_server reads them; "
+            f"set free_thresh: 0.196 in {map_file} to have them block")
 
 
 def _policy_value(args, ros_argv, name):

@@ -197,3 +197,19 @@ def test_up_params_file_and_ros_args(tmp_path, ros_env, checkpoints):
                    "--nodes-per-process", "2", "--params-file", str(path), "--num-robots", "2")
     assert "instance 12x12 with 2 robots" in out, out
     assert np.asarray(run["positions"]).shape[1:] == (2, 2) and run["steps"] == 2
+
+
+def test_a_nav2_map_reading_unknown_grey_as_free_is_warned_about(tmp_path, checkpoints):
+    """map_saver writes unknown as grey 205; under Nav2's default free_thresh 0.25 it reads as
+    free (map_server does the same), which `up --help` would have a user believe blocks."""
+    from mapf_fleet.grid.nav2_map import write_nav2_map
+
+    pixels = np.zeros((6, 8), dtype=np.int64)
+    pixels[0, :3] = -1  # unknown
+    path = tmp_path / "building.yaml"
+    write_nav2_map(path, pixels, 0.5)
+    _, plan, _ = _prepare(["--map", str(path), "--num-robots", "2"], checkpoints["dhc"])
+    assert not any("grey 205" in w for w in plan.warnings)  # 0.196: unknown blocks
+    path.write_text(path.read_text().replace("free_thresh: 0.196", "free_thresh: 0.25"))
+    _, plan, _ = _prepare(["--map", str(path), "--num-robots", "2"], checkpoints["dhc"])
+    assert any("3 pixels of grey 205" in w and "free_thresh 0.25" in w for w in plan.warnings)
