@@ -55,6 +55,8 @@ CASES = [
      "no_goals.yaml: missing field 'goals'"),
     ("stand-in-instance-missing-field", STAND_IN + ["--instance", "{d}/no_goals.yaml"],
      "no_goals.yaml: missing field 'goals'"),
+    ("stand-in-bad-map", STAND_IN + ["--map", "{d}/bad.map", "--num-robots", "2"],
+     "bad.map:6: row has 2 characters"),
     ("up-decision-timeout-0", CLI + ["up", "--decision-timeout", "0", "--single-process",
                                      "--num-robots", "2", "--size", "8", "--checkpoint",
                                      "{dhc}", "--quiet"], "--decision-timeout must be > 0"),
