@@ -124,6 +124,7 @@ class RunRecorder:
         self.overridden += len(series.get("overridden", ()))
         self.record["positions"].append(np.asarray(positions).tolist())
         self._tick_series = tuple(series)
+        self._tick_after = int(decisions.tick) + 1
 
     # ---- the per-tick journal ----
     def open_journal(self, record_path) -> None:
@@ -144,6 +145,7 @@ class RunRecorder:
         events = self.record["goal_events"][self._journaled_events:]
         self._journaled_events = len(self.record["goal_events"])
         line = {"t": round(time.monotonic() - self.started, 4), "steps": self.steps,
+                "tick": getattr(self, "_tick_after", self.steps),
                 "collisions": self.collisions, "missed_decisions": self.missed,
                 "actions": self.record["actions"][-1], "missed": self.record["missed"][-1],
                 "positions": self.record["positions"][-1], "goal_events": events,
@@ -230,6 +232,8 @@ def read_record(path) -> dict:
     out.update(incomplete=True, success=False, steps=int(last["steps"]),
                collisions=int(last["collisions"]), missed_decisions=int(last["missed_decisions"]),
                run_seconds=float(last["t"]),
-               summary=f"incomplete: the run's record stops after {int(last['steps'])} steps "
-                       f"(the process ended before its outcome; rebuilt from {journal.name})")
+               summary=f"incomplete: the run's record stops at tick "
+                       f"{int(last.get('tick', last['steps']))} ({int(last['steps'])} steps "
+                       f"recorded; the process ended before its outcome; rebuilt from "
+                       f"{journal.name})")
     return out
