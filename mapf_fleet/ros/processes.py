@@ -24,7 +24,7 @@ import time
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
-# Environment every process of the fleet runs with (DESIGN.md section 2): nothing leaves loopback,
+# Environment every process of the fleet runs with: nothing leaves loopback,
 # and the venv is the ROS prefix so ament lookups work. (Here, below `common`, which re-exports
 # it: the two modules used to import each other.)
 FLEET_ENV = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
