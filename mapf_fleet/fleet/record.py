@@ -237,3 +237,17 @@ def read_record(path) -> dict:
                        f"recorded; the process ended before its outcome; rebuilt from "
                        f"{journal.name})")
     return out
+
+
+def complete_record(path) -> dict:
+    """`read_record`, and when it was rebuilt from the journal, the rebuilt record written in
+    place of the record (atomically) and the journal removed: the file alone then holds every
+    tick the run ran."""
+    from mapf_fleet.files import atomic_write
+
+    record = read_record(path)
+    journal = Path(journal_path(path))
+    if journal.exists() and record.get("incomplete"):
+        atomic_write(path, json.dumps(record).encode())
+        journal.unlink()
+    return record

@@ -818,10 +818,10 @@ def _run_in_this_process(num_robots, plan, args) -> tuple[int, str]:
 def report(record_path: str, elapsed: float, show_path: bool = True) -> int:
     """Print the run's outcome and its speed; 0 on success, else 1. The ticks/s are measured
     from the first tick (the record's `run_seconds`), not over start-up."""
-    from mapf_fleet.fleet.record import read_record
+    from mapf_fleet.fleet.record import complete_record
 
-    try:  # a simulator killed mid-run leaves its journal: every tick it ran
-        record = read_record(record_path)
+    try:  # a simulator killed mid-run leaves its journal: every tick it ran, into the record
+        record = complete_record(record_path)
     except (OSError, ValueError) as exc:
         print(f"mapf-fleet up: no outcome ({exc})", file=sys.stderr)
         return 1
