@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import collections
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -383,7 +384,8 @@ def supervise(main: Child, others: list[Child], signals: StopSignals, *, grace: 
             if signals.forced:
                 stop.force(now)
             if stop.overdue(now) and main.poll() is None:
-                warn(f"mapf-fleet up: the {main.name} did not stop in time: killed")
+                warn(f"mapf-fleet up: the {main.name} did not stop in time: killed" if started
+                     else f"mapf-fleet up: the {main.name} was still starting up: stopped")
                 main.proc.kill()
                 killed = True
                 break
@@ -404,6 +406,7 @@ def supervise(main: Child, others: list[Child], signals: StopSignals, *, grace: 
 
 
 SHM_DIR = "/dev/shm"
+PORT_FILE = re.compile(r"fastrtps_port\d+")
 STALE_AFTER_S = 10.0  # a zero-byte port file older than this is no port being created
 
 
@@ -418,7 +421,7 @@ def stale_shm_files(now: float | None = None, folder: str = SHM_DIR) -> list[str
     except OSError:
         return found
     for name in names:
-        if not name.startswith("fastrtps_port") or name.endswith("_el"):
+        if not PORT_FILE.fullmatch(name):  # a port itself; its _el / _sl locks are empty
             continue
         path = os.path.join(folder, name)
         try:

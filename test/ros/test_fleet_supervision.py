@@ -384,6 +384,7 @@ def test_empty_fast_dds_port_files_are_found_and_fresh_ones_left(tmp_path):
     now = time.time()
     for name, size, age in [("fastrtps_port7008", 0, 60), ("fastrtps_port7010", 0, 1),
                             ("fastrtps_port7012", 64, 60), ("fastrtps_port7008_el", 0, 60),
+                            ("fastrtps_port7014_sl", 0, 60),
                             ("fastrtps_1234abcd", 0, 60)]:
         path = tmp_path / name
         path.write_bytes(b"x" * size)
