@@ -587,6 +587,10 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         # a run stopped by the user (Ctrl-C, SIGTERM: 130 / 143) did not fail: nothing to keep
         keep_logs(work, args.log_dir, failed=result not in (0, 130, 143))
+        if result != 0 and not args.single_process:  # children may have been killed
+            from mapf_fleet.ros.processes import clean_zombie_shm
+
+            clean_zombie_shm()
         signals.restore()
 
 

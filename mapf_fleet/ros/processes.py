@@ -459,3 +459,26 @@ def shm_hint() -> str:
     if stale:
         return f"empty Fast DDS port files in {SHM_DIR}: {', '.join(stale)}"
     return f"Fast DDS shared memory in {SHM_DIR}/fastrtps_*: `fastdds shm clean` removes unused files"
+
+
+def clean_zombie_shm(warn=lambda text: print(text, file=sys.stderr, flush=True),
+                     timeout: float = 20.0) -> int:
+    """`fastdds shm clean`: remove the Fast DDS shared-memory segments and ports no live
+    process holds (their locks are free), e.g. those of children killed while stopping a run;
+    says how many. Returns that count (0 when the tool is missing or fails)."""
+    import shutil
+
+    tool = shutil.which("fastdds")
+    if tool is None:
+        return 0
+    try:
+        done = subprocess.run([tool, "shm", "clean"], capture_output=True, text=True,
+                              timeout=timeout)
+    except (OSError, subprocess.TimeoutExpired):
+        return 0
+    found = re.findall(r"(\d+) zombie (ports|segments) cleaned", done.stdout)
+    count = sum(int(n) for n, _ in found)
+    if count:
+        warn(f"mapf-fleet up: removed {count} unused Fast DDS shared-memory files "
+             f"({', '.join(f'{n} {kind}' for n, kind in found)}) left by stopped processes")
+    return count
