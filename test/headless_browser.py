@@ -155,10 +155,12 @@ def close_to(pixel, rgb, tolerance: int = 24) -> bool:
     return all(abs(int(a) - int(b)) <= tolerance for a, b in zip(pixel, rgb))
 
 
-def cell_pixel(image, row: int, col: int, cell: int, dx: float = 0.5, dy: float = 0.5):
+def cell_pixel(image, row: int, col: int, cell: int, dx: float = 0.5, dy: float = 0.5,
+               height: int | None = None):
     """The pixel at (dx, dy) of cell (row, col) (fractions of the cell; 0.5, 0.5 its centre);
-    the page draws row 0 at the top, the canvas at the page's top-left corner."""
-    return image.getpixel((int((col + dx) * cell), int((row + dy) * cell)))
+    the page draws row 0 at the bottom of a map of `height` rows (the map frame's way, as RViz),
+    the canvas at the page's top-left corner."""
+    return image.getpixel((int((col + dx) * cell), int((height - 1 - row + dy) * cell)))
 
 
 def check_picture(image, grid, robots, colours, cell: int) -> None:
@@ -171,14 +173,15 @@ def check_picture(image, grid, robots, colours, cell: int) -> None:
     problems = []
     for (row, col), value in np.ndenumerate(grid):
         # near a corner of the cell: off its border, the disc, the goal square and the path line
-        pixel = cell_pixel(image, row, col, cell, 0.1, 0.1)
+        pixel = cell_pixel(image, row, col, cell, 0.1, 0.1, grid.shape[0])
         if value and not close_to(pixel, OBSTACLE_RGB):
             problems.append(f"obstacle cell {(row, col)} shows {pixel}")
         if not value and close_to(pixel, OBSTACLE_RGB, 60):
             problems.append(f"free cell {(row, col)} looks like an obstacle: {pixel}")
     for i, (row, col) in enumerate(robots):
         want = tuple(int(colours[i][k:k + 2], 16) for k in (1, 3, 5))
-        pixel = cell_pixel(image, row, col, cell)
+        # on the disc above its centre: the robot's number is drawn at the centre
+        pixel = cell_pixel(image, row, col, cell, 0.5, 0.25, grid.shape[0])
         if not close_to(pixel, want):
             problems.append(f"robot {i} at {(row, col)}: pixel {pixel}, expected {want}")
     assert not problems, "\n".join(problems[:20])

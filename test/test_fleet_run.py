@@ -237,3 +237,112 @@ def test_an_idle_robot_in_a_dead_end_clears_a_busy_robots_goal(rule):
             break
     assert run.tasks_done[1] == 1 and tuple(run.positions[1]) == (0, 0)
     assert not run.active[0] and tuple(run.positions[0]) != (0, 0)
+
+
+# a 5x5 map: cell (4, 4) is free but walled in; robots stand at (0, 0) and (0, 4)
+WALLED = np.zeros((5, 5), dtype=np.uint8)
+WALLED[3, 3:] = 1
+WALLED[4, 3] = 1
+WALLED_STARTS = np.array([[0, 0], [0, 4]])
+
+
+def test_unreachable_task_goals_are_refused_with_file_line_and_task_index(tmp_path):
+    cases = {"- {goal: [1, 1]}\n- {goal: [3, 3]}\n": "tasks.yaml:2: task 1: goal (3, 3) is "
+                                                      "an obstacle",
+             "- {goal: [1, 1]}\n- {goal: [1, 2]}\n- {goal: [4, 4]}\n":
+                 "tasks.yaml:3: task 2: goal (4, 4) cannot be reached by any robot",
+             "tasks:\n  - {goal: [9, 0]}\n": "tasks.yaml:2: task 0: goal (9, 0) is off the 5x5 "
+                                              "map",
+             "- {pickup: [1, 1], dropoff: [4, 4]}\n": "task 0: dropoff (4, 4) cannot be reached "
+                                                      "from the pickup (1, 1)",
+             "- {goal: [0, 0]}\n- {goal: [1, 2], robot: 1}\n- {goal: [4, 4], robot: 0}\n":
+                 "tasks.yaml:3: task 2: goal (4, 4) cannot be reached by robot 0"}
+    path = tmp_path / "tasks.yaml"
+    for text, message in cases.items():
+        path.write_text(text)
+        with pytest.raises(TaskFileError) as info:
+            load_task_file(str(path), num_robots=2, grid=WALLED, starts=WALLED_STARTS)
+        assert message in str(info.value), (text, str(info.value))
+    # the same file is fine without the map (the run checks it)
+    path.write_text("- {goal: [1, 1]}\n- {goal: [2, 2]}\n")
+    tasks = load_task_file(str(path), num_robots=2, grid=WALLED, starts=WALLED_STARTS)
+    assert [t.task_id for t in tasks] == ["tasks-0", "tasks-1"]
+
+
+def test_a_submitted_task_no_robot_can_reach_is_rejected_at_once():
+    run = FleetRun(WALLED, WALLED_STARTS, ExternalTasks(), rule="pibt", max_steps=0)
+    for task, reason in [(Task(((4, 4),)), "cannot be reached by any robot"),
+                         (Task(((3, 3),)), "is an obstacle"),
+                         (Task(((1, 1), (4, 4))), "cannot be reached from the pickup"),
+                         (Task(((7, 0),)), "off the 5x5 map")]:
+        event = run.submit_task(task)
+        assert event.event == "rejected" and reason in event.reason, (task, event)
+    assert not run.queue
+    assert run.submit_task(Task(((2, 2),))).event == "queued"
+    event = run.request_goal(0, (4, 4), "goal_pose")
+    assert event.event == "rejected" and "unreachable" in event.reason
+
+
+def test_a_killed_run_keeps_every_tick_in_its_journal(tmp_path):
+    """The record is rewritten whole only every few seconds; the journal beside it gets every
+    tick as it ends, so a simulator killed (-9) between two rewrites loses none, and the rate
+    read back is the journal's (ticks over the time of the last one)."""
+    import os
+
+    from mapf_fleet.fleet.record import journal_path, read_record
+
+    path = tmp_path / "run.json"
+    run = FleetRun(OPEN, np.array([[0, 0], [5, 5]]), LifelongTasks(grid=OPEN, seed=0),
+                   np.array([[0, 5], [5, 0]]), rule="pibt", max_steps=0,
+                   series=("executed", "overridden"))
+    run.recorder.open_journal(path)
+    for _ in range(3):
+        run.step(distance_decisions(run))
+    run.recorder.checkpoint(path, run.tick)  # the last whole rewrite
+    for _ in range(4):
+        run.step(distance_decisions(run))
+    run.recorder._journal.close()  # killed: no final write
+    with open(journal_path(path), "a") as f:
+        f.write('{"t": 9.9, "steps"')  # the line being written when it died
+    record = read_record(path)
+    assert record["incomplete"] and record["steps"] == 7, record["summary"]
+    assert len(record["positions"]) == 8 and len(record["executed"]) == 7
+    assert record["positions"][-1] == run.positions.tolist()
+    assert len(record["goal_events"]) == len(run.recorder.record["goal_events"])
+    assert 0 < record["run_seconds"] < 9.9
+    # finished normally: the record is whole and the journal gone
+    run.finish()
+    run.recorder.write(path)
+    run.recorder.close_journal(path)
+    assert not os.path.exists(journal_path(path)) and read_record(path)["steps"] == 7
+
+
+@pytest.mark.slow
+def test_the_readmes_32_robot_example_is_solved_by_the_fleet_core():
+    """README's second example (`up --num-robots 32 --size 24 ...`): its generated instance is
+    solved by the fleet's core (FleetRun under the default rule, the shipped policy with the
+    ranking it records), as the fleet runs it. On the 16x16 default map two robots end stuck
+    in a dead end (docs/fleet.md)."""
+    import re
+    import shlex
+    from pathlib import Path
+
+    from mapf_fleet.coordination.preferences import default_q_mode
+    from mapf_fleet.evaluation.lifelong import rollout
+    from mapf_fleet.evaluation.policies import CheckpointBatchPolicy
+    from mapf_fleet.models.checkpoint import load_checkpoint
+    from mapf_fleet.ros import launcher
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    line = next(x for x in readme.splitlines() if re.match(r"mapf-fleet up --num-robots 32", x))
+    argv = shlex.split(line.split("#")[0])[2:]
+    args = launcher.build_parser().parse_args(argv)
+    size, density, seed = args.size or 16, args.density or 0.3, args.seed or 0
+    checkpoint = launcher.default_checkpoint()
+    _, metadata = load_checkpoint(checkpoint)
+    inst = generate_instance(size, args.num_robots, density, seed)
+    run = FleetRun(inst.grid, inst.starts, InstanceTasks(), inst.goals, rule="pibt_anchor",
+                   max_steps=256)
+    ranking = default_q_mode("pibt_anchor", metadata.get("rankings"))
+    rollout(CheckpointBatchPolicy(checkpoint, preference_mode=ranking), [run], shielded=True)
+    assert run.on_goal().all(), f"{int(run.on_goal().sum())}/{run.num_robots} on goal"

@@ -142,6 +142,11 @@ def test_a_rosbag_the_last_run_or_the_one_asked_for(tmp_path, capsys):
     with pytest.raises(RunFileError, match="no /fleet_a/fleet/state messages"):
         load_bag(bag, namespace="/fleet_a")
     out = tmp_path / "bag.gif"
+    capsys.readouterr()
+    assert mapf_fleet(["render", "--run", str(bag), "--namespace", "/wrong", "--out",
+                       str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "no /wrong/fleet/state messages" in err and len(err.strip().splitlines()) == 1
     assert mapf_fleet(["render", "--run", str(bag), "--out", str(out), "--fps", "4"]) == 0
     assert _frames(out) == 6
 
@@ -162,3 +167,26 @@ def test_render_help_names_the_recorded_run(capsys):
     with pytest.raises(SystemExit):
         mapf_fleet(["render", "--help"])
     assert "--run F.json|BAG_DIR" in capsys.readouterr().out
+
+
+def test_a_nav2_map_run_redraws_with_its_cell_size(tmp_path, capsys):
+    """`up --map building.yaml --cell-size 0.5` records no map: render takes the same
+    --map and --cell-size (without --cell-size the map is one cell per pixel: refused)."""
+    from mapf_fleet.grid.nav2_map import write_nav2_map
+    from mapf_fleet.fleet.instances import InstanceSource
+
+    pixels = np.zeros((8, 12), dtype=np.int64)
+    pixels[2:4, 4:6] = 1
+    yaml_path = tmp_path / "building.yaml"
+    write_nav2_map(yaml_path, pixels, 0.25)
+    instance = InstanceSource(map_file=str(yaml_path), num_robots=2, seed=1,
+                              cell_size=0.5).load()
+    record = {"positions": [np.asarray(instance.starts).tolist()],
+              "goals": np.asarray(instance.goals).tolist()}
+    path = tmp_path / "run.json"
+    path.write_text(json.dumps(record))
+    args = ["render", "--run", str(path), "--map", str(yaml_path), "--seed", "1",
+            "--out", str(tmp_path / "run.gif")]
+    assert mapf_fleet(args + ["--cell-size", "0.5"]) == 0
+    assert "on a 4x6 map" in capsys.readouterr().out
+    assert mapf_fleet(args) == 2

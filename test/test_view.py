@@ -187,7 +187,9 @@ def test_the_page_draws_map_robots_and_follows_the_stream(served):
     picture.set_state(11, 0, instance.starts, instance.goals)
     cell = 24
     with Browser(width=12 * cell + 400, height=12 * cell + 100) as browser:
-        browser.open(server.url + f"?cell={cell}")
+        # no trails: the robots jump to their goals below (no legal move), and the straight
+        # lines of such jumps cross obstacle cells
+        browser.open(server.url + f"?cell={cell}&trail=0")
         browser.wait_for("return window.viewDrawn && window.viewDrawn.tick === 0")
         image = browser.screenshot()
         colours = browser.run("return window.viewDrawn.colours")
@@ -321,3 +323,10 @@ def test_idle_robots_and_robots_starting_on_their_goal_reach_nothing():
     p.set_state(6, 3, [(1, 1), (2, 3)], [(0, 3), (2, 3)])  # robot 0 gets a task
     p.set_state(6, 4, [(0, 3), (2, 3)], [(0, 3), (2, 3)])  # and reaches it
     assert p.reached == 2
+
+
+def test_a_favicon_request_gets_no_content_and_no_traceback(served, capfd):
+    _, server = served
+    status, _, body = _get(server.url + "favicon.ico")
+    assert status == 204 and body == b""
+    assert "Traceback" not in capfd.readouterr().err

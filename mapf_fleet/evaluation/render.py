@@ -72,7 +72,10 @@ def draw_frames(grid: np.ndarray, goals: np.ndarray, positions: np.ndarray, coll
     colours = plt.get_cmap("hsv")(np.linspace(0, 1, n, endpoint=False))
     scale = max(4.0, min(8.0, 480 / max(h, w) / 10))
     fig, ax = plt.subplots(figsize=(scale * w / max(h, w) + 0.5, scale * h / max(h, w) + 0.7), dpi=80)
-    ax.imshow(grid != 0, cmap="Greys", vmin=0, vmax=1.6, interpolation="nearest")
+    # row 0 at the bottom, as in the map frame (y grows with the row), RViz, Foxglove and the
+    # web view: a building map is drawn as its image (docs/fleet.md, "Rows and columns")
+    ax.imshow(grid != 0, cmap="Greys", vmin=0, vmax=1.6, interpolation="nearest",
+              origin="lower")
     marker = max(8.0, 2400.0 / max(h, w))
     paths = [ax.plot([], [], color=colours[i], alpha=0.45, linewidth=max(1.0, 70.0 / max(h, w)))[0]
              for i in range(n)] if trails else []

@@ -7,15 +7,19 @@ Record (JSON, `write`): `episode`, `task_source`, `conflict_rule`, `goals` (the 
 without a decision per tick), the node's own `series` (e.g. "executed", "overridden",
 "rejected"), `goal_events` (every goal change: assigned, reached, preempted, cancelled, aborted,
 rejected, with tick, robot, cell, source and id), and at the end the outcome's figures.
-`write` is atomic, and a node calls it every `checkpoint_every` ticks during the run, so a killed
-process leaves the ticks it ran (issue 23: a dead simulator lost its whole trajectory).
+`write` is atomic. A node also keeps a journal beside the record (`open_journal`: F.ticks, one
+JSON line per tick, flushed as the tick ends) and removes it after the final `write`, so a
+killed process leaves every tick it ran: `read_record` rebuilds the record from the journal
+when the record is missing or incomplete.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import time
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -89,6 +93,8 @@ class RunRecorder:
         if conflict_rule:
             self.record["conflict_rule"] = conflict_rule
         self.started = time.monotonic()
+        self._journal = None  # open file of the per-tick journal (open_journal)
+        self._journaled_events = 0
 
     def start(self, positions, goals) -> None:
         self.record["positions"].append(np.asarray(positions).tolist())
@@ -117,6 +123,46 @@ class RunRecorder:
             self.record[name].append(value)
         self.overridden += len(series.get("overridden", ()))
         self.record["positions"].append(np.asarray(positions).tolist())
+        self._tick_series = tuple(series)
+        self._tick_after = int(decisions.tick) + 1
+
+    # ---- the per-tick journal ----
+    def open_journal(self, record_path) -> None:
+        """Start the journal of `record_path` (`journal_path`): the record so far, then one line
+        per tick from here on, each flushed as its tick ends."""
+        path = journal_path(record_path)
+        self._journal = open(path, "w", encoding="utf-8")
+        header = {k: v for k, v in self.record.items()}
+        self._journaled_events = len(self.record["goal_events"])
+        self._journal.write(json.dumps({"record": header}) + "\n")
+        self._journal.flush()
+
+    def end_tick(self) -> None:
+        """The tick recorded last is complete (its goal events too): into the journal."""
+        if self._journal is None:
+            return
+        series = getattr(self, "_tick_series", ())
+        events = self.record["goal_events"][self._journaled_events:]
+        self._journaled_events = len(self.record["goal_events"])
+        line = {"t": round(time.monotonic() - self.started, 4), "steps": self.steps,
+                "tick": getattr(self, "_tick_after", self.steps),
+                "collisions": self.collisions, "missed_decisions": self.missed,
+                "actions": self.record["actions"][-1], "missed": self.record["missed"][-1],
+                "positions": self.record["positions"][-1], "goal_events": events,
+                "series": {name: self.record[name][-1] for name in series}}
+        self._journal.write(json.dumps(line) + "\n")
+        self._journal.flush()
+
+    def close_journal(self, record_path=None) -> None:
+        """Stop journaling; with `record_path` (its record written whole), remove the journal."""
+        if self._journal is not None:
+            self._journal.close()
+            self._journal = None
+        if record_path is not None:
+            try:
+                os.remove(journal_path(record_path))
+            except FileNotFoundError:
+                pass
 
     def checkpoint(self, path, tick: int) -> None:
         """The record so far, marked incomplete (`finish` replaces these fields): what a reader
@@ -135,3 +181,73 @@ class RunRecorder:
         from mapf_fleet.files import atomic_write
 
         atomic_write(path, json.dumps(self.record).encode())
+
+
+def journal_path(record_path) -> str:
+    return f"{record_path}.ticks"
+
+
+def read_record(path) -> dict:
+    """A run record as written by `RunRecorder.write`, completed from its journal when the
+    process died before the end (the record missing or incomplete, the journal longer): every
+    tick the journal holds, `steps` and `run_seconds` from its last line, marked incomplete.
+    FileNotFoundError when neither exists; ValueError for a record that is not JSON."""
+    path = Path(path)
+    record = None
+    if path.exists():
+        record = json.loads(path.read_text())
+    journal = Path(journal_path(path))
+    if not journal.exists() or (record is not None and not record.get("incomplete")):
+        if record is None:
+            raise FileNotFoundError(f"{path}: no such file")
+        return record
+    lines = journal.read_text(encoding="utf-8").splitlines()
+    try:
+        header = json.loads(lines[0])["record"]
+    except (IndexError, ValueError, KeyError, TypeError):
+        if record is None:
+            raise ValueError(f"{journal}: not a run journal") from None
+        return record
+    ticks = []
+    for text in lines[1:]:
+        try:
+            ticks.append(json.loads(text))
+        except ValueError:
+            break  # the line being written when the process died
+    if record is not None and int(record.get("steps", 0)) >= len(ticks):
+        return record
+    out = dict(header)
+    series = [k for k in ticks[0]["series"]] if ticks else []
+    for name in ("positions", "actions", "missed", "goal_events", *series):
+        out[name] = list(out.get(name, []))
+    for tick in ticks:
+        out["actions"].append(tick["actions"])
+        out["missed"].append(tick["missed"])
+        out["positions"].append(tick["positions"])
+        out["goal_events"].extend(tick["goal_events"])
+        for name in series:
+            out[name].append(tick["series"][name])
+    last = ticks[-1] if ticks else {"t": 0.0, "steps": 0, "collisions": 0,
+                                    "missed_decisions": 0}
+    out.update(incomplete=True, success=False, steps=int(last["steps"]),
+               collisions=int(last["collisions"]), missed_decisions=int(last["missed_decisions"]),
+               run_seconds=float(last["t"]),
+               summary=f"incomplete: the run's record stops at tick "
+                       f"{int(last.get('tick', last['steps']))} ({int(last['steps'])} steps "
+                       f"recorded; the process ended before its outcome; rebuilt from "
+                       f"{journal.name})")
+    return out
+
+
+def complete_record(path) -> dict:
+    """`read_record`, and when it was rebuilt from the journal, the rebuilt record written in
+    place of the record (atomically) and the journal removed: the file alone then holds every
+    tick the run ran."""
+    from mapf_fleet.files import atomic_write
+
+    record = read_record(path)
+    journal = Path(journal_path(path))
+    if journal.exists() and record.get("incomplete"):
+        atomic_write(path, json.dumps(record).encode())
+        journal.unlink()
+    return record

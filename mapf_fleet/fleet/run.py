@@ -38,7 +38,12 @@ import numpy as np
 
 from .arbiter import DEFAULT_CONFLICT_RULE, Resolution, TickArbiter
 from .record import Decisions, GoalEvent, RunRecorder
-from .tasks import Task, TaskSource
+from .tasks import Task, TaskSource, unreachable_problem
+
+
+def plural(count: int, word: str) -> str:
+    """'1 goal', '2 goals', '0 goals'."""
+    return f"{count} {word}" + ("" if count == 1 else "s")
 
 
 class FleetRun:
@@ -217,6 +222,12 @@ class FleetRun:
                               f"unknown robot {task.robot} (robots 0..{self.num_robots - 1})")
             self.recorder.add_events([event])
             return event
+        problem = unreachable_problem(task.goals, self.grid, self.positions, task.robot)
+        if problem:  # an enclosed cell would stay queued forever
+            event = GoalEvent(self.tick, -1 if task.robot is None else task.robot, "rejected",
+                              task.goals[0], task.source, task.task_id, problem)
+            self.recorder.add_events([event])
+            return event
         self.queue.append(task)
         event = GoalEvent(self.tick, -1 if task.robot is None else task.robot, "queued",
                           task.goals[0], task.source, task.task_id)
@@ -270,7 +281,9 @@ class FleetRun:
         self._apply_requests()
         self._assign_queued()
         self._sync_goals()
-        return self.take_events()
+        events = self.take_events()
+        self.recorder.end_tick()
+        return events
 
     def _arrivals(self) -> None:
         """Active robots on their goals: count the arrival and move each on (its task's next
@@ -460,9 +473,10 @@ class FleetRun:
         rec = self.recorder
         head = (f"tick {self.tick}: {int(self.on_goal().sum())}/{self.num_robots} on goal"
                 if not self.tasks.continuous else
-                f"tick {self.tick}: {self.goals_reached} goals reached "
+                f"tick {self.tick}: {plural(self.goals_reached, 'goal')} reached "
                 f"({self.throughput:.2f}/tick), {self.busy} busy, {len(self.queue)} queued")
-        return f"{head}, {rec.collisions} collisions, {rec.missed} missed decisions"
+        return (f"{head}, {plural(rec.collisions, 'collision')}, "
+                f"{plural(rec.missed, 'missed decision')}")
 
     def finish(self, extra: str = "", stopped_at: int | None = None) -> dict:
         """The FleetOutcome fields (with its summary); `extra` is appended to the summary.
@@ -482,18 +496,19 @@ class FleetRun:
             f"stopped at tick {stopped_at}"
         if self.tasks.continuous:
             done = int(self.tasks_done.sum())
-            tasks = (f", {done} tasks done" if done or self.tasks.name in ("tasks", "external")
+            tasks = (f", {plural(done, 'task')} done" if done or self.tasks.name in ("tasks", "external")
                      else "") + (f", {len(self.queue)} queued" if self.queue else "")
-            body = (f"{self.goals_reached} goals reached in {rec.steps} steps (throughput "
+            body = (f"{plural(self.goals_reached, 'goal')} reached in {plural(rec.steps, 'step')} "
+                    f"(throughput "
                     f"{self.throughput:.3f} goals/step{tasks}; task source {self.tasks.name}")
             body += f", {reason})" if reason else ")"
         else:
             body = (f"{int(self.on_goal().sum())}/{self.num_robots} robots on goal after "
-                    f"{rec.steps} steps")
-        summary = (f"{verdict}: {body}, {rec.collisions} collisions, {rec.missed} missed "
-                   f"decisions"
+                    f"{plural(rec.steps, 'step')}")
+        summary = (f"{verdict}: {body}, {plural(rec.collisions, 'collision')}, "
+                   f"{plural(rec.missed, 'missed decision')}"
                    + (f" (robots {sorted(rec.missed_robots)})" if rec.missed_robots else "")
-                   + (f", {rec.overridden} overridden moves ({rec.conflict_rule})"
+                   + (f", {plural(rec.overridden, 'overridden move')} ({rec.conflict_rule})"
                       if rec.conflict_rule else "")
                    + extra)
         if stopped_at is not None:

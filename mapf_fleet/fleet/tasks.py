@@ -167,9 +167,10 @@ class ExternalTasks(TaskSource):
 
 
 def make_task_source(name: str, grid=None, *, seed: int = 0, task_file: str = "",
-                     num_robots: int | None = None, cell_of=None) -> TaskSource:
-    """The source called `name` (one of TASK_SOURCES). `task_file` for "tasks"; `seed` for
-    "lifelong"; `cell_of(x, y)` turns metres into cells for task files that give `xy`."""
+                     num_robots: int | None = None, cell_of=None, starts=None) -> TaskSource:
+    """The source called `name` (one of TASK_SOURCES). `task_file` for "tasks" (with `grid`
+    and `starts`, every task is checked reachable); `seed` for "lifelong"; `cell_of(x, y)`
+    turns metres into cells for task files that give `xy`."""
     if name not in TASK_SOURCES:
         raise ValueError(f"task_source must be one of {TASK_SOURCES}, got {name!r}")
     if name == "tasks" and not task_file:
@@ -184,19 +185,21 @@ def make_task_source(name: str, grid=None, *, seed: int = 0, task_file: str = ""
         return LifelongTasks(grid=np.asarray(grid), seed=int(seed))
     if name == "external":
         return ExternalTasks()
-    return TaskListTasks(tasks=load_task_file(task_file, num_robots=num_robots, cell_of=cell_of))
+    return TaskListTasks(tasks=load_task_file(task_file, num_robots=num_robots, cell_of=cell_of,
+                                              grid=grid, starts=starts))
 
 
 # ---- task files -------------------------------------------------------------------------------
 
 def parse_tasks(entries, where: str, *, num_robots: int | None = None, cell_of=None,
-                source: str = "tasks") -> list[Task]:
+                source: str = "tasks", first_id: int = 0) -> list[Task]:
     """Tasks from a list of mappings, each one of
         {goal: [row, col]}                        a goal for the nearest idle robot
         {goal: [row, col], robot: 3}              a goal for robot 3
         {pickup: [row, col], dropoff: [row, col]} (optionally robot: 3) two goals in order
         {xy: [x, y]} / {pickup_xy: ..., dropoff_xy: ...}   the same in metres (map frame)
-    and an optional `id`. `where` names the file (or request) in errors."""
+    and an optional `id` (default: `source`-n, n counting from `first_id`). `where` names the
+    file (or request) in errors."""
     if not isinstance(entries, list):
         raise TaskFileError(f"{where}: expected a list of tasks, got {type(entries).__name__}")
     tasks = []
@@ -227,7 +230,7 @@ def parse_tasks(entries, where: str, *, num_robots: int | None = None, cell_of=N
                     num_robots is not None and robot >= num_robots):
                 limit = "" if num_robots is None else f" 0..{num_robots - 1}"
                 raise TaskFileError(f"{here}: field 'robot': {robot!r} is not a robot id{limit}")
-        tasks.append(Task(tuple(goals), robot, str(entry.get("id", f"{source}-{k}")), source))
+        tasks.append(Task(tuple(goals), robot, str(entry.get("id", f"{source}-{first_id + k}")), source))
     return tasks
 
 
@@ -250,8 +253,59 @@ def _task_cell(entry: dict, cell_field: str, xy_field: str, here: str, cell_of):
     return tuple(int(v) for v in cell_of(float(value[0]), float(value[1])))
 
 
-def load_task_file(path: str, *, num_robots: int | None = None, cell_of=None) -> list[Task]:
-    """The tasks of a YAML file: a list of tasks, or a mapping with the list under `tasks`."""
+def _entry_lines(text: str) -> list[int]:
+    """The 1-based line of each task of a task file's text ([] when it has no task list)."""
+    import yaml
+
+    try:
+        root = yaml.compose(text)
+    except yaml.YAMLError:
+        return []
+    if isinstance(root, yaml.MappingNode):
+        root = next((v for k, v in root.value if getattr(k, "value", None) == "tasks"), None)
+    if not isinstance(root, yaml.SequenceNode):
+        return []
+    return [item.start_mark.line + 1 for item in root.value]
+
+
+def unreachable_problem(goals, grid, starts, robot: int | None = None) -> str:
+    """Why a task's `goals` can never be reached by the robots standing on `starts` ("" when
+    they can): a goal off the map or on an obstacle, a first goal in no region a robot (or
+    `robot`) stands in (an enclosed cell), a later goal not reachable from the one before."""
+    from scipy.ndimage import label
+
+    grid = np.asarray(grid)
+    h, w = grid.shape
+    for k, (r, c) in enumerate(goals):
+        name = "goal" if len(goals) == 1 else ("pickup", "dropoff")[k] if len(goals) == 2 \
+            else f"goal {k}"
+        if not (0 <= r < h and 0 <= c < w):
+            return f"{name} ({r}, {c}) is off the {h}x{w} map"
+        if grid[r, c]:
+            return f"{name} ({r}, {c}) is an obstacle"
+    labels, _ = label(grid == 0)  # 4-connected regions of free cells
+    starts = np.asarray(starts, dtype=np.int64).reshape(-1, 2)
+    if robot is not None:
+        starts = starts[[robot]]
+    regions = {int(labels[r, c]) for r, c in starts}
+    first = goals[0]
+    if int(labels[first[0], first[1]]) not in regions:
+        who = f"robot {robot}" if robot is not None else "any robot"
+        name = "goal" if len(goals) == 1 else "pickup" if len(goals) == 2 else "goal 0"
+        return (f"{name} ({first[0]}, {first[1]}) cannot be reached by {who}: it lies in a "
+                f"region enclosed by obstacles")
+    for k in range(1, len(goals)):
+        a, b = goals[k - 1], goals[k]
+        if labels[a[0], a[1]] != labels[b[0], b[1]]:
+            return f"dropoff ({b[0]}, {b[1]}) cannot be reached from the pickup ({a[0]}, {a[1]})"
+    return ""
+
+
+def load_task_file(path: str, *, num_robots: int | None = None, cell_of=None, grid=None,
+                   starts=None) -> list[Task]:
+    """The tasks of a YAML file: a list of tasks, or a mapping with the list under `tasks`.
+    With `grid` and `starts` (the robots' cells) every task is also checked reachable
+    (`unreachable_problem`); errors name the file, the line and the task's index."""
     import yaml
 
     p = Path(path)
@@ -267,7 +321,25 @@ def load_task_file(path: str, *, num_robots: int | None = None, cell_of=None) ->
         if "tasks" not in data:
             raise TaskFileError(f"{path}: missing field 'tasks' (a list of tasks)")
         data = data["tasks"]
-    tasks = parse_tasks(data, str(path), num_robots=num_robots, cell_of=cell_of)
+    lines = _entry_lines(text)
+    tasks = []
+    for k, entry in enumerate(data if isinstance(data, list) else [data]):
+        where = f"{path}:{lines[k]}" if k < len(lines) else str(path)
+        if not isinstance(data, list):
+            tasks += parse_tasks(data, str(path), num_robots=num_robots, cell_of=cell_of)
+            break
+        try:
+            task, = parse_tasks([entry], where, num_robots=num_robots, cell_of=cell_of)
+        except TaskFileError as exc:
+            raise TaskFileError(str(exc).replace(f"{where}: task 0", f"{where}: task {k}",
+                                                 1)) from None
+        if "id" not in entry:
+            task = Task(task.goals, task.robot, f"tasks-{k}", task.source)
+        if grid is not None and starts is not None:
+            problem = unreachable_problem(task.goals, grid, starts, task.robot)
+            if problem:
+                raise TaskFileError(f"{where}: task {k}: {problem}")
+        tasks.append(task)
     if not tasks:
         raise TaskFileError(f"{path}: field 'tasks': the list is empty")
     return tasks

@@ -299,6 +299,21 @@ def occupancy_values(meta: Nav2MapYaml) -> np.ndarray:
     return np.flipud(values.astype(np.int8))
 
 
+def saver_unknown_read_as_free(meta: Nav2MapYaml) -> int:
+    """How many pixels of map_saver's unknown grey (205) this YAML's thresholds read as FREE
+    (a trinary map with free_thresh above 0.196, Nav2's default 0.25 among them): map_server
+    reads them so too, while a user may expect unknown space to block."""
+    if meta.mode != "trinary":
+        return 0
+    shade, alpha = _read_pixels(meta)
+    grey = np.round(shade * 255.0) == SAVER_UNKNOWN
+    if alpha is not None:
+        grey &= alpha >= 1.0
+    if not grey.any():
+        return 0
+    return int((grey & (np.flipud(occupancy_values(meta)) == OCC_FREE)).sum())
+
+
 def pixels_per_cell(meta: Nav2MapYaml, cell_size: float | None) -> int:
     """k = cell_size / resolution as a whole number >= 1 (cell_size None: 1, one pixel a cell);
     MapFormatError naming the YAML's resolution field when cell_size is not a whole number of

@@ -47,22 +47,10 @@ from mapf_fleet.fleet.arbiter import (check_conflict_rule, check_pose, plan_robo
                                       ready_to_send)
 from mapf_fleet.fleet.record import Decisions
 from mapf_fleet.ros.goals import GoalServer
-from mapf_fleet.ros.lockstep import (INSTANCE_PARAMETERS, RUN_PARAMETERS, FleetTicker, fleet_run,
-                                     instance_source, require_positive, set_parameters_result)
+from mapf_fleet.ros import parameters
+from mapf_fleet.ros.lockstep import FleetTicker, fleet_run, instance_source, set_parameters_result
 
-PARAMETERS = {
-    **INSTANCE_PARAMETERS,
-    "instance_file": ("", "instance YAML (grid rows, starts, goals): map and goals"),
-    "scen_file": ("", "MovingAI .scen file (with map_file): goals"),
-    **RUN_PARAMETERS,
-    "startup_timeout": (60.0, "seconds to wait for every robot's pose and policy node"),
-    "resolution": (1.0, "metres per cell (a Nav2 map_file sets its own)"),
-    "arrival_timeout": (10.0, "seconds to wait for robots to reach their waypoints"),
-    "pose_timeout": (3.0, "seconds without a pose message after which a robot is reported "
-                          "silent and held as an obstacle (the run ends when every robot is)"),
-    "origin_x": (0.0, "x of the map's corner (cell (0, 0) starts there; a Nav2 map sets its own)"),
-    "origin_y": (0.0, "y of the map's corner"),
-}
+PARAMETERS = parameters.AGGREGATOR  # name -> Param (ros.parameters: the one table)
 
 
 REJECT_LOG_PERIOD_S = 10.0
@@ -77,8 +65,6 @@ class FleetStateAggregator(Node):
     def __init__(self, **node_kwargs):
         super().__init__("mapf_aggregator", **node_kwargs)
         p = self.params = fleet_io.declare_parameters(self, PARAMETERS)
-        require_positive(p, ["decision_timeout", "arrival_timeout", "startup_timeout",
-                             "pose_timeout"])
         source = instance_source(p)
         instance = source.load()
         self.grid = np.asarray(instance.grid, dtype=np.uint8)
@@ -118,9 +104,10 @@ class FleetStateAggregator(Node):
         # goals at run time; bound to the run once the robots have posed
         self.goals = GoalServer(self, None, self.lock, self.geometry, self.num_robots)
         # decision_timeout, arrival_timeout, progress_every apply from the next tick; any other
-        # change at runtime is refused with the reason (lockstep.RUNTIME_PARAMETERS)
+        # change at runtime is refused with the reason (ros.parameters: runtime)
         self.add_on_set_parameters_callback(
-            lambda parameters: set_parameters_result(self.params, parameters, self.get_logger()))
+            lambda changes: set_parameters_result(self.params, changes, PARAMETERS,
+                                                  self.get_logger()))
         self._thread = threading.Thread(
             target=fleet_io.run_reporting_failure, args=(self, "aggregator", self._run),
             name="aggregator", daemon=True)
@@ -208,7 +195,8 @@ class FleetStateAggregator(Node):
             unready = self.ticker.wait_ready(
                 min(WAIT_LOG_PERIOD_S, max(left, 0.0)),
                 also=lambda: bool((self.positions[:, 0] >= 0).all())
-                and self.channels.state_heard(subscribers))
+                and self.channels.state_heard(subscribers,
+                                              str(self.params["state_recorder"])))
             with self._cond:
                 unposed = np.flatnonzero(self.positions[:, 0] < 0).tolist()
             if (not unposed and not unready) or left <= WAIT_LOG_PERIOD_S:

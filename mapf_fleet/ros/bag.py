@@ -58,6 +58,8 @@ def default_topic_re(namespace: str = "") -> re.Pattern:
 
 DEFAULT_TOPIC_RE = default_topic_re()
 READY_PREFIX = "mapf-fleet record: recording to"
+OUTCOME_PREFIX = "mapf-fleet record: outcome recorded"  # printed once, on the first outcome
+RECORDER_NODE = "mapf_fleet_recorder"  # the simulator waits for its state subscription
 DISCOVERY_PERIOD_S = 0.25
 
 
@@ -133,6 +135,7 @@ class BagRecorder:
         from rosbags.rosbag2.errors import WriterError
 
         self.node = node
+        self.announce = False  # `mapf-fleet record`: print OUTCOME_PREFIX on the outcome
         self.bag_dir = Path(bag_dir)
         self.log = log or (lambda text: print(text, file=sys.stderr, flush=True))
         self.topics = None if topics is None else list(dict.fromkeys(topics))
@@ -201,6 +204,10 @@ class BagRecorder:
                 return
             self.writer.write(connection, stamp, data)
             self.counts[connection.topic] += 1
+            first_outcome = (connection.topic.endswith(common.OUTCOME_TOPIC)
+                             and self.counts[connection.topic] == 1)
+        if first_outcome and self.announce:
+            print(f"{OUTCOME_PREFIX} on {connection.topic}", flush=True)
 
     @property
     def message_count(self) -> int:
@@ -264,7 +271,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--duration must be >= 0")
     from mapf_fleet.ros.echo import ros_command
 
-    with ros_command("mapf_fleet_recorder") as (node, stop):
+    with ros_command(RECORDER_NODE) as (node, stop):
         if stop.event.is_set():
             return 0
         try:
@@ -272,6 +279,7 @@ def main(argv: list[str] | None = None) -> int:
         except RecordError as exc:
             print(f"mapf-fleet record: {exc}", file=sys.stderr)
             return 2
+        recorder.announce = True
         try:
             print(f"{READY_PREFIX} {args.bag_dir}", flush=True)
             deadline = time.monotonic() + args.duration if args.duration else None

@@ -117,7 +117,7 @@ def cell_pose(row: int, col: int, geometry: MapGeometry, stamp=None):
 
 
 class SpinThread:
-    """Spin an executor in its own thread (DESIGN.md section 2: never call
+    """Spin an executor in its own thread (never call
     spin_until_future_complete in a loop); `stop()` ends the thread, then shuts the executor
     down, which must happen before the nodes are destroyed.
 

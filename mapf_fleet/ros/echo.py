@@ -218,7 +218,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--once", action="store_true", help="print one message and exit")
     parser.add_argument("-n", type=int, default=0, help="exit after this many messages")
     parser.add_argument("--timeout", type=float, default=10.0,
-                        help="seconds to wait for the topic and a publisher to appear (default 10)")
+                        help="seconds to wait for the topic and a publisher to appear, and with "
+                             "--once / -n for the messages (default 10)")
     parser.add_argument("--namespace", default="",
                         help="the fleet's namespace: TOPIC /fleet/map means /NS/fleet/map")
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
@@ -240,6 +241,11 @@ def main(argv: list[str] | None = None) -> int:
             print(f"mapf-fleet echo: topic {args.topic} not found within {args.timeout:g} s",
                   file=sys.stderr)
             return 1
+        offered = sorted({p.topic_type for p in publishers})
+        if args.type is not None and offered and args.type not in offered:
+            print(f"mapf-fleet echo: topic {args.topic} has type {', '.join(offered)}, not "
+                  f"--type {args.type}", file=sys.stderr)
+            return 2
         if msg_type is None:
             try:
                 msg_type = import_message_type(type_name)
@@ -267,6 +273,14 @@ def main(argv: list[str] | None = None) -> int:
                     done.set()
 
         node.create_subscription(msg_type, args.topic, on_message, qos)
+        # --once / -n: the messages are waited for --timeout s too (a publisher may be silent)
+        deadline = time.monotonic() + args.timeout if limit else float("inf")
         while not done.is_set() and not stop.wait(0.1):
-            pass
+            if time.monotonic() > deadline:
+                with lock:
+                    done.set()
+                    got = count[0]
+                print(f"mapf-fleet echo: {got} of {limit} message{'s' if limit != 1 else ''} "
+                      f"on {args.topic} within {args.timeout:g} s", file=sys.stderr)
+                return 1
     return 0

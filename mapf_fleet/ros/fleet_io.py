@@ -20,15 +20,19 @@ from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.executors import SingleThreadedExecutor
 from visualization_msgs.msg import Marker, MarkerArray
 
-from mapf_fleet.ros import common
+from mapf_fleet.ros import common, parameters
 from mapf_fleet.ros.lockstep import FleetTicker
 
 
 def declare_parameters(node, table: dict) -> dict:
-    """Declare `table` ({name: (default, description)}) on `node`; {name: value}."""
-    for name, (default, text) in table.items():
-        node.declare_parameter(name, default, ParameterDescriptor(description=text))
-    return {name: node.get_parameter(name).value for name in table}
+    """Declare the parameters of `table` (ros.parameters: name -> Param) on `node` and check
+    them (ValueError, one line, for the first refused); {name: value}."""
+    for name, param in table.items():
+        when = "changeable at run time" if param.runtime else "read at start-up"
+        node.declare_parameter(name, param.default,
+                               ParameterDescriptor(description=f"{param.description} ({when})"))
+    values = {name: node.get_parameter(name).value for name in table}
+    return parameters.check_values(table, values)
 
 
 class FleetChannels:
@@ -69,9 +73,18 @@ class FleetChannels:
         if warning:
             self.node.get_logger().warning(warning)
 
-    def state_heard(self, subscribers: int) -> bool:
-        """Whether the fleet state has at least `subscribers` matched subscribers."""
-        return subscribers <= 0 or self.state_pub.get_subscription_count() >= subscribers
+    def state_heard(self, subscribers: int, recorder: str = "") -> bool:
+        """Whether the fleet state has at least `subscribers` matched subscribers and, with
+        `recorder`, a subscription of the node of that name (a count alone is reached by any
+        other subscriber, e.g. a viewer, while the recorder still discovers the fleet)."""
+        if subscribers > 0 and self.state_pub.get_subscription_count() < subscribers:
+            return False
+        if not recorder:
+            return True
+        topic = self.state_pub.topic_name
+        found = [e for e in self.node.get_subscriptions_info_by_topic(topic)
+                 if e.node_name == recorder]
+        return bool(found) and self.state_pub.get_subscription_count() >= max(subscribers, 1)
 
     def publish_map_and_goals(self, grid, goals) -> None:
         self.map_pub.publish(common.grid_to_occupancy(np.asarray(grid), self.geometry))
@@ -136,6 +149,8 @@ def run_lockstep(node, channels: FleetChannels, run, step, publish_state, *, loc
     published, published_at = None, 0.0  # the tick whose state is out, and when
     checkpointed = -float("inf")  # the first tick is written at once
     run.recorder.started = time.monotonic()  # run_seconds count from the first tick, not start-up
+    if record_file:  # every tick kept as it ends, whatever happens to this process
+        run.recorder.open_journal(record_file)
     while not run.finished() and rclpy.ok() and not ticker.stopped:
         if run.waiting and goals is not None:
             if published != run.tick or time.monotonic() - published_at > IDLE_STATE_PERIOD_S:
@@ -168,7 +183,9 @@ def run_lockstep(node, channels: FleetChannels, run, step, publish_state, *, loc
             events, overridden = step(decisions)
             progress = run.progress(decisions.missing)
             if goals is not None:
-                goals.on_tick(events, overridden, time.monotonic() - started)
+                # the estimated time counts a tick as long as it is paced (tick_period)
+                goals.on_tick(events, overridden,
+                              max(time.monotonic() - started, tick_period))
         for event in events:
             if event.event not in ("reached", "assigned") or run.num_robots <= 16:
                 logger.info(event.text())
@@ -196,6 +213,7 @@ def run_lockstep(node, channels: FleetChannels, run, step, publish_state, *, loc
     logger.info(outcome.summary)
     if record_file:
         run.recorder.write(record_file)
+        run.recorder.close_journal(record_file)
     return outcome
 
 

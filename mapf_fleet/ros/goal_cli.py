@@ -22,13 +22,17 @@ import time
 
 from mapf_fleet.ros import common
 
+STATE_WAIT_S = 3.0  # longest wait for a fleet state before sending a robot's goal
+
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="mapf-fleet goal", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("robot", nargs="?", help="robot id, or `any` for the nearest idle robot")
     where = p.add_mutually_exclusive_group()
-    where.add_argument("--cell", nargs=2, type=int, metavar=("ROW", "COL"), help="goal cell")
+    where.add_argument("--cell", nargs=2, type=int, metavar=("ROW", "COL"),
+                       help="goal cell; row 0 is the map's bottom row (docs/fleet.md, Rows and "
+                            "columns)")
     where.add_argument("--xy", nargs=2, type=float, metavar=("X", "Y"),
                        help="goal in metres, map frame")
     where.add_argument("--tasks", metavar="FILE",
@@ -119,6 +123,16 @@ class GoalClient:
 
         self.events_sub = node.create_subscription(GoalEvent, common.rel(GOAL_EVENTS_TOPIC),
                                                    self._on_event, common.reliable_qos(200))
+        from mapf_fleet_interfaces.msg import FleetState
+
+        self.robots = None  # how many robots the fleet state names (None: no state heard)
+        node.create_subscription(FleetState, common.rel(common.STATE_TOPIC), self._on_state,
+                                 common.reliable_qos(10))
+
+    def _on_state(self, msg):
+        with self.cond:
+            self.robots = len(msg.rows)
+            self.cond.notify_all()
 
     def _on_map(self, msg):
         with self.cond:
@@ -182,6 +196,13 @@ class GoalClient:
 
             return self._submit(json.dumps([goal]), signals)
         robot = int(args.robot)
+        # the fleet's state names its robots (a tick, or every few seconds when idle): an id
+        # past them is refused at once instead of after --timeout
+        self._wait(lambda: self.robots is not None, min(args.timeout, STATE_WAIT_S), signals)
+        if self.robots is not None and robot >= self.robots:
+            print(f"mapf-fleet goal: robot {robot}: the fleet has {self.robots} robots "
+                  f"(0..{self.robots - 1})", file=sys.stderr)
+            return 2
         if args.cancel:
             return self._cancel(robot, signals)
         pose = self._pose(signals)
@@ -237,10 +258,14 @@ class GoalClient:
                   f"to go, about {fb.estimated_time_remaining.sec + fb.estimated_time_remaining.nanosec * 1e-9:.1f} s, "
                   f"{fb.number_of_recoveries} overridden moves", flush=True)
 
-        sent = client.send_goal_async(NavigateToPose.Goal(pose=pose),
-                                      feedback_callback=feedback if self.args.wait else None)
-        if not _wait_for(sent.done, self.args.timeout, signals):
-            print("mapf-fleet goal: the goal was not answered", file=sys.stderr)
+        # a reply can be lost while the server has not matched this client's reply reader yet
+        # (discovery on a loaded machine): ask again; a goal sent twice preempts its twin
+        sent = _ask(lambda: client.send_goal_async(
+            NavigateToPose.Goal(pose=pose),
+            feedback_callback=feedback if self.args.wait else None), self.args.timeout, signals)
+        if sent is None:
+            print(f"mapf-fleet goal: the goal was not answered within {self.args.timeout:g} s",
+                  file=sys.stderr)
             return 3
         handle = sent.result()
         if not handle.accepted:
@@ -275,8 +300,10 @@ class GoalClient:
         if not client.wait_for_service(timeout_sec=self.args.timeout):
             print(f"mapf-fleet goal: no action server {navigate_action(robot)}", file=sys.stderr)
             return 3
-        future = client.call_async(CancelGoal.Request())
-        if not _wait_for(future.done, self.args.timeout, signals):
+        future = _ask(lambda: client.call_async(CancelGoal.Request()), self.args.timeout,
+                      signals)
+        if future is None:
+            print("mapf-fleet goal: the cancel was not answered", file=sys.stderr)
             return 3
         cancelled = len(future.result().goals_canceling)
         if cancelled:
@@ -296,15 +323,53 @@ class GoalClient:
             print(f"mapf-fleet goal: no service {SUBMIT_TASKS_SERVICE} within "
                   f"{self.args.timeout} s (is the fleet up?)", file=sys.stderr)
             return 3
-        future = client.call_async(SubmitTasks.Request(tasks=text))
-        if not _wait_for(future.done, self.args.timeout, signals):
+        since = len(self.events)
+        # a lost reply is asked again unless the fleet's goal events show the tasks arrived
+        # (a second request would queue them twice)
+        arrived = lambda: any(e.source == "submit_tasks" for e in self.events[since:])  # noqa
+        future = _ask(lambda: client.call_async(SubmitTasks.Request(tasks=text)),
+                      self.args.timeout, signals, stop=arrived)
+        if future is None and arrived():
+            with self.cond:
+                seen = [e for e in self.events[since:] if e.source == "submit_tasks"]
+            for e in seen:
+                print(f"task {e.goal_id}: {e.event}" + (f": {e.reason}" if e.reason else ""))
+            return 2 if any(e.event == "rejected" for e in seen) else 0
+        if future is None:
+            print(f"mapf-fleet goal: {SUBMIT_TASKS_SERVICE} did not answer within "
+                  f"{self.args.timeout:g} s", file=sys.stderr)
             return 3
         res = future.result()
+        queued = []
         for k, event in enumerate(res.events):
             ident = res.task_ids[k] if k < len(res.task_ids) else str(k)
             reason = res.reasons[k] if k < len(res.reasons) else ""
-            print(f"task {ident}: {event}" + (f": {reason}" if reason else ""))
+            print(f"task {ident}: {event}" + (f": {reason}" if reason else ""), flush=True)
+            if event == "queued":
+                queued.append(ident)
+        if queued and self.args.robot == "any":  # say which robot took it (next tick or two)
+            taken = lambda: [e for e in self.events[since:]  # noqa: E731
+                             if e.event == "assigned" and e.goal_id.split("/")[0] in queued]
+            self._wait(lambda: bool(taken()), 3.0, signals)
+            for e in taken():
+                print(f"task {e.goal_id.split('/')[0]}: assigned to robot {e.robot_id}")
         return 0 if res.accepted else 2
+
+
+def _ask(send, timeout: float, signals, stop=lambda: False, attempts: int = 4):
+    """`send()` (a request; returns its future) until it is answered: asked again after
+    timeout / attempts seconds without an answer, unless `stop()`; the answered future, or None
+    when none came within `timeout`."""
+    per_try = max(timeout / attempts, 1.0)
+    deadline = time.monotonic() + timeout
+    while True:
+        future = send()
+        left = deadline - time.monotonic()
+        if _wait_for(future.done, min(per_try, max(left, 0.0)), signals):
+            return future
+        if time.monotonic() >= deadline or (signals is not None and signals.requested) \
+                or stop():
+            return None
 
 
 def _wait_for(predicate, timeout: float, signals) -> bool:

@@ -89,6 +89,7 @@ class GoalServer:
         self.lock = lock
         self.geometry = geometry
         self.request_signal = self.on_request = RequestSignal()
+        self._submitted = 0  # tasks submitted over fleet/submit_tasks (their default ids)
         self.episode = int(getattr(owner, "episode", 0))
         self.node = Node("mapf_goals", context=owner.context)
         n = run.num_robots if num_robots is None else int(num_robots)
@@ -194,7 +195,9 @@ class GoalServer:
         try:
             entries = yaml.safe_load(request.tasks)  # JSON is YAML too
             tasks = parse_tasks(entries, "submit_tasks", num_robots=self.run.num_robots,
-                                cell_of=self.geometry.xy_to_cell, source="submit_tasks")
+                                cell_of=self.geometry.xy_to_cell, source="submit_tasks",
+                                first_id=self._submitted)
+            self._submitted += len(tasks)  # ids of tasks without one stay unique in the run
         except (yaml.YAMLError, TaskFileError) as exc:
             text = str(exc).splitlines()[0]
             self.node.get_logger().error(f"submit_tasks rejected: {text}")

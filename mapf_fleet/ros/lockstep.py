@@ -17,83 +17,31 @@ import time
 
 import numpy as np
 
-from mapf_fleet.fleet.arbiter import DEFAULT_CONFLICT_RULE, ranking_problem, single_choice_ranking
+from mapf_fleet.fleet.arbiter import ranking_problem, single_choice_ranking
 from mapf_fleet.fleet.record import Decisions
-from mapf_fleet.fleet.tasks import TASK_SOURCES
+from mapf_fleet.ros import parameters
 from mapf_fleet.fleet.instances import InstanceSource
 
-# name: (default, description); both nodes take their instance and their tick from these
-INSTANCE_PARAMETERS = {
-    "instance_file": ("", "instance YAML (grid rows, starts, goals); overrides the rest"),
-    "map_file": ("", "the map: a MovingAI .map (with scen_file for starts and goals) or a Nav2 "
-                     "map_server YAML (see cell_size); without scen_file, starts and goals are "
-                     "drawn from seed"),
-    "scen_file": ("", "MovingAI .scen file (with map_file)"),
-    "num_robots": (8, "robots to generate or to take from the .scen file"),
-    "size": (16, "side of a generated square map"),
-    "density": (0.3, "obstacle density of a generated map"),
-    "seed": (0, "seed of a generated instance (and of the starts and goals drawn on a map_file "
-                "without scen_file)"),
-    "cell_size": (0.0, "Nav2 map YAML (map_file F.yaml): metres per grid cell, a whole number of "
-                       "image pixels (0: one pixel per cell); a cell is blocked when any of its "
-                       "pixels is occupied or unknown"),
-}
-RUN_PARAMETERS = {
-    "conflict_rule": (DEFAULT_CONFLICT_RULE, "how the tick's decisions become moves: pibt (PIBT over the "
-                              "robots' ranked actions, nothing reverted), pibt_anchor (the same, "
-                              "the top-priority robot on its distance order) or revert (the "
-                              "paper's rules on the first choices)"),
-    "max_steps": (256, "tick limit: a one-shot run fails when robots are not all on goal by "
-                       "then; continuous runs end there (0: no limit, continuous task sources)"),
-    "task_source": ("instance", f"where goals come from: {' | '.join(TASK_SOURCES)} (instance: "
-                                f"the one-shot episode; lifelong: a new random goal on arrival; "
-                                f"tasks: task_file's goals / pick-up-drop-off pairs for the "
-                                f"nearest idle robot; external: only goals given at run time)"),
-    "task_file": ("", "task list YAML for task_source tasks"),
-    "goal_seed": (-1, "seed of the lifelong goal stream (-1: the instance seed)"),
-    "decision_timeout": (5.0, "seconds to wait for a robot's move before it counts as stay"),
-    "startup_timeout": (60.0, "seconds to wait for every policy node to report ready"),
-    "resolution": (1.0, "metres per cell in poses and the map"),
-    "record_file": ("", "write the run's trajectory and outcome to this JSON file"),
-    "progress_every": (10, "log progress every this many ticks"),
-    "state_subscribers": (0, "before tick 0, also wait (up to startup_timeout) until the fleet "
-                             "state has this many matched subscribers (`up --bag`: the policy "
-                             "processes and the recorder, so the bag misses no tick); 0: no wait"),
-}
-
-
-# parameters that may change during a run (`ros2 param set`), read again at every tick, with the
-# condition a new value must meet; every other parameter is read at start-up and a change is
-# refused with the reason
-RUNTIME_PARAMETERS = {
-    "tick_period": (lambda v: v >= 0, ">= 0"),
-    "decision_timeout": (lambda v: v > 0, "> 0"),
-    "progress_every": (lambda v: v >= 1, ">= 1"),
-    "arrival_timeout": (lambda v: v > 0, "> 0"),
-}
-
-
-def parameter_change_problem(name: str, value, declared: dict) -> str:
-    """Why parameter `name` may not become `value` at runtime ("" when it may)."""
-    if name not in declared:
+def parameter_change_problem(name: str, value, table: dict) -> str:
+    """Why parameter `name` of a node with parameter table `table` (ros.parameters) may not
+    become `value` at runtime ("" when it may)."""
+    if name not in table:
         return f"{name}: no such parameter"
-    if name not in RUNTIME_PARAMETERS:
-        runtime = ", ".join(n for n in RUNTIME_PARAMETERS if n in declared)
+    if not table[name].runtime:
+        runtime = ", ".join(parameters.runtime_names(table))
         return (f"{name}: read at start-up, cannot change during a run (restart the node with "
                 f"-p {name}:=VALUE); changeable at runtime: {runtime}")
-    check, text = RUNTIME_PARAMETERS[name]
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not check(value):
-        return f"{name}: must be {text}, got {value!r}"
-    return ""
+    problem = table[name].problem(value)
+    return f"{name}: {problem}" if problem else ""
 
 
-def set_parameters_result(params: dict, parameters, logger=None):
+def set_parameters_result(params: dict, parameters, table: dict, logger=None):
     """For a node's `add_on_set_parameters_callback`: apply the changes to `params` (the dict
-    the tick loop reads every tick) when all of them are allowed, else refuse them all with the
-    reasons (rcl_interfaces SetParametersResult)."""
+    the tick loop reads every tick) when all of them are allowed by the node's parameter
+    `table`, else refuse them all with the reasons (rcl_interfaces SetParametersResult)."""
     from rcl_interfaces.msg import SetParametersResult
 
-    problems = [p for p in (parameter_change_problem(q.name, q.value, params)
+    problems = [p for p in (parameter_change_problem(q.name, q.value, table)
                             for q in parameters) if p]
     if problems:
         return SetParametersResult(successful=False, reason="; ".join(problems))
@@ -101,12 +49,12 @@ def set_parameters_result(params: dict, parameters, logger=None):
         if logger is not None and params[parameter.name] != parameter.value:
             logger.info(f"parameter {parameter.name}: {params[parameter.name]} -> "
                         f"{parameter.value} (from the next tick)")
-        params[parameter.name] = parameter.value
+        params[parameter.name] = table[parameter.name].coerce(parameter.value)
     return SetParametersResult(successful=True)
 
 
 def instance_source(params: dict) -> InstanceSource:
-    """The (validated) instance source named by a node's INSTANCE_PARAMETERS values."""
+    """The (validated) instance source named by a node's instance parameters."""
     return InstanceSource(params["instance_file"], params["map_file"], params["scen_file"],
                           int(params["num_robots"]), int(params["size"]),
                           float(params["density"]), int(params["seed"]),
@@ -115,7 +63,7 @@ def instance_source(params: dict) -> InstanceSource:
 
 def fleet_run(params: dict, grid, starts, goals, episode: int, series, geometry=None,
               start_tick: int = 0):
-    """The node's `fleet.run.FleetRun` from its RUN_PARAMETERS (task source, tick limit, rule)."""
+    """The node's `fleet.run.FleetRun` from its parameters (task source, tick limit, rule)."""
     from mapf_fleet.fleet.run import FleetRun
     from mapf_fleet.fleet.tasks import make_task_source
 
@@ -124,16 +72,10 @@ def fleet_run(params: dict, grid, starts, goals, episode: int, series, geometry=
     cell_of = None if geometry is None else geometry.xy_to_cell
     tasks = make_task_source(str(params["task_source"]), grid, seed=seed,
                              task_file=str(params["task_file"]), num_robots=len(starts),
-                             cell_of=cell_of)
+                             cell_of=cell_of, starts=starts)
     return FleetRun(grid, starts, tasks, goals, rule=str(params["conflict_rule"]),
                     max_steps=int(params["max_steps"]), episode=episode, series=series,
                     start_tick=start_tick)
-
-
-def require_positive(params: dict, names) -> None:
-    for name in names:
-        if not float(params[name]) > 0:
-            raise ValueError(f"parameter {name} must be > 0, got {params[name]}")
 
 
 class EpisodeBinding:

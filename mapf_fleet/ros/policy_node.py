@@ -1,5 +1,5 @@
 """PolicyNode: one robot's learned policy as a ROS node: its parameters (robot_id, checkpoint,
-timeouts, conflict_rule, preference_mode), its move and heartbeat publishers and, for DCC, its
+timeouts, conflict_rule, ranking), its move and heartbeat publishers and, for DCC, its
 request and reply services.
 
 The robots hosted in one process are driven by one `mapf_fleet.ros.hub.PolicyHub` (shared
@@ -10,7 +10,7 @@ mapf_fleet policy`) or many (`mapf-fleet node policy --robots 0-7`).
 Every peer message carries (episode, tick); a message of an older tick is stale and ignored. A
 peer missing after `comm_timeout` is left out and reported in the move (missing_peers). A node
 started mid-run joins at the newest tick it receives (with a fresh recurrent state).
-A move carries the robot's five actions ranked (`preference_mode`); the node commands nothing:
+A move carries the robot's five actions ranked (`ranking`); the node commands nothing:
 the tick's arbiter (simulator or aggregator) publishes the waypoints.
 """
 
@@ -27,30 +27,11 @@ from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
-from mapf_fleet.coordination.preferences import (DEFAULT_Q_MODE_BY_RULE, PREFERENCE_MODES,
-                                                 default_q_mode)
+from mapf_fleet.coordination.preferences import default_q_mode
 from mapf_fleet.entry import one_line_errors
-from mapf_fleet.fleet.arbiter import CONFLICT_RULES, DEFAULT_CONFLICT_RULE
-from mapf_fleet.ros import common
+from mapf_fleet.ros import common, parameters
 
-PARAMETERS = {
-    "robot_id": (0, "index of this robot in the fleet state"),
-    "checkpoint": ("", "checkpoint file (mapf_fleet.models.save_checkpoint) to run"),
-    "comm_timeout": (2.0, "seconds to wait for a peer's message before leaving it out"),
-    "service_timeout": (2.0, "seconds to wait for a peer's DCC service to be discovered"),
-    "status_period": (0.5, "seconds between readiness heartbeats"),
-    "episode_timeout": (30.0, "seconds without a fleet state of the run this robot serves "
-                              "after which another simulator's run may take it over"),
-    "conflict_rule": (DEFAULT_CONFLICT_RULE, "the arbiter's conflict rule (the simulator's or "
-                                             "aggregator's; `up` passes its own): it sets the "
-                                             "default preference_mode"),
-    "preference_mode": ("", "how a robot ranks its five actions from its Q-values for the "
-                            f"arbiter: one of {', '.join(PREFERENCE_MODES)}; empty: the "
-                            "ranking the checkpoint records for the conflict rule (metadata "
-                            "rankings, e.g. a DAgger round's), else the rule's default ("
-                            + ", ".join(f"{m} under {r}" for r, m in DEFAULT_Q_MODE_BY_RULE.items())
-                            + f", {default_q_mode('revert')} otherwise)"),
-}
+PARAMETERS = parameters.POLICY  # name -> Param (ros.parameters: the one table)
 
 
 def load_policy_model(path: str):
@@ -83,38 +64,40 @@ class PolicyNode(Node):
         name = f"mapf_policy_{robot_id}" if robot_id is not None else "mapf_policy"
         self.has_parameter_services = node_kwargs.get("start_parameter_services", True)
         super().__init__(name, parameter_overrides=overrides, **node_kwargs)
-        for pname, (default, text) in PARAMETERS.items():
-            self.declare_parameter(pname, default, ParameterDescriptor(description=text))
-        self.robot_id = int(self.get_parameter("robot_id").value)
-        if self.robot_id < 0:
-            raise ValueError(f"robot_id must be >= 0, got {self.robot_id}")
-        self.comm_timeout = float(self.get_parameter("comm_timeout").value)
-        self.service_timeout = float(self.get_parameter("service_timeout").value)
-        self.status_period = float(self.get_parameter("status_period").value)
-        self.episode_timeout = float(self.get_parameter("episode_timeout").value)
-        for pname in ("comm_timeout", "service_timeout", "status_period", "episode_timeout"):
-            if not getattr(self, pname) > 0:
-                raise ValueError(f"parameter {pname} must be > 0, got {getattr(self, pname)}")
-        self.conflict_rule = str(self.get_parameter("conflict_rule").value)
-        if self.conflict_rule not in CONFLICT_RULES:
-            raise ValueError(f"parameter conflict_rule must be one of {CONFLICT_RULES}, "
-                             f"got {self.conflict_rule!r}")
-        given = str(self.get_parameter("preference_mode").value)
-        if given and given not in PREFERENCE_MODES:  # before the checkpoint loads
-            raise ValueError(f"parameter preference_mode must be one of {PREFERENCE_MODES}, "
-                             f"got {given!r}")
+        for pname, param in PARAMETERS.items():
+            self.declare_parameter(pname, param.default,
+                                   ParameterDescriptor(description=param.description))
+        for alias, pname in parameters.ALIASES.items():  # deprecated names still read
+            self.declare_parameter(alias, "", ParameterDescriptor(
+                description=f"deprecated: {pname}"))
+        values = {pname: self.get_parameter(pname).value for pname in PARAMETERS}
+        for alias, pname in parameters.ALIASES.items():
+            old = self.get_parameter(alias).value
+            if old not in ("", None):
+                self.get_logger().warning(parameters.alias_warning(alias))
+                if not values[pname]:
+                    values[pname] = old
+        values = parameters.check_values(PARAMETERS, values)  # before the checkpoint loads
+        self.robot_id = values["robot_id"]
+        self.comm_timeout = values["comm_timeout"]
+        self.service_timeout = values["service_timeout"]
+        self.status_period = values["status_period"]
+        self.episode_timeout = values["episode_timeout"]
+        self.conflict_rule = values["conflict_rule"]
+        given = values["ranking"]
         if model is None:
-            path = self.get_parameter("checkpoint").value
+            path = values["checkpoint"]
             if not path:
                 raise ValueError("parameter 'checkpoint' is required (a checkpoint file path)")
             model, metadata = load_policy_model(path)
         self.model = model
         self.checkpoint_metadata = metadata or {}
-        # a preference_mode given (params file, -p, `up --preference-mode`) always wins; else
-        # the ranking the checkpoint was trained behind under the rule (metadata rankings),
-        # else the ranking measured best under the rule (issue 25 item 3)
-        self.preference_mode = given or default_q_mode(self.conflict_rule,
-                                                       self.checkpoint_metadata.get("rankings"))
+        # a ranking given (params file, -p, `up --ranking`) always wins; else the ranking the
+        # checkpoint was trained behind under the rule (metadata rankings), else the ranking
+        # measured best under the rule (docs/results.md)
+        self.ranking = given or default_q_mode(self.conflict_rule,
+                                               self.checkpoint_metadata.get("rankings"))
+        self.preference_mode = self.ranking  # the hub's name for it
         self.algo = model.config.algo
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.hub = None  # set by PolicyHub

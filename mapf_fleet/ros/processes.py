@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import collections
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -24,7 +25,7 @@ import time
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
-# Environment every process of the fleet runs with (DESIGN.md section 2): nothing leaves loopback,
+# Environment every process of the fleet runs with: nothing leaves loopback,
 # and the venv is the ROS prefix so ament lookups work. (Here, below `common`, which re-exports
 # it: the two modules used to import each other.)
 FLEET_ENV = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
@@ -323,7 +324,8 @@ class StopRequest:
 
 def supervise(main: Child, others: list[Child], signals: StopSignals, *, grace: float = 10.0,
               startup_grace: float = 120.0, poll: float = 0.1, echoed: bool = False,
-              watched: list[Child] = (),
+              watched: list[Child] = (), running=lambda: True,
+              start_deadline: float = float("inf"),
               warn=lambda text: print(text, file=sys.stderr, flush=True)) -> tuple[int, str]:
     """Wait for `main` (the simulator or aggregator: it ends the run) while watching `others`.
 
@@ -336,6 +338,11 @@ def supervise(main: Child, others: list[Child], signals: StopSignals, *, grace: 
       and `main` is asked to stop (SIGINT) the same way.
     - `main` ending otherwise than with 0, 1 or the signal it was sent is reported (with its last
       lines unless they were `echoed` already).
+    - Before `running()` (main's run has started: its first tick), nothing is lost by stopping
+      at once: a stop signal ends the others within seconds (SIGTERM, then SIGKILL) and leaves
+      main 3 s to catch it and 5 s to end ("stopped at tick 0"); a run not started
+      `start_deadline` s after this call is reported (stuck while starting up: e.g. a stale
+      Fast DDS shared-memory file) and every child stopped.
     Every child is stopped before this returns, except the `watched` ones (watched like
     `others`, stopped by the caller: e.g. a recorder, after the fleet). (main's exit code, the
     problem reported or "").
@@ -344,9 +351,23 @@ def supervise(main: Child, others: list[Child], signals: StopSignals, *, grace: 
     sent: set[int] = set()  # signals asked of main: it may exit with 128 + one of them
     stop = StopRequest(main, grace, startup_grace)
     killed = False
+    begun = time.monotonic()
+    started = False
     try:
         while main.poll() is None:
             now = time.monotonic()
+            started = started or running()
+            if not started and not signals.requested and now - begun > start_deadline:
+                problem = f"the {main.name}'s run did not start within {start_deadline:.0f} s"
+                warn(f"mapf-fleet up: {problem} (a process stuck while starting up; "
+                     f"{shm_hint()})")
+                stop_children([main] + list(others), grace=2.0)
+                return main.proc.wait(), problem
+            if not started and signals.requested and not sent:
+                # nothing to keep but main's "stopped at tick 0": the others go now, main
+                # gets a few seconds to say so (a main still importing is killed)
+                stop.grace, stop.startup_grace = 5.0, 3.0
+                stop_children(list(others), grace=2.0)
             if signals.requested and signals.signum not in sent:
                 sent.add(signals.signum)
                 stop.request(signals.signum, now)
@@ -363,7 +384,8 @@ def supervise(main: Child, others: list[Child], signals: StopSignals, *, grace: 
             if signals.forced:
                 stop.force(now)
             if stop.overdue(now) and main.poll() is None:
-                warn(f"mapf-fleet up: the {main.name} did not stop in time: killed")
+                warn(f"mapf-fleet up: the {main.name} did not stop in time: killed" if started
+                     else f"mapf-fleet up: the {main.name} was still starting up: stopped")
                 main.proc.kill()
                 killed = True
                 break
@@ -381,3 +403,82 @@ def supervise(main: Child, others: list[Child], signals: StopSignals, *, grace: 
         elif not echoed:  # its own error (e.g. 2: a bad parameter): show its message
             warn(f"mapf-fleet up: {main.report()}")
     return code, problem
+
+
+SHM_DIR = "/dev/shm"
+PORT_FILE = re.compile(r"fastrtps_port\d+")
+STALE_AFTER_S = 10.0  # a zero-byte port file older than this is no port being created
+
+
+def stale_shm_files(now: float | None = None, folder: str = SHM_DIR) -> list[str]:
+    """Fast DDS shared-memory port files (`fastrtps_port<N>`) left empty by a process killed
+    while creating them: every later participant opening that port waits forever (a fleet of
+    nine or more processes froze at start-up in any domain)."""
+    now = time.time() if now is None else now
+    found = []
+    try:
+        names = os.listdir(folder)
+    except OSError:
+        return found
+    for name in names:
+        if not PORT_FILE.fullmatch(name):  # a port itself; its _el / _sl locks are empty
+            continue
+        path = os.path.join(folder, name)
+        try:
+            info = os.stat(path)
+        except OSError:
+            continue
+        if info.st_size == 0 and now - info.st_mtime > STALE_AFTER_S:
+            found.append(path)
+    return sorted(found)
+
+
+def remove_stale_shm(warn=lambda text: print(text, file=sys.stderr, flush=True)) -> list[str]:
+    """Remove the stale port files (`stale_shm_files`), saying which; those that cannot be
+    removed (another user's) are named with the command that removes them."""
+    removed, kept = [], []
+    for path in stale_shm_files():
+        try:
+            os.remove(path)
+            removed.append(path)
+        except OSError:
+            kept.append(path)
+    if removed:
+        warn(f"mapf-fleet up: removed {len(removed)} empty Fast DDS shared-memory port "
+             f"file(s) left by a killed run ({', '.join(removed)}): they freeze every fleet "
+             f"that opens them")
+    if kept:
+        warn(f"mapf-fleet up: warning: empty Fast DDS shared-memory port file(s) "
+             f"{', '.join(kept)} may freeze the fleet at start-up; remove them (sudo rm "
+             f"{' '.join(kept)})")
+    return removed
+
+
+def shm_hint() -> str:
+    stale = stale_shm_files()
+    if stale:
+        return f"empty Fast DDS port files in {SHM_DIR}: {', '.join(stale)}"
+    return f"Fast DDS shared memory in {SHM_DIR}/fastrtps_*: `fastdds shm clean` removes unused files"
+
+
+def clean_zombie_shm(warn=lambda text: print(text, file=sys.stderr, flush=True),
+                     timeout: float = 20.0) -> int:
+    """`fastdds shm clean`: remove the Fast DDS shared-memory segments and ports no live
+    process holds (their locks are free), e.g. those of children killed while stopping a run;
+    says how many. Returns that count (0 when the tool is missing or fails)."""
+    import shutil
+
+    tool = shutil.which("fastdds")
+    if tool is None:
+        return 0
+    try:
+        done = subprocess.run([tool, "shm", "clean"], capture_output=True, text=True,
+                              timeout=timeout)
+    except (OSError, subprocess.TimeoutExpired):
+        return 0
+    found = re.findall(r"(\d+) zombie (ports|segments) cleaned", done.stdout)
+    count = sum(int(n) for n, _ in found)
+    if count:
+        warn(f"mapf-fleet up: removed {count} unused Fast DDS shared-memory files "
+             f"({', '.join(f'{n} {kind}' for n, kind in found)}) left by stopped processes")
+    return count

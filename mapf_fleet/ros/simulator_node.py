@@ -32,16 +32,10 @@ from mapf_fleet.ros import common, fleet_io
 from mapf_fleet.fleet.arbiter import check_conflict_rule
 from mapf_fleet.fleet.record import Decisions
 from mapf_fleet.ros.goals import GoalServer
-from mapf_fleet.ros.lockstep import (INSTANCE_PARAMETERS, RUN_PARAMETERS, FleetTicker, fleet_run,
-                                     instance_source, require_positive, set_parameters_result)
+from mapf_fleet.ros import parameters
+from mapf_fleet.ros.lockstep import FleetTicker, fleet_run, instance_source, set_parameters_result
 
-PARAMETERS = {
-    # name: (default, description)
-    **INSTANCE_PARAMETERS,
-    **RUN_PARAMETERS,
-    "tick_period": (0.0, "minimum seconds per tick (0: as fast as the robots decide)"),
-    "start_tick": (0, "first tick number (a restarted simulator may continue a count)"),
-}
+PARAMETERS = parameters.SIMULATOR  # name -> Param (ros.parameters: the one table)
 
 
 class SimulatorNode(Node):
@@ -50,7 +44,6 @@ class SimulatorNode(Node):
         p = self.params = fleet_io.declare_parameters(self, PARAMETERS)
         source = instance_source(p)
         self.instance = source.load()
-        require_positive(p, ["decision_timeout"])
         # a Nav2 map sets the metres of the map frame; else `resolution` with the origin at 0
         self.geometry = common.MapGeometry(*(source.geometry() or (float(p["resolution"]),)))
         self.num_robots = self.instance.num_agents
@@ -79,9 +72,10 @@ class SimulatorNode(Node):
             f"robots, conflict rule {self.conflict_rule}, task source {p['task_source']}, "
             f"episode {self.episode}")
         # tick_period, decision_timeout, progress_every apply from the next tick; changing any
-        # other parameter at runtime is refused with the reason (lockstep.RUNTIME_PARAMETERS)
+        # other parameter at runtime is refused with the reason (ros.parameters: runtime)
         self.add_on_set_parameters_callback(
-            lambda parameters: set_parameters_result(self.params, parameters, self.get_logger()))
+            lambda changes: set_parameters_result(self.params, changes, PARAMETERS,
+                                                  self.get_logger()))
         self._thread = threading.Thread(
             target=fleet_io.run_reporting_failure, args=(self, "simulator", self._run),
             name="simulator", daemon=True)
@@ -105,7 +99,8 @@ class SimulatorNode(Node):
     def _run(self):
         subscribers = int(self.params["state_subscribers"])
         missing = self.ticker.wait_ready(float(self.params["startup_timeout"]),
-                                         also=lambda: self.channels.state_heard(subscribers))
+                                         also=lambda: self.channels.state_heard(
+                                             subscribers, str(self.params["state_recorder"])))
         if self.ticker.stopped:
             self.get_logger().info(f"stopped while waiting for robots {missing}")
         elif missing:

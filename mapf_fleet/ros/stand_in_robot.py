@@ -5,12 +5,17 @@ delay beyond the aggregator's `arrival_timeout` leaves the robot in transit at t
 on (to exercise the aggregator's rejection).
 
     python -m mapf_fleet.ros.stand_in_robot --instance config/fleet/instance_small.yaml \\
-        --max-delay 0.3 [--off-grid 2] [--resolution 1.0]
+        --max-delay 0.3 [--off-grid 2] [--resolution 1.0] [--origin X Y] [--robots 0-3]
+    python -m mapf_fleet.ros.stand_in_robot --map building.yaml --cell-size 0.5 \\
+        --num-robots 4 --seed 3      # the starts the aggregator draws for the same options
+
+`--robots IDS` stands in for those robots only (the others are real ones).
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import random
 import sys
 import threading
@@ -24,7 +29,20 @@ from mapf_fleet.ros import common
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="stand_in_robot", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--instance", required=True, help="instance YAML: robots start there")
+    where = parser.add_mutually_exclusive_group(required=True)
+    where.add_argument("--instance", help="instance YAML: robots start there")
+    where.add_argument("--map", help="a MovingAI .map (with --scen) or a Nav2 map YAML: the "
+                                     "starts the aggregator takes for the same options")
+    parser.add_argument("--scen", default="", help="MovingAI .scen (with --map)")
+    parser.add_argument("--num-robots", type=int, default=8,
+                        help="robots drawn on --map without --scen (default 8)")
+    parser.add_argument("--cell-size", type=float, default=0.0,
+                        help="Nav2 --map: metres per cell (default: one pixel)")
+    parser.add_argument("--origin", type=float, nargs=2, default=(0.0, 0.0), metavar=("X", "Y"),
+                        help="the map's corner in metres, as the aggregator's origin_x/origin_y "
+                             "(default 0 0; a Nav2 map has its own)")
+    parser.add_argument("--robots", default="", metavar="IDS",
+                        help="stand in for these robots only, e.g. 0-3,7 (default: all)")
     parser.add_argument("--max-delay", type=float, default=0.3, help="seconds, uniform delay")
     parser.add_argument("--off-grid", type=int, default=-1, help="robot reporting off the map")
     parser.add_argument("--resolution", type=float, default=1.0)
@@ -34,15 +52,24 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
     if args.max_delay < 0:
         parser.error(f"--max-delay must be >= 0, got {args.max_delay}")
+    if not all(math.isfinite(v) for v in args.origin):
+        parser.error(f"--origin must be finite numbers, got {args.origin}")
     common.prepare_environment()
     import rclpy
     from geometry_msgs.msg import PoseStamped
     from rclpy.executors import SingleThreadedExecutor
 
-    from mapf_fleet.fleet.instances import load_instance_yaml
+    from mapf_fleet.fleet.instances import InstanceSource
+    from mapf_fleet.ros.run import parse_robot_ids
 
-    instance = load_instance_yaml(args.instance)
-    geometry = common.MapGeometry(args.resolution)
+    source = InstanceSource(args.instance or "", args.map or "", args.scen, args.num_robots,
+                            seed=args.seed, cell_size=args.cell_size)
+    instance = source.load()
+    geometry = common.MapGeometry(*(source.geometry() or (args.resolution, *args.origin)))
+    ids = parse_robot_ids(args.robots) if args.robots else list(range(instance.num_agents))
+    if ids and max(ids) >= instance.num_agents:
+        raise ValueError(f"--robots {args.robots}: the instance has robots "
+                         f"0..{instance.num_agents - 1}")
     rng = random.Random(args.seed)
     lock = threading.Lock()
     namespace = args.namespace.strip("/")
@@ -57,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
                signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node("mapf_stand_in_robots")
     poses = {i: common.cell_pose(int(r), int(c), geometry)
-             for i, (r, c) in enumerate(instance.starts)}
+             for i, (r, c) in enumerate(instance.starts) if i in set(ids)}
     pubs = {i: node.create_publisher(PoseStamped, common.rel(common.pose_topic(i)),
                                      common.reliable_qos(10))
             for i in poses}

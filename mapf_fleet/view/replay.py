@@ -70,8 +70,10 @@ def load_record(path, instance_options: dict) -> RecordedRun:
     """A JSON run record; the map from its `grid` field, else from `instance_options`
     (fleet.instances.InstanceSource fields)."""
     path = Path(path)
-    try:
-        record = json.loads(path.read_text())
+    from mapf_fleet.fleet.record import read_record
+
+    try:  # with the ticks a killed fleet left in its journal
+        record = read_record(path)
     except FileNotFoundError:
         raise RunFileError(f"{path}: no such file") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
@@ -159,7 +161,9 @@ def load_bag(path, namespace: str = "", episode: int | None = None) -> RecordedR
     try:
         with AnyReader([bag_dir], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
             wanted = [c for c in reader.connections if c.topic in topics.values()]
-            for connection, stamp, raw in reader.messages(connections=wanted):
+            # none wanted (another namespace): read nothing (no connections means all of them)
+            for connection, stamp, raw in (reader.messages(connections=wanted) if wanted
+                                           else ()):
                 msg = reader.deserialize(raw, connection.msgtype)
                 if connection.topic == topics[names.MAP_TOPIC]:
                     maps.append((stamp, msg))
@@ -240,6 +244,9 @@ def build_parser() -> argparse.ArgumentParser:
     group.add_argument("--instance", default="", help="instance YAML")
     group.add_argument("--map", default="", help="map file (MovingAI .map or Nav2 YAML)")
     group.add_argument("--scen", default="", help="MovingAI .scen (with --map)")
+    group.add_argument("--cell-size", type=float, default=0.0, metavar="M",
+                       help="a Nav2 --map: metres per grid cell, as given to `up` (default: one "
+                            "pixel per cell)")
     group.add_argument("--size", type=int, default=16, help="generated map side (default 16)")
     group.add_argument("--density", type=float, default=0.3, help="default 0.3")
     group.add_argument("--seed", type=int, default=0, help="default 0")
@@ -254,7 +261,8 @@ def render_run(argv: list[str]) -> int:
         print(f"mapf-fleet render: --fps must be > 0, got {args.fps:g}", file=sys.stderr)
         return 2
     options = {"instance_file": args.instance, "map_file": args.map, "scen_file": args.scen,
-               "size": args.size, "density": args.density, "seed": args.seed}
+               "size": args.size, "density": args.density, "seed": args.seed,
+               "cell_size": args.cell_size}
     try:
         check_out(args.out)
         run = load_run(args.run, options, args.namespace, args.episode)

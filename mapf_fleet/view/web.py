@@ -77,6 +77,12 @@ class ViewServer:
             def log_message(self, *args):  # no access log on the terminal
                 pass
 
+            def handle(self):
+                try:
+                    super().handle()
+                except (BrokenPipeError, ConnectionResetError):
+                    pass  # the browser gave up on a request (a favicon, a closed tab)
+
             def _host_ok(self) -> bool:
                 host = (self.headers.get("Host") or "").strip().lower()
                 return host in {f"{HOST}:{server.port}", f"localhost:{server.port}"}
@@ -105,6 +111,8 @@ class ViewServer:
                                "application/json")
                 elif path == "/events":
                     self._events()
+                elif path == "/favicon.ico":  # browsers ask for it: no icon, no error
+                    self._send(HTTPStatus.NO_CONTENT, b"", "image/x-icon")
                 else:
                     self._send(HTTPStatus.NOT_FOUND, b"not found\n", "text/plain")
 

@@ -224,12 +224,13 @@ def test_real_robots_with_random_delays_never_share_a_cell(rule):
 
 
 def test_fleet_up_defaults_to_the_anchored_pibt_arbiter():
+    from mapf_fleet.ros import parameters
     from mapf_fleet.ros.launcher import build_parser
-    from mapf_fleet.ros.lockstep import RUN_PARAMETERS
 
-    assert build_parser().parse_args([]).conflict_rule == "pibt_anchor"
+    assert build_parser().parse_args([]).conflict_rule is None  # not given: the table's
     assert build_parser().parse_args(["--conflict-rule", "pibt"]).conflict_rule == "pibt"
     assert build_parser().parse_args(["--conflict-rule", "revert"]).conflict_rule == "revert"
     with pytest.raises(SystemExit):
         build_parser().parse_args(["--conflict-rule", "swap"])
-    assert RUN_PARAMETERS["conflict_rule"][0] == "pibt_anchor"
+    for table in (parameters.SIMULATOR, parameters.AGGREGATOR, parameters.POLICY):
+        assert table["conflict_rule"].default == "pibt_anchor"

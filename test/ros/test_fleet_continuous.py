@@ -54,7 +54,7 @@ def test_lifelong_fleet_equals_the_evaluators_lifelong_rollout(tmp_path, ros_env
     proc = subprocess.run(UP + ["--checkpoint", checkpoints[algo], "--num-robots", "16",
                                 "--size", "16", "--density", "0.2", "--seed", str(seed),
                                 "--task-source", "lifelong", "--max-steps", str(steps),
-                                "--nodes-per-process", "8", "--preference-mode", "q",
+                                "--nodes-per-process", "8", "--ranking", "q",
                                 "--record", str(record_path)],
                           env=ros_env, capture_output=True, text=True, timeout=900)
     assert record_path.exists(), proc.stdout + proc.stderr

@@ -335,3 +335,59 @@ def test_state_watch_logs_once_when_the_state_stops_coming():
     assert text and "since tick 3" in text and "stopped or is unreachable" in text
     watch.note(9, True, now=70.0)                            # the run ended: quiet is normal
     assert watch.silence(now=200.0) is None
+
+
+def test_a_stop_before_the_run_started_ends_every_child_within_seconds(tmp_path):
+    """Ctrl-C while a big fleet starts up: nothing ran yet, so the policy processes (here
+    stuck, ignoring the signal, as while importing) are killed at once, and a simulator still
+    starting up gets 3 s, not the 120 s a running one gets to catch the signal."""
+    from mapf_fleet.ros.processes import Child, StopSignals, supervise
+
+    lines = []
+    main = Child("simulator", _script(tmp_path, "slow.py", STUBBORN["starting"].join(
+        ["import signal, time\n", "\nprint('importing', flush=True)\ntime.sleep(600)\n"])),
+        dict(os.environ), echo=lines.append)
+    policies = [Child(f"policy process {i}", _script(tmp_path, f"p{i}.py",
+                                                       "import signal, time\n"
+                                                       "signal.signal(signal.SIGTERM, "
+                                                       "signal.SIG_IGN)\ntime.sleep(600)\n"),
+                      dict(os.environ), log_path=str(tmp_path / f"p{i}.log")) for i in range(4)]
+    assert _wait_for(lambda: "importing" in lines, timeout=60.0)
+    signals = StopSignals()
+    signals._handle(signal.SIGINT, None)
+    started = time.monotonic()
+    code, problem = supervise(main, policies, signals, warn=lambda text: None,
+                              running=lambda: False)
+    assert time.monotonic() - started < 15, time.monotonic() - started
+    assert all(c.poll() is not None for c in [main] + policies)
+
+
+def test_a_run_that_never_starts_is_reported_and_stopped(tmp_path):
+    """Every start-up wait is bounded: a simulator stuck before its first tick (a stale Fast
+    DDS shared-memory file froze fleets so, whatever --startup-timeout said) is reported."""
+    from mapf_fleet.ros.processes import Child, StopSignals, supervise
+
+    main = Child("simulator", _script(tmp_path, "stuck.py", "import time\ntime.sleep(600)\n"),
+                 dict(os.environ))
+    warnings = []
+    started = time.monotonic()
+    code, problem = supervise(main, [], StopSignals(), warn=warnings.append,
+                              running=lambda: False, start_deadline=1.0)
+    assert time.monotonic() - started < 15
+    assert problem == "the simulator's run did not start within 1 s", warnings
+    assert "stuck while starting up" in warnings[0] and main.poll() is not None
+
+
+def test_empty_fast_dds_port_files_are_found_and_fresh_ones_left(tmp_path):
+    from mapf_fleet.ros.processes import STALE_AFTER_S, stale_shm_files
+
+    now = time.time()
+    for name, size, age in [("fastrtps_port7008", 0, 60), ("fastrtps_port7010", 0, 1),
+                            ("fastrtps_port7012", 64, 60), ("fastrtps_port7008_el", 0, 60),
+                            ("fastrtps_port7014_sl", 0, 60),
+                            ("fastrtps_1234abcd", 0, 60)]:
+        path = tmp_path / name
+        path.write_bytes(b"x" * size)
+        os.utime(path, (now - age, now - age))
+    assert STALE_AFTER_S < 60
+    assert stale_shm_files(now, str(tmp_path)) == [str(tmp_path / "fastrtps_port7008")]

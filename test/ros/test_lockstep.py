@@ -79,8 +79,8 @@ def test_run_records_counts_and_summarises(tmp_path):
     assert run.finished() == "every robot on its goal"
     outcome = run.finish(extra=", 1 rejected poses")
     assert outcome["success"] and outcome["steps"] == 1 and outcome["collisions"] == 1
-    assert outcome["summary"] == ("success: 2/2 robots on goal after 1 steps, 1 collisions, "
-                                  "1 missed decisions (robots [1]), 0 overridden moves "
+    assert outcome["summary"] == ("success: 2/2 robots on goal after 1 step, 1 collision, "
+                                  "1 missed decision (robots [1]), 0 overridden moves "
                                   "(pibt_anchor), 1 rejected poses")
     run.recorder.write(tmp_path / "run.json")
     record = json.loads((tmp_path / "run.json").read_text())

@@ -185,8 +185,9 @@ def test_a_killed_simulator_leaves_the_ticks_it_ran_in_the_record(tmp_path, ros_
                           env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                           text=True)
     try:
+        # killed at once: the record was last rewritten whole at the first tick (it is
+        # rewritten every fleet_io.RECORD_CHECKPOINT_S), the journal has every tick since
         _wait_for_line(up, "tick 20:", 240)
-        time.sleep(7.0)  # > fleet_io.RECORD_CHECKPOINT_S: the record was rewritten since
         # this run's simulator only (a child of this `up`), never another test's
         sim = subprocess.run(["pgrep", "-P", str(up.pid), "-f", "mapf_fleet.ros.run simulator"],
                              capture_output=True, text=True).stdout.split()

@@ -3,7 +3,7 @@ default stated (defect 8), --resolution / --origin for real robots, a .scen's ow
 (defect 8), --log-dir and the logs of a failed run kept (defect 10), `mapf-fleet param`
 (defect 9), --single-process with 128 robots ready without waiting out the start-up timeout
 (defect 3), and the policy nodes' default preference_mode following the checkpoint's recorded
-ranking, else the conflict rule (issue 25 item 3). The bad values refused up front (defect 5) are in test_cli_errors.py."""
+ranking, else the conflict rule. The bad values refused up front (defect 5) are in test_cli_errors.py."""
 
 from __future__ import annotations
 
@@ -22,12 +22,11 @@ CLI = [sys.executable, "-m", "mapf_fleet.cli"]
 RUN = [sys.executable, "-m", "mapf_fleet.ros.run"]
 
 
-def _args(argv: list[str], ros_args: list[str] = ()):
-    """`up`'s options as its main() prepares them, before it starts anything."""
-    args = launcher.build_parser().parse_args(argv)
-    assert launcher.task_source_problem(args) == ""
-    launcher.apply_parameter_sources(argv, args, list(ros_args))
-    return args
+def _plan(argv: list[str], checkpoint: str):
+    """`up`'s options and its nodes' parameters as its main() prepares them, before it starts
+    anything."""
+    args, plan, _ = launcher.prepare(["--checkpoint", checkpoint] + list(argv))
+    return args, plan
 
 
 def test_every_up_option_has_help_and_states_its_default():
@@ -49,81 +48,113 @@ def test_every_up_option_has_help_and_states_its_default():
         assert stated in shown, stated
 
 
-def test_resolution_and_origin_reach_the_aggregator():
-    args = _args(["--real-robots", "--resolution", "0.05", "--origin", "1.5", "-2",
-                  "--num-robots", "2"])
-    assert launcher.value_problem(args) == ""
-    sim, _ = launcher.node_parameters(args, "c.pt", "r.json", 2)
+def test_resolution_and_origin_reach_the_aggregator(checkpoints):
+    args, plan = _plan(["--real-robots", "--resolution", "0.05", "--origin", "1.5", "-2",
+                        "--num-robots", "2"], checkpoints["dhc"])
+    sim = plan.values["mapf_aggregator"]
     assert (sim["resolution"], sim["origin_x"], sim["origin_y"]) == (0.05, 1.5, -2.0)
-    command = launcher._ros_args(sim, args, "sim")
-    assert "resolution:=0.05" in command and "origin_x:=1.5" in command
     # the simulator takes --resolution; it has no origin (its map's corner is 0, 0)
-    sim, _ = launcher.node_parameters(_args(["--resolution", "0.5"]), "c.pt", "r.json", 8)
-    assert sim["resolution"] == 0.5 and "origin_x" not in sim
-    assert "--origin applies to --real-robots" in launcher.value_problem(
-        _args(["--origin", "1", "2"]))
-    assert "--resolution must be > 0" in launcher.value_problem(_args(["--resolution", "0"]))
+    _, plan = _plan(["--resolution", "0.5"], checkpoints["dhc"])
+    assert plan.sim["resolution"] == 0.5 and "origin_x" not in plan.sim
+    with pytest.raises(launcher.UpError, match="--origin applies to --real-robots"):
+        _plan(["--origin", "1", "2"], checkpoints["dhc"])
+    with pytest.raises(launcher.UpError, match="--resolution must be > 0"):
+        _plan(["--resolution", "0"], checkpoints["dhc"])
 
 
-def test_map_and_scen_without_num_robots_take_the_files_count(tmp_path):
+def test_map_and_scen_without_num_robots_take_the_files_count(tmp_path, checkpoints):
     (tmp_path / "room.map").write_text("type octile\nheight 3\nwidth 4\nmap\n....\n.@..\n....\n")
     lines = ["version 1"] + [f"0\troom.map\t4\t3\t{c}\t0\t{c}\t2\t2" for c in (0, 1, 2, 3)]
     (tmp_path / "room.scen").write_text("\n".join(lines) + "\n")
     files = ["--map", str(tmp_path / "room.map"), "--scen", str(tmp_path / "room.scen")]
-    args = _args(files)
-    assert args.num_robots is None  # not given: up takes the file's count
-    assert launcher.default_robot_count(args) == 4
-    assert launcher.default_robot_count(_args([])) == 8  # a generated instance
-    assert launcher.default_robot_count(_args(files + ["--num-robots", "2"])) == 4
-    assert _args(files + ["--num-robots", "2"]).num_robots == 2  # given: kept
+    args, plan = _plan(files, checkpoints["dhc"])
+    assert plan.sim["num_robots"] == 4 and len(plan.values) == 1 + 4  # the file's count
+    args, plan = _plan(files + ["--num-robots", "2"], checkpoints["dhc"])
+    assert plan.sim["num_robots"] == 2 and len(plan.values) == 1 + 2  # given: kept
+    args, plan = _plan([], checkpoints["dhc"])
+    assert plan.sim["num_robots"] == 8  # a generated instance
+
+
+def _policy_nodes(plan, checkpoint, tmp_path, robots=(0,)):
+    """Policy nodes started from the merged params file `up` writes for `plan`."""
+    import rclpy
+
+    from mapf_fleet.ros import parameters as P
+    from mapf_fleet.ros.policy_node import PolicyNode
+
+    plan.params_path = str(tmp_path / "merged.yaml")
+    P.write_params_file(plan.params_path, plan.values, plan.namespace)
+    context = rclpy.Context()
+    rclpy.init(args=["policy"] + plan.ros_args(), context=context)
+    try:
+        first = PolicyNode(robot_id=robots[0], context=context)
+        nodes = [first] + [PolicyNode(robot_id=i, model=first.model,
+                                      metadata=first.checkpoint_metadata, context=context)
+                           for i in robots[1:]]
+        found = [n.ranking for n in nodes]
+        for node in nodes:
+            node.destroy_node()
+        return found
+    finally:
+        rclpy.try_shutdown(context=context)
 
 
 @pytest.mark.ros
-def test_default_preference_mode_follows_the_rule_and_yields_to_a_params_file(
+def test_default_ranking_follows_the_rule_and_yields_to_a_params_file(
         tmp_path, checkpoints, ros_env):
-    """No preference_mode given: the rule's default (`default_q_mode`: today confidence under
-    pibt_anchor, q under pibt and revert). A params file's (or the command line's) preference_mode wins whatever the
-    rule: `up` passes the policy nodes its conflict rule, never a preference_mode of its own."""
-    import rclpy
-
+    """No ranking given: the rule's default (`default_q_mode`: today confidence under
+    pibt_anchor, q under pibt and revert). A params file's (or the command line's) ranking wins
+    whatever the rule, the deprecated preference_mode too: `up` passes the policy nodes its
+    conflict rule, never a ranking of its own."""
     from mapf_fleet.coordination.preferences import default_q_mode
-    from mapf_fleet.ros.policy_node import PolicyNode
 
     params = tmp_path / "p.yaml"
-    params.write_text("/**:\n  ros__parameters:\n    preference_mode: q_demote_stay\n")
+    params.write_text("/**:\n  ros__parameters:\n    ranking: q_demote_stay\n")
+    old = tmp_path / "old.yaml"
+    old.write_text("/**:\n  ros__parameters:\n    preference_mode: q_demote_stay\n")
     assert default_q_mode("pibt_anchor") != default_q_mode("pibt")  # the rule matters
     cases = [([], default_q_mode("pibt_anchor")), (["--conflict-rule", "pibt"], "q"),
              (["--conflict-rule", "revert"], "q"),
              (["--params-file", str(params)], "q_demote_stay"),  # no rule's default
+             (["--params-file", str(old)], "q_demote_stay"),  # the deprecated name
              (["--params-file", str(params), "--conflict-rule", "pibt"], "q_demote_stay"),
-             (["--preference-mode", "distance", "--params-file", str(params)], "distance")]
+             (["--ranking", "distance", "--params-file", str(params)], "distance")]
     for own, expected in cases:
-        args = _args(own)
-        _, policy = launcher.node_parameters(args, checkpoints["dhc"], "r.json", 2)
-        context = rclpy.Context()
-        rclpy.init(args=["policy"] + launcher._ros_args(policy, args, "policy"),
-                   context=context)
-        try:
-            node = PolicyNode(robot_id=0, context=context)
-            assert node.preference_mode == expected, (own, node.preference_mode)
-            node.destroy_node()
-        finally:
-            rclpy.try_shutdown(context=context)
+        _, plan = _plan(own + ["--num-robots", "2"], checkpoints["dhc"])
+        assert _policy_nodes(plan, checkpoints["dhc"], tmp_path) == [expected], own
 
 
 @pytest.mark.ros
-def test_default_preference_mode_is_the_checkpoints_recorded_ranking(tmp_path, ros_env):
-    """A checkpoint recording its ranking for the rule (metadata rankings, e.g. a DAgger round):
-    the policy nodes use it when no preference_mode is given, the rule's default under another
-    rule, and a given preference_mode (params file, --preference-mode) still wins. The robots a
-    process hosts beside the first (sharing its model) rank the same."""
+def test_a_node_reads_the_deprecated_preference_mode_with_a_warning(tmp_path, checkpoints,
+                                                                   ros_env):
+    """Old params files given to a node directly (`mapf-fleet node policy --params-file`)."""
     import rclpy
+
+    from mapf_fleet.ros.policy_node import PolicyNode
+
+    old = tmp_path / "old.yaml"
+    old.write_text("/**:\n  ros__parameters:\n    preference_mode: distance\n")
+    context = rclpy.Context()
+    rclpy.init(args=["policy", "--ros-args", "--params-file", str(old)], context=context)
+    try:
+        node = PolicyNode(robot_id=0, checkpoint=checkpoints["dhc"], context=context)
+        assert node.ranking == "distance"
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)
+
+
+@pytest.mark.ros
+def test_default_ranking_is_the_checkpoints_recorded_ranking(tmp_path, ros_env):
+    """A checkpoint recording its ranking for the rule (metadata rankings, e.g. a DAgger round):
+    the policy nodes use it when no ranking is given, the rule's default under another
+    rule, and a given ranking (params file, --ranking) still wins. The robots a
+    process hosts beside the first (sharing its model) rank the same."""
     import torch
 
     from mapf_fleet.coordination.preferences import default_q_mode
     from mapf_fleet.models.checkpoint import build_model, save_checkpoint
     from mapf_fleet.models.config import ModelConfig
-    from mapf_fleet.ros.policy_node import PolicyNode
 
     torch.manual_seed(7)
     recorded = "q_then_distance"
@@ -133,25 +164,13 @@ def test_default_preference_mode_is_the_checkpoints_recorded_ranking(tmp_path, r
         "alpha": 0.0, "curriculum": {}, "learner_steps": 0, "training_config": {},
         "rankings": {"pibt_anchor": recorded}}))
     params = tmp_path / "p.yaml"
-    params.write_text("/**:\n  ros__parameters:\n    preference_mode: q_demote_stay\n")
+    params.write_text("/**:\n  ros__parameters:\n    ranking: q_demote_stay\n")
     cases = [([], recorded), (["--conflict-rule", "pibt"], default_q_mode("pibt")),
              (["--params-file", str(params)], "q_demote_stay"),
-             (["--preference-mode", "confidence"], "confidence")]
+             (["--ranking", "confidence"], "confidence")]
     for own, expected in cases:
-        args = _args(own)
-        _, policy = launcher.node_parameters(args, checkpoint, "r.json", 2)
-        context = rclpy.Context()
-        rclpy.init(args=["policy"] + launcher._ros_args(policy, args, "policy"),
-                   context=context)
-        try:
-            first = PolicyNode(robot_id=0, context=context)
-            second = PolicyNode(robot_id=1, model=first.model,
-                                metadata=first.checkpoint_metadata, context=context)
-            assert (first.preference_mode, second.preference_mode) == (expected, expected), own
-            first.destroy_node()
-            second.destroy_node()
-        finally:
-            rclpy.try_shutdown(context=context)
+        _, plan = _plan(own + ["--num-robots", "2"], checkpoint)
+        assert _policy_nodes(plan, checkpoint, tmp_path, (0, 1)) == [expected, expected], own
 
 
 def _up(ros_env, *argv, timeout=240):

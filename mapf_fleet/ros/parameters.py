@@ -1,0 +1,464 @@
+"""The ROS parameters of the fleet's nodes, one table per node kind (plain Python, no rclpy).
+
+Each parameter has its name, type (its default's), default, description, check and whether it
+may change during a run. The nodes declare and check their parameters from these tables
+(`fleet_io.declare_parameters`, `policy_node.PolicyNode`), `mapf-fleet up` takes its options'
+defaults and checks from them and writes one merged parameters file from them
+(`merged_values`), and config/fleet/fleet.yaml is tested against them.
+
+`up` resolves every node's values itself, in one order: the table's defaults < the user's
+params file(s) < `up`'s options < `-p` rules, and hands the nodes one params file with a fully
+resolved entry per node (`write_params_file`), so what a node runs with is what `up` checked.
+A user's params file is read by its node keys' last token (`/**`, `*`, `mapf_simulator`,
+`mapf_policy_*`, `mapf_policy_3`: fnmatch against the node name); a key naming another
+namespace than the fleet's applies to no node of it.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import yaml
+
+from mapf_fleet.coordination.preferences import (DEFAULT_Q_MODE_BY_RULE, PREFERENCE_MODES,
+                                                 default_q_mode)
+from mapf_fleet.fleet.arbiter import CONFLICT_RULES, DEFAULT_CONFLICT_RULE
+from mapf_fleet.fleet.tasks import TASK_SOURCES
+
+RANKINGS = PREFERENCE_MODES
+
+
+@dataclass(frozen=True)
+class Param:
+    default: object
+    description: str
+    check: Callable[[object], bool] | None = None
+    condition: str = ""  # what `check` demands, as a message says it ("> 0")
+    choices: tuple = ()
+    runtime: bool = False  # may change during a run (`mapf-fleet param set`)
+
+    @property
+    def type(self) -> type:
+        return type(self.default)
+
+    def coerce(self, value):
+        """`value` as this parameter's type (an int for a float parameter becomes a float; rcl
+        refuses the type otherwise); TypeError when it cannot be."""
+        kind = self.type
+        if kind is bool:
+            if isinstance(value, bool):
+                return value
+        elif kind is int:
+            if isinstance(value, int) and not isinstance(value, bool):
+                return value
+        elif kind is float:
+            if isinstance(value, (int, float)) and not isinstance(value, bool):
+                return float(value)
+        elif kind is str:
+            if isinstance(value, str):
+                return value
+            if value is None:
+                return ""
+        raise TypeError(kind.__name__)
+
+    def problem(self, value) -> str:
+        """Why `value` is refused ("" when it is not): 'must be > 0, got -1'."""
+        try:
+            value = self.coerce(value)
+        except TypeError:
+            what = {int: "an integer", float: "a number", str: "text",
+                    bool: "true or false"}[self.type]
+            extra = f" {self.condition}" if self.condition else ""
+            return f"must be {what}{extra}, got {value!r}"
+        if isinstance(value, float) and not math.isfinite(value):
+            return f"must be a finite number, got {value!r}"
+        if self.choices and value not in self.choices:
+            return f"must be one of {', '.join(c or repr(c) for c in self.choices)}, got {value!r}"
+        if self.check is not None and not self.check(value):
+            return f"must be {self.condition}, got {value!r}"
+        return ""
+
+
+def _positive(text: str = "seconds") -> dict:
+    return {"check": lambda v: v > 0, "condition": "> 0"}
+
+
+# both lockstep nodes (simulator, aggregator) take their instance and their tick from these
+_INSTANCE = {
+    "instance_file": Param("", "instance YAML (grid rows, starts, goals); overrides the rest"),
+    "map_file": Param("", "the map: a MovingAI .map (with scen_file for starts and goals) or a "
+                          "Nav2 map_server YAML (see cell_size); without scen_file, starts and "
+                          "goals are drawn from seed"),
+    "scen_file": Param("", "MovingAI .scen file (with map_file)"),
+    "num_robots": Param(8, "robots to generate or to take from the .scen file",
+                        lambda v: v >= 1, ">= 1"),
+    "size": Param(16, "side of a generated square map", lambda v: v >= 2, ">= 2"),
+    "density": Param(0.3, "obstacle density of a generated map", lambda v: 0 <= v < 1,
+                     "in [0, 1)"),
+    "seed": Param(0, "seed of a generated instance (and of the starts and goals drawn on a "
+                     "map_file without scen_file)", lambda v: v >= 0, ">= 0"),
+    "cell_size": Param(0.0, "Nav2 map YAML (map_file F.yaml): metres per grid cell, a whole "
+                            "number of image pixels (0: one pixel per cell); a cell is blocked "
+                            "when any of its pixels is occupied or unknown",
+                       lambda v: v >= 0, ">= 0 (0: one pixel per cell)"),
+}
+_RUN = {
+    "conflict_rule": Param(DEFAULT_CONFLICT_RULE,
+                           "how the tick's decisions become moves: pibt (PIBT over the robots' "
+                           "ranked actions, nothing reverted), pibt_anchor (the same, the "
+                           "top-priority robot on its distance order) or revert (the paper's "
+                           "rules on the first choices)", choices=CONFLICT_RULES),
+    "max_steps": Param(256, "tick limit: a one-shot run fails when robots are not all on goal "
+                            "by then; continuous runs end there (0: no limit, continuous task "
+                            "sources)", lambda v: v >= 0,
+                       ">= 1 (0: no limit, continuous task sources)"),
+    "task_source": Param("instance", f"where goals come from: {' | '.join(TASK_SOURCES)} "
+                                     f"(instance: the one-shot episode; lifelong: a new random "
+                                     f"goal on arrival; tasks: task_file's goals / pick-up-drop-"
+                                     f"off pairs for the nearest idle robot; external: only "
+                                     f"goals given at run time)", choices=TASK_SOURCES),
+    "task_file": Param("", "task list YAML for task_source tasks"),
+    "goal_seed": Param(-1, "seed of the lifelong goal stream (-1: the instance seed)",
+                       lambda v: v >= -1, ">= -1 (-1: the instance seed)"),
+    "decision_timeout": Param(10.0, "seconds to wait for a robot's move before it counts as "
+                                    "stay (reported)", **_positive(), runtime=True),
+    "startup_timeout": Param(120.0, "seconds to wait for every policy node to report ready",
+                             **_positive()),
+    "resolution": Param(1.0, "metres per cell in poses and the map", **_positive()),
+    "record_file": Param("", "write the run's trajectory and outcome to this JSON file"),
+    "progress_every": Param(10, "log progress every this many ticks", lambda v: v >= 1, ">= 1",
+                            runtime=True),
+    "state_subscribers": Param(0, "before tick 0, also wait (up to startup_timeout) until the "
+                                  "fleet state has this many matched subscribers (`up --bag`: "
+                                  "the policy processes and the recorder, so the bag misses no "
+                                  "tick); 0: no wait", lambda v: v >= 0, ">= 0"),
+    "state_recorder": Param("", "before tick 0, also wait (up to startup_timeout) until the "
+                                "node of this name (`up --bag`: mapf_fleet_recorder) has a "
+                                "subscription matched to the fleet state, so the bag has every "
+                                "tick; empty: no wait"),
+}
+
+SIMULATOR = {
+    **_INSTANCE,
+    **_RUN,
+    "tick_period": Param(0.0, "minimum seconds per tick (0: as fast as the robots decide)",
+                         lambda v: v >= 0, ">= 0", runtime=True),
+    "start_tick": Param(0, "first tick number (a restarted simulator may continue a count)",
+                        lambda v: v >= 0, ">= 0"),
+}
+
+AGGREGATOR = {
+    **_INSTANCE,
+    "instance_file": Param("", "instance YAML (grid rows, starts, goals): map and goals"),
+    "scen_file": Param("", "MovingAI .scen file (with map_file): goals"),
+    **_RUN,
+    "startup_timeout": Param(120.0, "seconds to wait for every robot's pose and policy node",
+                             **_positive()),
+    "resolution": Param(1.0, "metres per cell (a Nav2 map_file sets its own)", **_positive()),
+    "arrival_timeout": Param(10.0, "seconds to wait for robots to reach their waypoints",
+                             **_positive(), runtime=True),
+    "pose_timeout": Param(3.0, "seconds without a pose message after which a robot is reported "
+                               "silent and held as an obstacle (the run ends when every robot "
+                               "is)", **_positive()),
+    "origin_x": Param(0.0, "x of the map's corner (cell (0, 0) starts there; a Nav2 map sets "
+                           "its own)"),
+    "origin_y": Param(0.0, "y of the map's corner"),
+}
+
+POLICY = {
+    "robot_id": Param(0, "index of this robot in the fleet state", lambda v: v >= 0, ">= 0"),
+    "checkpoint": Param("", "checkpoint file (mapf_fleet.models.save_checkpoint) to run"),
+    "comm_timeout": Param(5.0, "seconds to wait for a peer's message before leaving it out "
+                               "(reported)", **_positive()),
+    "service_timeout": Param(2.0, "seconds to wait for a peer's DCC service to be discovered",
+                             **_positive()),
+    "status_period": Param(0.5, "seconds between readiness heartbeats", **_positive()),
+    "episode_timeout": Param(30.0, "seconds without a fleet state of the run this robot serves "
+                                   "after which another simulator's run may take it over",
+                             **_positive()),
+    "conflict_rule": Param(DEFAULT_CONFLICT_RULE,
+                           "the arbiter's conflict rule (the simulator's or aggregator's; `up` "
+                           "passes its own): it sets the default ranking",
+                           choices=CONFLICT_RULES),
+    "ranking": Param("", "how a robot ranks its five actions from its Q-values for the arbiter: "
+                         f"one of {', '.join(RANKINGS)}; empty: the ranking the checkpoint "
+                         "records for the conflict rule (metadata rankings, e.g. a DAgger "
+                         "round's), else the rule's default ("
+                     + ", ".join(f"{m} under {r}" for r, m in DEFAULT_Q_MODE_BY_RULE.items())
+                     + f", {default_q_mode('revert')} otherwise)", choices=("",) + RANKINGS),
+}
+
+# deprecated parameter names still read (a warning each): old name -> name
+ALIASES = {"preference_mode": "ranking"}
+# parameters every rclpy node has: a params file may set them for any node
+STANDARD = ("use_sim_time", "start_type_description_service")
+
+NODE_TABLES = {"mapf_simulator": SIMULATOR, "mapf_aggregator": AGGREGATOR,
+               "mapf_policy": POLICY}
+
+
+def table_of(node_name: str) -> dict:
+    """The table of node `node_name` (mapf_policy_3 -> POLICY)."""
+    if node_name.startswith("mapf_policy"):
+        return POLICY
+    return NODE_TABLES[node_name]
+
+
+def runtime_names(table: dict) -> list[str]:
+    return [name for name, p in table.items() if p.runtime]
+
+
+def parameter_problem(table: dict, name: str, value) -> str:
+    """'decision_timeout must be > 0, got 0' ("" when fine) for a value a node would get."""
+    if name in ALIASES and ALIASES[name] in table:
+        name = ALIASES[name]
+    if name not in table:
+        return f"{name}: no such parameter"
+    text = table[name].problem(value)
+    return f"{name} {text}" if text else ""
+
+
+def alias_warning(name: str) -> str:
+    return (f"parameter {name} is deprecated, use {ALIASES[name]} (read as {ALIASES[name]} for "
+            f"now)")
+
+
+def check_values(table: dict, values: dict, where: str = "parameter") -> dict:
+    """`values` coerced to the table's types; ValueError with one line ("parameter size must be
+    >= 2, got 1") for the first refused one."""
+    out = {}
+    for name, value in values.items():
+        problem = parameter_problem(table, name, value)
+        if problem:
+            raise ValueError(f"{where} {problem}")
+        out[name] = table[ALIASES.get(name, name) if name not in table else name].coerce(value)
+    return out
+
+
+# ---- params files, `-p` rules ----
+
+def _flatten(values: dict, prefix: str = "") -> dict:
+    out = {}
+    for name, value in values.items():
+        full = f"{prefix}{name}"
+        if isinstance(value, dict):
+            out.update(_flatten(value, full + "."))
+        else:
+            out[full] = value
+    return out
+
+
+def read_params_file(path) -> list[tuple[str, dict]]:
+    """[(node key, {parameter: value})] of a ROS 2 parameters YAML, in file order.
+    FileNotFoundError / ValueError (naming the file) for a missing or malformed one."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"params file not found: {path}")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise ValueError(f"{path}: not valid YAML ({exc})") from None
+    except OSError as exc:
+        raise ValueError(f"{path}: {exc.strerror or exc}") from None
+    if data is None:
+        return []
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected node names mapping to ros__parameters")
+    entries: list[tuple[str, dict]] = []
+
+    def walk(node: dict, prefix: str):
+        for key, value in node.items():
+            if key == "ros__parameters":
+                if not isinstance(value, dict):
+                    raise ValueError(f"{path}: {prefix or '/'}: ros__parameters must be a "
+                                     f"mapping, found {value!r}")
+                entries.append((prefix or "/**", _flatten(value)))
+            elif isinstance(value, dict):
+                walk(value, f"{prefix.rstrip('/')}/{str(key).strip('/')}")
+            else:
+                raise ValueError(f"{path}: {prefix}/{key}: expected a node name mapping to "
+                                 f"ros__parameters, found {value!r}")
+
+    walk(data, "")
+    return entries
+
+
+def key_applies(key: str, node_name: str, namespace: str = "") -> bool:
+    """Whether params-file node key `key` names node `node_name` of a fleet in `namespace`: its
+    last token matches the name (fnmatch; `**` every node) and the tokens before it are `**`
+    or the namespace."""
+    tokens = key.strip("/").split("/")
+    name, before = tokens[-1], [t for t in tokens[:-1] if t != "**"]
+    if name != "**" and not fnmatch.fnmatchcase(node_name, name):
+        return False
+    if "**" in tokens[:-1] or name == "**":
+        return True
+    return "/".join(before) == namespace.strip("/")
+
+
+def parse_rule(text: str) -> tuple[str, str, object]:
+    """`-p [node:]name:=value` -> (node, name, value as YAML); ValueError when malformed."""
+    if ":=" not in text:
+        raise ValueError(f"-p {text}: expected name:=value")
+    target, raw = text.split(":=", 1)
+    node, _, name = target.rpartition(":")
+    try:
+        value = yaml.safe_load(raw) if raw else ""
+    except yaml.YAMLError:
+        value = raw
+    return node, name, value
+
+
+# ROS arguments `up` passes on unchanged (after --ros-args), with how many values each takes
+PASSED_ROS_ARGS = {"--log-level": 1, "--log-config-file": 1, "--enclave": 1, "-e": 1,
+                   "--disable-rosout-logs": 0, "--enable-rosout-logs": 0,
+                   "--disable-stdout-logs": 0, "--enable-stdout-logs": 0,
+                   "--disable-external-lib-logs": 0, "--enable-external-lib-logs": 0,
+                   "--log-file-name": 1}
+
+
+@dataclass
+class RosArgs:
+    """The user's `--ros-args ...` as `up` reads them: the parameter sources in order
+    (("file", path) / ("rule", node, name, value, text)), the namespace remapping and the
+    arguments passed on as they are."""
+    sources: list
+    namespace: str
+    passed: list
+
+
+def read_ros_args(ros_args: list[str], is_up_option=lambda a: False) -> RosArgs:
+    """ValueError with one line for an argument `up` does not know (an `up` option put after
+    --ros-args, a typo)."""
+    sources, namespace, passed = [], "", []
+    args = [a for a in ros_args if a != "--ros-args"]
+    i = 0
+    while i < len(args):
+        arg = args[i]
+        value = args[i + 1] if i + 1 < len(args) else None
+        if arg == "--":
+            i += 1
+            continue
+        if arg in ("-p", "--param", "--params-file", "-r", "--remap") and value is None:
+            raise ValueError(f"--ros-args {arg}: needs a value")
+        if arg in ("-p", "--param"):
+            node, name, parsed = parse_rule(value)
+            sources.append(("rule", node, name, parsed, value))
+        elif arg == "--params-file":
+            sources.append(("file", value))
+        elif arg in ("-r", "--remap"):
+            if value.startswith("__ns:="):
+                namespace = value.split(":=", 1)[1]
+            elif value.startswith("__node:=") or value.startswith("__name:="):
+                raise ValueError(f"--ros-args {arg} {value}: the fleet's node names are fixed "
+                                 f"(mapf_simulator, mapf_policy_<i>, ...)")
+            else:
+                passed += [arg, value]
+        elif arg in PASSED_ROS_ARGS:
+            passed += args[i:i + 1 + PASSED_ROS_ARGS[arg]]
+            i += PASSED_ROS_ARGS[arg]
+        elif is_up_option(arg):
+            raise ValueError(f"{arg} is an option of `mapf-fleet up`: put it before --ros-args "
+                             f"(everything after --ros-args goes to the ROS nodes)")
+        else:
+            raise ValueError(f"--ros-args: unknown ROS argument {arg!r}")
+        i += 1 + (arg in ("-p", "--param", "--params-file", "-r", "--remap"))
+    return RosArgs(sources, namespace, passed)
+
+
+def _known_anywhere(name: str, tables) -> bool:
+    return (name in STANDARD or name.startswith("qos_overrides.") or name in ALIASES
+            or any(name in table for table in tables))
+
+
+def merged_values(node_names: list[str], namespace: str, user_files: list[str],
+                  options: dict, ros: RosArgs, defaults: dict | None = None):
+    """Every node's parameter values as `up` hands them over: the table's defaults <
+    `defaults` ({node kind: {name: value}}, `up`'s choices for this run) < the user's params
+    files `user_files` < `options` ({node kind: {name: (value, option)}}, the options given) <
+    the `--ros-args` sources in order. Node kind: 'sim' (the first name) or 'policy'.
+    Returns ({node name: {name: value}}, {node name: {name: where it came from}}); ValueError
+    with one line (file or option, field, value) for an unknown parameter or a refused value;
+    a deprecated alias is read as its name (warnings: the third value returned)."""
+    defaults = defaults or {}
+    values, origin, warnings = {}, {}, []
+    file_entries = {}
+    for path in user_files + [s[1] for s in ros.sources if s[0] == "file"]:
+        if path not in file_entries:
+            file_entries[path] = read_params_file(path)
+
+    def set_value(node, name, value, where):
+        table = table_of(node)
+        if name in ALIASES and ALIASES[name] in table:
+            note = f"{where}: {alias_warning(name)}"
+            if note not in warnings:
+                warnings.append(note)
+            name = ALIASES[name]
+        if name not in table:
+            return
+        problem = table[name].problem(value)
+        if problem:  # an option names its field itself ("--size must be >= 2, got 1")
+            one = where.startswith("--") and where != "--origin"
+            raise ValueError(f"{where} {problem}" if one else f"{where}: {name} {problem}")
+        values[node][name] = table[name].coerce(value)
+        origin[node][name] = where
+
+    def apply_file(path, node):
+        for key, params in file_entries[path]:
+            if key_applies(key, node, namespace):
+                for name, value in params.items():
+                    set_value(node, name, value, f"params file {path}: {key}")
+
+    kinds = [(node_names[0], table_of(node_names[0])), ("mapf_policy_0", POLICY)]
+    tables = [t for _, t in kinds]
+
+    def names_kind(key, node):
+        last = key.strip("/").split("/")[-1]
+        return key_applies(key, node, namespace) or (
+            node == "mapf_policy_0" and last.startswith("mapf_policy"))
+
+    for path, entries in file_entries.items():  # unknown keys: refused, whatever the node
+        for key, params in entries:
+            named = [t for n, t in kinds if names_kind(key, n)]
+            for name in params:
+                if not _known_anywhere(name, named or tables):
+                    known = sorted(set().union(*(named or tables)))
+                    raise ValueError(f"params file {path}: {key}: unknown parameter {name!r} "
+                                     f"(known: {', '.join(known)})")
+    for source in ros.sources:
+        if source[0] == "rule":
+            _, node, name, value, text = source
+            if not _known_anywhere(name, tables):
+                raise ValueError(f"-p {text}: unknown parameter {name!r}")
+    for index, node in enumerate(node_names):
+        kind = "sim" if index == 0 else "policy"
+        table = table_of(node)
+        values[node] = {name: p.default for name, p in table.items()}
+        origin[node] = {name: "default" for name in table}
+        for name, value in defaults.get(kind, {}).items():
+            set_value(node, name, value, "default")
+        for path in user_files:
+            apply_file(path, node)
+        for name, (value, option) in options.get(kind, {}).items():
+            set_value(node, name, value, option)
+        for source in ros.sources:
+            if source[0] == "file":
+                apply_file(source[1], node)
+            else:
+                _, target, name, value, text = source
+                if not target or fnmatch.fnmatchcase(node, target.strip("/").split("/")[-1]):
+                    set_value(node, name, value, f"-p {text}")
+    return values, origin, warnings
+
+
+def write_params_file(path, values: dict, namespace: str = "", skip=("robot_id",)) -> None:
+    """One entry per node, keyed by its full name, every value resolved."""
+    prefix = "/" + namespace.strip("/") if namespace.strip("/") else ""
+    data = {f"{prefix}/{node}": {"ros__parameters": {k: v for k, v in params.items()
+                                                     if k not in skip}}
+            for node, params in values.items()}
+    Path(path).write_text(yaml.safe_dump(data, sort_keys=False))
