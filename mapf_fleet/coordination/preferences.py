@@ -52,8 +52,14 @@ DEFAULT_Q_MODE = "q"
 #   generated 40x40/64 (seed 101, 50; where the margin was chosen): q_then_distance 0.74 (164),
 #     confidence 0.72 (135).
 # So `confidence` under pibt_anchor; `q` under plain pibt (measured there before; confidence
-# not measured under pibt).
-DEFAULT_Q_MODE_BY_RULE = {"pibt": "q", "pibt_anchor": "confidence"}
+# not measured under pibt). The swap and hindrance variants (coordination.pibt) take the ranking
+# of their base rule: `confidence` where the anchor is on, else `q`.
+DEFAULT_Q_MODE_BY_RULE = {
+    "pibt": "q", "pibt_anchor": "confidence",
+    "pibt_swap": "q", "pibt_anchor_swap": "confidence",
+    "pibt_hindrance": "q", "pibt_anchor_hindrance": "confidence",
+    "pibt_swap_hindrance": "q", "pibt_anchor_swap_hindrance": "confidence",
+}
 # `confidence`: the Q lead of the argmax over the runner-up above which the network's choice
 # goes first (Q units: one step costs 0.075). Chosen on generated 40x40 maps (density 0.3, seed
 # 101, 50 instances, 64 agents, pibt_anchor; never the published sets), the then default

@@ -35,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mapf_fleet.coordination.pibt import SHIELD_RULES
 from mapf_fleet.coordination.preferences import rank_actions, tie_breakers
 from mapf_fleet.fleet.arbiter import single_choice_ranking
 from mapf_fleet.fleet.record import Decisions
@@ -212,7 +213,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--checkpoint", nargs="+", default=["heuristic"], metavar="C",
                    help="checkpoint files, `heuristic` and/or `lacam` (default: heuristic)")
     p.add_argument("--shield", nargs="+", default=["pibt_anchor"],
-                   choices=["none", "pibt", "pibt_anchor"],
+                   choices=["none", *SHIELD_RULES],
                    help="conflict rule(s) for decentralized policies, one row each "
                         "(default: pibt_anchor, the fleet's default; none = the paper's rule)")
     p.add_argument("--preferences", default=None, metavar="MODE",

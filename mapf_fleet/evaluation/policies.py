@@ -26,9 +26,11 @@ HEURISTIC = "heuristic"
 REFERENCE_NAMES = (HEURISTIC, *PLANNER_NAMES)
 # none: the paper's environment (conflicting moves are reverted); pibt: CS-PIBT over the
 # rankings; pibt_anchor: the same with the top-priority agent on its distance order
-# (`PIBTShield(anchor=True)`)
+# (`PIBTShield(anchor=True)`); _swap, _hindrance: the PIBT variants (coordination.pibt)
 SHIELDS = ("none", *SHIELD_RULES)
-SHIELD_LABELS = {"pibt": "+PIBT", "pibt_anchor": "+PIBT-anchor"}
+# "+PIBT", "+PIBT-anchor", "+PIBT-anchor-swap", ...
+SHIELD_LABELS = {rule: "+PIBT" + "".join(f"-{part}" for part in rule.split("_")[1:])
+                 for rule in SHIELD_RULES}
 
 
 @dataclass(frozen=True)

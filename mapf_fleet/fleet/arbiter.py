@@ -8,6 +8,9 @@ Rules (`CONFLICT_RULES`):
           The batched evaluator's `--shield pibt` (`evaluation.runner.run_decentralized`).
   pibt_anchor  the same, with the highest-priority robot on its distance order whatever it
           ranked (`PIBTShield(anchor=True)`; measured in docs/results.md).
+  pibt[_anchor]_swap, pibt[_anchor][_swap]_hindrance  the same with lacam3's swap in
+          corridors and/or the hindrance tie-break (`coordination.pibt.rule_options`; every
+          guarantee below holds for each).
   revert  the paper's environment: `grid.env.resolve_moves` on the first choices (a conflicting
           move is reverted to "stay").
 

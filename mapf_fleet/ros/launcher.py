@@ -127,14 +127,17 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--conflict-rule", choices=CONFLICT_RULES, default=DEFAULT_CONFLICT_RULE,
                         help="how the arbiter resolves a tick: pibt (PIBT over the robots' "
                              "ranked actions), pibt_anchor (the same, the top-priority robot on "
-                             "its distance order) or revert (the paper's rules on first choices)")
+                             "its distance order), their _swap / _hindrance variants "
+                             "(docs/coordination.md) or revert (the paper's rules on first "
+                             "choices)")
     parser.add_argument("--preference-mode", default=None,
                         help="how policy nodes rank their actions from Q-values (default: "
                              "the policy nodes' preference_mode if a params file sets it, else "
                              "the ranking the checkpoint records for the conflict rule "
                              "(metadata rankings, e.g. a DAgger round's), else the rule's, "
                              "coordination.preferences.default_q_mode: confidence under "
-                             "pibt_anchor, q under pibt and revert)")
+                             "pibt_anchor and its variants, q under pibt, its variants and "
+                             "revert)")
     parser.add_argument("--nodes-per-process", type=int, default=1,
                         help="robots' policy nodes hosted per process (one hub each; 32 for "
                              "large fleets)")

@@ -41,8 +41,9 @@ INSTANCE_PARAMETERS = {
 RUN_PARAMETERS = {
     "conflict_rule": (DEFAULT_CONFLICT_RULE, "how the tick's decisions become moves: pibt (PIBT over the "
                               "robots' ranked actions, nothing reverted), pibt_anchor (the same, "
-                              "the top-priority robot on its distance order) or revert (the "
-                              "paper's rules on the first choices)"),
+                              "the top-priority robot on its distance order), their _swap / "
+                              "_hindrance variants (coordination.pibt.SHIELD_RULES) or revert "
+                              "(the paper's rules on the first choices)"),
     "max_steps": (256, "tick limit: a one-shot run fails when robots are not all on goal by "
                        "then; continuous runs end there (0: no limit, continuous task sources)"),
     "task_source": ("instance", f"where goals come from: {' | '.join(TASK_SOURCES)} (instance: "
