@@ -75,6 +75,8 @@ real-robot aggregator all call this one implementation.
 from __future__ import annotations
 
 import sys
+from array import array
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -188,7 +190,7 @@ class PIBTShield:
         # BFS distances per goal CELL (not per agent): a fleet that hands out new goals at run
         # time (lifelong streams, tasks) reuses a cell's map whichever agent heads there
         self._distance_maps: dict[tuple[int, int], np.ndarray] = {}
-        self._distance_lists: dict[tuple[int, int], list[int]] = {}
+        self._distance_lists: dict[tuple[int, int], Sequence[int]] = {}
 
     def reset(self) -> None:
         """Start a new episode: every priority back to its tie-breaker."""
@@ -229,14 +231,15 @@ class PIBTShield:
                 del self._distance_maps[next(iter(self._distance_maps))]
         return found
 
-    def _distance_list(self, agent: int) -> list[int]:
-        """`distance_map(agent)` as a list, unreachable cells at a distance above any path
-        (the search loops index it cell by cell)."""
+    def _distance_list(self, agent: int) -> Sequence[int]:
+        """`distance_map(agent)` as a flat int32 array.array (indexed cell by cell by the
+        search loops: Python ints, no numpy scalars; 4 bytes a cell where a list costs 36 on
+        large maps), unreachable cells at a distance above any path."""
         goal = (int(self.goals[agent, 0]), int(self.goals[agent, 1]))
         found = self._distance_lists.get(goal)
         if found is None:
             dist = self.distance_map(agent)
-            found = np.where(dist >= 0, dist, dist.size + 1).tolist()
+            found = array("i", np.where(dist >= 0, dist, dist.size + 1).astype(np.int32).tobytes())
             self._distance_lists[goal] = found
             if len(self._distance_lists) > MAX_DISTANCE_MAPS:
                 del self._distance_lists[next(iter(self._distance_lists))]
