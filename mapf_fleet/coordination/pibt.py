@@ -404,17 +404,15 @@ class PIBTShield:
         would lose a move closer to their goal if i took the cell."""
         if len(ranked) < 2:
             return ranked
+        neighbours = [(c, occupied_now[c]) for c in self._neighbors[current[i]]
+                      if c in occupied_now]
+        if not neighbours:
+            return ranked  # nobody to hinder (most agents on a sparse map): nothing to compute
         dist = self._distance_list(i)
         d = [dist[c] for c in ranked]
         if all(d[k] != d[k + 1] for k in range(len(d) - 1)):
             return ranked  # no ties
-        neighbours = []
-        for c in self._neighbors[current[i]]:
-            j = occupied_now.get(c, -1)
-            if j >= 0:
-                neighbours.append((c, self._distance_list(j)))
-        if not neighbours:
-            return ranked
+        neighbours = [(c, self._distance_list(j)) for c, j in neighbours]
 
         def hindrance(cell: int) -> int:
             return sum(1 for at, dj in neighbours if at != cell and dj[cell] < dj[at])
