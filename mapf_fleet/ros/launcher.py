@@ -9,10 +9,11 @@ one process share one hub (one subscription per shared topic, batched inference)
 /robot_<i>/pose and follow /robot_<i>/waypoint. Every process gets
 ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST.
 
-The simulator (or the aggregator) arbitrates each tick with `--conflict-rule`: `pibt_anchor`
-(default: PIBT over the robots' ranked actions with the top-priority robot on its distance order;
-nothing is reverted), `pibt` (CS-PIBT as published) or `revert` (the paper's environment: conflicting
-first choices are reverted).
+The simulator (or the aggregator) arbitrates each tick with `--conflict-rule`: `pibt_anchor_swap`
+(default: PIBT over the robots' ranked actions with the top-priority robot on its distance order
+and lacam3's swap in corridors; nothing is reverted), `pibt_anchor` (the same without swap), `pibt`
+(CS-PIBT as published), the other `_swap` / `_hindrance` variants, or `revert` (the paper's
+environment: conflicting first choices are reverted).
 
 With no arguments: 8 simulated robots on a generated 16x16 map, checkpoint models/default.pt.
 """

@@ -229,15 +229,15 @@ def test_real_robots_with_random_delays_never_share_a_cell(rule):
     assert moved > 50 and late_seen > 0
 
 
-def test_fleet_up_defaults_to_the_anchored_pibt_arbiter():
+def test_fleet_up_defaults_to_the_anchored_pibt_arbiter_with_swap():
     from mapf_fleet.ros.launcher import build_parser
     from mapf_fleet.ros.lockstep import RUN_PARAMETERS
 
-    assert build_parser().parse_args([]).conflict_rule == "pibt_anchor"
+    assert build_parser().parse_args([]).conflict_rule == "pibt_anchor_swap"
     assert build_parser().parse_args(["--conflict-rule", "pibt"]).conflict_rule == "pibt"
     assert build_parser().parse_args(["--conflict-rule", "revert"]).conflict_rule == "revert"
     with pytest.raises(SystemExit):
         build_parser().parse_args(["--conflict-rule", "swap"])
     for rule in SHIELD_RULES:  # every PIBT variant reaches the simulator / aggregator
         assert build_parser().parse_args(["--conflict-rule", rule]).conflict_rule == rule
-    assert RUN_PARAMETERS["conflict_rule"][0] == "pibt_anchor"
+    assert RUN_PARAMETERS["conflict_rule"][0] == "pibt_anchor_swap"
