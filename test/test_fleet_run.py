@@ -221,7 +221,7 @@ def test_lifelong_rollout_is_deterministic_and_the_same_for_every_policy_goal_st
     assert shortest >= 2 and streams[0][:shortest] == streams[1][:shortest]
 
 
-@pytest.mark.parametrize("rule", ["pibt", "pibt_anchor"])
+@pytest.mark.parametrize("rule", ["pibt", "pibt_anchor", "pibt_swap", "pibt_anchor_swap_hindrance"])
 def test_an_idle_robot_in_a_dead_end_clears_a_busy_robots_goal(rule):
     """Goal (0, 0) is a dead end whose only way in is (1, 0), and an idle robot stands on it:
     plain PIBT would push it deeper forever (a dead end is on no cycle); the idle robot is sent

@@ -24,6 +24,50 @@ step, its priority only rises until it arrives, so every agent in turn reaches i
 the top agent's ranking to be a distance order; a learned ranking (CS-PIBT) can stall it, which is
 where learned rankings lose to plain PIBT in crowds. Measured in docs/results.md.
 
+Swap (`swap=True`, off by default; lacam3's PIBT, Okumura, "Engineering LaCAM*", AAMAS 2024,
+after "Improving LaCAM", IJCAI 2023): plain PIBT cannot get two agents past each other in a
+corridor (the one in front can only be pushed ahead, never through). When an agent's first
+candidate cell holds an undecided agent with which it must trade places (walking the corridor
+from there with the pusher's distances finds no branch before the pusher's goal, and the other
+agent wants the pusher's cell: `_swap_required`) and trading is possible (walking back along
+the corridor behind the pusher finds a branch cell: `_swap_possible`), or, one step ahead, a
+neighbour will have to trade with it (the "clear" case), the agent reverses its candidate order
+for this tick and, when it gets the first cell of the reversed order, pulls that agent into the
+cell it leaves. Over a few ticks the pair backs out to the branch, where the pulled one steps
+aside. Combined with a learned ranking: the agent's ranking is its candidate order, and only a
+required and possible swap reverses it (the swap test uses BFS distances, the shield's own
+maps); the pulled agent's own ranking is not asked (it is marked overridden when the pull is
+not its first choice). With the anchor: the top agent's distance order is what swap reverses;
+PIBT's reachability argument then no longer holds tick by tick (the top agent may back away
+from its goal), which is lacam3's trade: the argument fails in corridors anyway, where swap
+gets the pair through.
+
+Hindrance (`hindrance=True`, off by default; Okumura & Nagai, "Lightweight and Effective
+Preference Construction in PIBT", SoCS 2025): candidates at equal distance to the agent's goal
+are ordered by how many agents standing next to the agent would lose a move that gets them
+closer to their own goals if the agent took that cell (a neighbour j counts against cell v when
+j is not on v and dist_j(v) < dist_j(j's cell)); fewer first. Which moves the ranking leaves
+tied: every maximal run of consecutive candidates in the agent's ranking at the same BFS
+distance to its goal (stable: equal hindrance keeps the ranking's order). Under the distance
+ranking (plain PIBT, the heuristic, the anchored top agent, `confidence` where the network is
+not sure) these runs are exactly the moves the per-tick hash ordered, so it is the paper's
+(distance, hindrance, random) order. Under a learned ranking the network's order between moves
+at different distances always stands (a choice to wait or detour is kept); only its order
+between two equally short moves, adjacent in its ranking, may be overruled in favour of the
+one that blocks fewer neighbours. Combined with swap: hindrance orders the candidates first,
+swap then reverses that order when a swap is required and possible.
+
+Guarantees, for every combination of anchor, swap and hindrance (each property-tested on random
+maps, positions and rankings): no two agents in one cell; no two agents trading cells in one
+tick (the swap option trades places over several ticks, never through each other); every agent
+moves at most one cell, never onto an obstacle or off the map; a fixed (held) agent stays where
+it is and is never pushed nor pulled; reserved cells stay free. (A pull only moves an undecided
+agent into the cell the puller leaves, a cell no one else has taken, and the puller never moves
+into the pulled agent's cell in the same tick.)
+
+Rule names (`SHIELD_RULES`, parsed by `rule_options`): `pibt[_anchor][_swap][_hindrance]`, the
+options in that order.
+
 numpy only (no torch, no rclpy): the evaluator, the trainer's actors, the simulator and the
 real-robot aggregator all call this one implementation.
 """
@@ -31,6 +75,8 @@ real-robot aggregator all call this one implementation.
 from __future__ import annotations
 
 import sys
+from array import array
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,9 +85,28 @@ from mapf_fleet.grid.actions import ACTION_DELTAS, NUM_ACTIONS
 
 from .preferences import tie_breakers
 
+# The options a rule name may add to "pibt", in the order they appear in it
+RULE_OPTIONS = ("anchor", "swap", "hindrance")
 # The shield rules every caller (evaluator `--shield`, trainer `shield`, fleet `conflict_rule`)
-# offers besides its unshielded rule: `make_shield` builds the one named.
-SHIELD_RULES = ("pibt", "pibt_anchor")
+# offers besides its unshielded rule: `make_shield` builds the one named. Every subset of the
+# options, the original two rules first.
+SHIELD_RULES = ("pibt", "pibt_anchor", "pibt_swap", "pibt_anchor_swap", "pibt_hindrance",
+                "pibt_anchor_hindrance", "pibt_swap_hindrance", "pibt_anchor_swap_hindrance")
+
+
+def rule_options(rule: str) -> dict[str, bool]:
+    """{"anchor", "swap", "hindrance": bool} of a shield rule `pibt[_anchor][_swap][_hindrance]`
+    (one of SHIELD_RULES); ValueError naming the rule otherwise."""
+    if rule not in SHIELD_RULES:
+        raise ValueError(f"shield rule must be one of {SHIELD_RULES}, got {rule!r}")
+    parts = rule.split("_")[1:]
+    return {option: option in parts for option in RULE_OPTIONS}
+
+
+def rule_name(anchor: bool = False, swap: bool = False, hindrance: bool = False) -> str:
+    """The shield rule with these options (the inverse of `rule_options`)."""
+    flags = {"anchor": anchor, "swap": swap, "hindrance": hindrance}
+    return "_".join(["pibt", *(o for o in RULE_OPTIONS if flags[o])])
 
 # Distance maps kept per shield (one per goal cell; 6.4 kB each at 40x40, 26 kB at 80x80)
 MAX_DISTANCE_MAPS = 4096
@@ -83,10 +148,13 @@ class PIBTShield:
     """PIBT for one fleet on one map. `step` resolves one tick and advances the priorities.
 
     grid: (H, W) bool/uint8, nonzero = obstacle. goals: (N, 2) (row, col) cells.
-    anchor: the highest-priority agent follows its distance order (module docstring).
+    anchor: the highest-priority agent follows its distance order; swap: lacam3's swap in
+    corridors; hindrance: equally short moves ordered by the neighbours they block (module
+    docstring).
     """
 
-    def __init__(self, grid, goals, anchor: bool = False):
+    def __init__(self, grid, goals, anchor: bool = False, swap: bool = False,
+                 hindrance: bool = False):
         grid = np.asarray(grid)
         if grid.ndim != 2:
             raise ValueError(f"grid must be 2-D, got shape {grid.shape}")
@@ -96,6 +164,7 @@ class PIBTShield:
         if goals.ndim != 2 or goals.shape[1] != 2:
             raise ValueError(f"goals must have shape (N, 2), got {goals.shape}")
         self.goals = goals.copy()  # own copy: `set_goals` compares against it
+        self._goal_flat = (self.goals[:, 0] * grid.shape[1] + self.goals[:, 1]).tolist()
         self.num_agents = len(goals)
         self._blocked = self.grid.ravel().tolist()
         # _targets[cell, action]: the flat cell an action leads to, -1 off the map / obstacle
@@ -113,10 +182,15 @@ class PIBTShield:
         self.base_priority = np.arange(self.num_agents, dtype=np.float64) / (self.num_agents + 1)
         self.priorities = self.base_priority.copy()
         self.anchor = bool(anchor)
+        self.swap = bool(swap)
+        self.hindrance = bool(hindrance)
+        # valid neighbour cells per flat cell (swap walks corridors, hindrance reads neighbours)
+        self._neighbors = [[c for c in row if c >= 0] for row in self._targets[:, 1:].tolist()]
         self.tick = 0  # steps since reset: the anchor's tie-breakers
         # BFS distances per goal CELL (not per agent): a fleet that hands out new goals at run
         # time (lifelong streams, tasks) reuses a cell's map whichever agent heads there
         self._distance_maps: dict[tuple[int, int], np.ndarray] = {}
+        self._distance_lists: dict[tuple[int, int], Sequence[int]] = {}
 
     def reset(self) -> None:
         """Start a new episode: every priority back to its tie-breaker."""
@@ -138,6 +212,7 @@ class PIBTShield:
         changed = (goals != self.goals).any(axis=1)
         if changed.any():
             self.goals = goals.copy()
+            self._goal_flat = (self.goals[:, 0] * self.width + self.goals[:, 1]).tolist()
             self.priorities = np.where(changed, self.base_priority, self.priorities)
         return changed
 
@@ -154,6 +229,20 @@ class PIBTShield:
             found = self._distance_maps[goal] = bfs_distances(self.grid, goal).ravel()
             if len(self._distance_maps) > MAX_DISTANCE_MAPS:  # a long lifelong run: oldest out
                 del self._distance_maps[next(iter(self._distance_maps))]
+        return found
+
+    def _distance_list(self, agent: int) -> Sequence[int]:
+        """`distance_map(agent)` as a flat int32 array.array (indexed cell by cell by the
+        search loops: Python ints, no numpy scalars; 4 bytes a cell where a list costs 36 on
+        large maps), unreachable cells at a distance above any path."""
+        goal = (int(self.goals[agent, 0]), int(self.goals[agent, 1]))
+        found = self._distance_lists.get(goal)
+        if found is None:
+            dist = self.distance_map(agent)
+            found = array("i", np.where(dist >= 0, dist, dist.size + 1).astype(np.int32).tobytes())
+            self._distance_lists[goal] = found
+            if len(self._distance_lists) > MAX_DISTANCE_MAPS:
+                del self._distance_lists[next(iter(self._distance_lists))]
         return found
 
     def anchored_ranking(self, agent: int, cell: int) -> np.ndarray:
@@ -224,6 +313,9 @@ class PIBTShield:
             cell = int(cells[counts > 1][0])
             who = np.flatnonzero(current_flat == cell).tolist()
             raise ValueError(f"agents {who} share the cell {divmod(cell, w)}")
+        if self.hindrance:
+            for i in np.flatnonzero(~fixed).tolist():
+                candidates[i] = self._hindrance_order(i, candidates[i], current, occupied_now)
         occupied_next: dict[int, int] = {}
         decided = [-1] * n  # next flat cell per agent, -1 undecided
         fixed = fixed.copy()
@@ -254,9 +346,17 @@ class PIBTShield:
                 if occupied_next.get(cell) == i:
                     del occupied_next[cell]
 
+        swap = self.swap
+
         def funnel(i: int, caller: int) -> bool:
             here = current[i]
-            for cell in candidates[i]:
+            ranked = candidates[i]
+            partner = -1
+            if swap and ranked:
+                partner = self._swap_partner(i, ranked[0], current, occupied_now, decided)
+                if partner >= 0:
+                    ranked = ranked[::-1]  # back away, pulling the partner behind
+            for k, cell in enumerate(ranked):
                 if cell in occupied_next:
                     continue
                 if caller >= 0 and cell == current[caller]:
@@ -270,6 +370,12 @@ class PIBTShield:
                     if not funnel(other, i):  # the occupant must make room first
                         rollback(mark)
                         continue
+                if (k == 0 and partner >= 0 and decided[partner] < 0 and cell != here
+                        and here not in occupied_next):
+                    # the pull: the partner (undecided, so neither fixed nor on a reserved
+                    # cell) takes the cell we leave; we did not take its cell (it would be
+                    # decided then), so nobody trades cells
+                    assign(partner, here)
                 return True
             if caller < 0 and here not in occupied_next:
                 assign(i, here)  # not pushed: staying is always possible
@@ -290,6 +396,103 @@ class PIBTShield:
         self.tick += 1
         return ShieldStep(new_positions, actions, overridden)
 
+    # --- hindrance ------------------------------------------------------------------------------
+    def _hindrance_order(self, i: int, ranked: list[int], current: list[int],
+                         occupied_now: dict[int, int]) -> list[int]:
+        """`ranked` (agent i's candidate cells, best first) with every run of consecutive cells
+        at equal distance to i's goal stably sorted by hindrance: how many agents next to i
+        would lose a move closer to their goal if i took the cell."""
+        if len(ranked) < 2:
+            return ranked
+        neighbours = [(c, occupied_now[c]) for c in self._neighbors[current[i]]
+                      if c in occupied_now]
+        if not neighbours:
+            return ranked  # nobody to hinder (most agents on a sparse map): nothing to compute
+        dist = self._distance_list(i)
+        d = [dist[c] for c in ranked]
+        if all(d[k] != d[k + 1] for k in range(len(d) - 1)):
+            return ranked  # no ties
+        neighbours = [(c, self._distance_list(j)) for c, j in neighbours]
+
+        def hindrance(cell: int) -> int:
+            return sum(1 for at, dj in neighbours if at != cell and dj[cell] < dj[at])
+
+        out: list[int] = []
+        start = 0
+        for end in range(1, len(ranked) + 1):
+            if end == len(ranked) or d[end] != d[start]:
+                run = ranked[start:end]
+                if len(run) > 1:
+                    run = sorted(run, key=hindrance)  # stable: the ranking breaks equal counts
+                out.extend(run)
+                start = end
+        return out
+
+    # --- swap (lacam3) --------------------------------------------------------------------------
+    def _free_degree(self, cell: int, came_from: int, occupied_now: dict[int, int]):
+        """(number of ways on from `cell` other than back to `came_from`, one of them): a dead
+        end holding an agent on its goal counts as a wall, as in lacam3."""
+        ways, other = 0, -1
+        for u in self._neighbors[cell]:
+            if u == came_from:
+                continue
+            j = occupied_now.get(u, -1)
+            if j >= 0 and len(self._neighbors[u]) == 1 and self._goal_flat[j] == u:
+                continue
+            ways += 1
+            other = u
+        return ways, other
+
+    def _swap_required(self, pusher: int, puller: int, v_pusher: int, v_puller: int,
+                       occupied_now: dict[int, int]) -> bool:
+        """Must `pusher` (at v_pusher) and `puller` (at v_puller) trade places? Walk on from
+        v_puller while it gets the pusher closer: a branch on the way lets them pass without a
+        swap; else a swap is required when the puller wants v_pusher and the pusher wants on."""
+        d_push = self._distance_list(pusher)
+        d_pull = self._distance_list(puller)
+        while d_push[v_puller] < d_push[v_pusher]:
+            ways, nxt = self._free_degree(v_puller, v_pusher, occupied_now)
+            if ways >= 2:
+                return False  # a branch: they can pass each other there
+            if ways <= 0:
+                break
+            v_pusher, v_puller = v_puller, nxt
+        return (d_pull[v_pusher] < d_pull[v_puller]
+                and (d_push[v_pusher] == 0 or d_push[v_puller] < d_push[v_pusher]))
+
+    def _swap_possible(self, v_pusher_origin: int, v_puller_origin: int,
+                       occupied_now: dict[int, int]) -> bool:
+        """Is there a branch behind v_puller_origin (walking away from v_pusher_origin) where
+        the pair can trade places?"""
+        v_pusher, v_puller = v_pusher_origin, v_puller_origin
+        while v_puller != v_pusher_origin:  # round a ring corridor: no branch
+            ways, nxt = self._free_degree(v_puller, v_pusher, occupied_now)
+            if ways >= 2:
+                return True
+            if ways <= 0:
+                return False
+            v_pusher, v_puller = v_puller, nxt
+        return False
+
+    def _swap_partner(self, i: int, target: int, current: list[int],
+                      occupied_now: dict[int, int], decided: list[int]) -> int:
+        """The agent agent i must swap with this tick (-1: none), i's first candidate `target`
+        (lacam3's `is_swap_required_and_possible`)."""
+        here = current[i]
+        j = occupied_now.get(target, -1)
+        if (j >= 0 and j != i and decided[j] < 0
+                and self._swap_required(i, j, here, target, occupied_now)
+                and self._swap_possible(target, here, occupied_now)):
+            return j
+        if target != here:  # clear: a neighbour that will have to swap with i one step ahead
+            for u in self._neighbors[here]:
+                k = occupied_now.get(u, -1)
+                if (k >= 0 and u != target  # decided or not, as lacam3 (the pull checks)
+                        and self._swap_required(k, i, here, target, occupied_now)
+                        and self._swap_possible(target, here, occupied_now)):
+                    return k
+        return -1
+
     def advance_priorities(self, positions) -> None:
         """PIBT's dynamic priorities after a step that left the agents at `positions` (N, 2):
         back to the tie-breaker on the goal, one more off it. `step` calls it; a caller that
@@ -299,10 +502,10 @@ class PIBTShield:
 
 
 def make_shield(rule: str, grid, goals) -> PIBTShield | None:
-    """The shield of a rule: None for "none" / "revert" (no shield), else `PIBTShield` (with the
-    anchor for "pibt_anchor")."""
+    """The shield of a rule: None for "none" / "revert" (no shield), else `PIBTShield` with the
+    options the name carries (`rule_options`)."""
     if rule in ("none", "revert"):
         return None
     if rule not in SHIELD_RULES:
         raise ValueError(f"shield rule must be 'none' or one of {SHIELD_RULES}, got {rule!r}")
-    return PIBTShield(grid, goals, anchor=rule == "pibt_anchor")
+    return PIBTShield(grid, goals, **rule_options(rule))

@@ -52,8 +52,14 @@ DEFAULT_Q_MODE = "q"
 #   generated 40x40/64 (seed 101, 50; where the margin was chosen): q_then_distance 0.74 (164),
 #     confidence 0.72 (135).
 # So `confidence` under pibt_anchor; `q` under plain pibt (measured there before; confidence
-# not measured under pibt).
-DEFAULT_Q_MODE_BY_RULE = {"pibt": "q", "pibt_anchor": "confidence"}
+# not measured under pibt). The swap and hindrance variants (coordination.pibt) take the ranking
+# of their base rule: `confidence` where the anchor is on, else `q`.
+DEFAULT_Q_MODE_BY_RULE = {
+    "pibt": "q", "pibt_anchor": "confidence",
+    "pibt_swap": "q", "pibt_anchor_swap": "confidence",
+    "pibt_hindrance": "q", "pibt_anchor_hindrance": "confidence",
+    "pibt_swap_hindrance": "q", "pibt_anchor_swap_hindrance": "confidence",
+}
 # `confidence`: the Q lead of the argmax over the runner-up above which the network's choice
 # goes first (Q units: one step costs 0.075). Chosen on generated 40x40 maps (density 0.3, seed
 # 101, 50 instances, 64 agents, pibt_anchor; never the published sets), the then default
@@ -70,9 +76,25 @@ def default_q_mode(rule: str, recorded: Mapping[str, str] | None = None) -> str:
     rule's default. A checkpoint trained on the states one ranking visits does best under that
     ranking (DAgger, pibt_anchor, 40x40/64, 100 instances: q_then_distance 0.77, confidence
     0.66), whatever the rule's default measured best for models/archive/dcc_4x25_cl_alpha1.0.pt."""
-    if recorded and rule in recorded:
-        return recorded[rule]
+    found = recorded_ranking(rule, recorded)
+    if found is not None:
+        return found
     return DEFAULT_Q_MODE_BY_RULE.get(rule, DEFAULT_Q_MODE)
+
+
+def recorded_ranking(rule: str, recorded: Mapping[str, str] | None) -> str | None:
+    """The ranking a checkpoint records for `rule`, else for its base rule (a swap / hindrance
+    variant is the same arbiter for the ranking's purpose: `pibt_anchor_swap` reads what was
+    recorded for `pibt_anchor`), else None."""
+    if not recorded:
+        return None
+    if rule in recorded:
+        return recorded[rule]
+    from .pibt import SHIELD_RULES, rule_name, rule_options  # pibt imports this module
+
+    if rule in SHIELD_RULES:
+        return recorded.get(rule_name(anchor=rule_options(rule)["anchor"]))
+    return None
 
 # distance classes of a move, lower is better
 _CLOSER, _STAY, _AWAY, _BLOCKED = 0, 1, 2, 3

@@ -35,8 +35,9 @@ from pathlib import Path
 
 import numpy as np
 
+from mapf_fleet.coordination.pibt import SHIELD_RULES
 from mapf_fleet.coordination.preferences import rank_actions, tie_breakers
-from mapf_fleet.fleet.arbiter import single_choice_ranking
+from mapf_fleet.fleet.arbiter import DEFAULT_CONFLICT_RULE, single_choice_ranking
 from mapf_fleet.fleet.record import Decisions
 from mapf_fleet.fleet.run import FleetRun
 from mapf_fleet.fleet.tasks import LifelongTasks
@@ -207,10 +208,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="lifelong MAPF: a new goal on arrival, throughput over --steps")
     p.add_argument("--checkpoint", nargs="+", default=["heuristic"], metavar="C",
                    help="checkpoint files, `heuristic` and/or `lacam` (default: heuristic)")
-    p.add_argument("--shield", nargs="+", default=["pibt_anchor"],
-                   choices=["none", "pibt", "pibt_anchor"],
+    p.add_argument("--shield", nargs="+", default=[DEFAULT_CONFLICT_RULE],
+                   choices=["none", *SHIELD_RULES],
                    help="conflict rule(s) for decentralized policies, one row each "
-                        "(default: pibt_anchor, the fleet's default; none = the paper's rule)")
+                        f"(default: {DEFAULT_CONFLICT_RULE}, the fleet's default; none = the "
+                        "paper's rule)")
     p.add_argument("--preferences", default=None, metavar="MODE",
                    help="ranking mode of checkpoints under a shield (default: the evaluator's)")
     p.add_argument("--kinds", nargs="+", default=["dense"], choices=list(KINDS),

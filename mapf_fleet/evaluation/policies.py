@@ -20,15 +20,17 @@ import numpy as np
 from mapf_fleet.coordination.planners import PLANNER_NAMES
 from mapf_fleet.coordination.pibt import SHIELD_RULES
 from mapf_fleet.coordination.preferences import (DEFAULT_Q_MODE, PREFERENCE_MODES, Q_MODES,
-                                                 default_q_mode)
+                                                 default_q_mode, recorded_ranking)
 
 HEURISTIC = "heuristic"
 REFERENCE_NAMES = (HEURISTIC, *PLANNER_NAMES)
 # none: the paper's environment (conflicting moves are reverted); pibt: CS-PIBT over the
 # rankings; pibt_anchor: the same with the top-priority agent on its distance order
-# (`PIBTShield(anchor=True)`)
+# (`PIBTShield(anchor=True)`); _swap, _hindrance: the PIBT variants (coordination.pibt)
 SHIELDS = ("none", *SHIELD_RULES)
-SHIELD_LABELS = {"pibt": "+PIBT", "pibt_anchor": "+PIBT-anchor"}
+# "+PIBT", "+PIBT-anchor", "+PIBT-anchor-swap", ...
+SHIELD_LABELS = {rule: "+PIBT" + "".join(f"-{part}" for part in rule.split("_")[1:])
+                 for rule in SHIELD_RULES}
 
 
 @dataclass(frozen=True)
@@ -77,7 +79,7 @@ def with_shield(spec: PolicySpec, shield: str, preferences: str | None = None) -
         raise ValueError(f"--preferences {preferences}: the heuristic has no Q-values "
                          f"(its ranking is 'distance'); the Q modes are {Q_MODES}")
     # the ranking is named unless it comes from the rule's table: asked for, or the checkpoint's
-    named = preferences if preferences is not None else dict(spec.rankings).get(shield)
+    named = preferences if preferences is not None else recorded_ranking(shield, dict(spec.rankings))
     label = SHIELD_LABELS[shield] + ("" if named is None else f"({named})")
     return replace(spec, name=f"{spec.name} {label}", shield=shield, preferences=preferences)
 

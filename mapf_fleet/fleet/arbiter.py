@@ -8,6 +8,9 @@ Rules (`CONFLICT_RULES`):
           The batched evaluator's `--shield pibt` (`evaluation.runner.run_decentralized`).
   pibt_anchor  the same, with the highest-priority robot on its distance order whatever it
           ranked (`PIBTShield(anchor=True)`; measured in docs/results.md).
+  pibt[_anchor]_swap, pibt[_anchor][_swap]_hindrance  the same with lacam3's swap in
+          corridors and/or the hindrance tie-break (`coordination.pibt.rule_options`; every
+          guarantee below holds for each).
   revert  the paper's environment: `grid.env.resolve_moves` on the first choices (a conflicting
           move is reverted to "stay").
 
@@ -29,9 +32,11 @@ from mapf_fleet.coordination.pibt import SHIELD_RULES, make_shield
 from mapf_fleet.grid.actions import NUM_ACTIONS, STAY, actions_between
 
 CONFLICT_RULES = (*SHIELD_RULES, "revert")
-# The fleet's default: measured above plain "pibt" with the shipped policy (docs/results.md: 40x40
-# at 64 agents 0.700 vs 0.490, fewer steps at every count; structured maps at 64)
-DEFAULT_CONFLICT_RULE = "pibt_anchor"
+# The fleet's default: the anchor measured above plain "pibt" with the shipped policy (40x40 at 64
+# agents 0.700 vs 0.490), swap on top of it above "pibt_anchor" on every family measured, one-shot
+# and lifelong, with the heuristic and with the learned default; hindrance added nothing on top
+# of swap (docs/results.md, PIBT variants)
+DEFAULT_CONFLICT_RULE = "pibt_anchor_swap"
 
 
 def check_conflict_rule(rule: str) -> str:

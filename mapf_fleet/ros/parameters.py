@@ -110,7 +110,8 @@ _RUN = {
     "conflict_rule": Param(DEFAULT_CONFLICT_RULE,
                            "how the tick's decisions become moves: pibt (PIBT over the robots' "
                            "ranked actions, nothing reverted), pibt_anchor (the same, the "
-                           "top-priority robot on its distance order) or revert (the paper's "
+                           "top-priority robot on its distance order), their _swap / _hindrance "
+                           "variants (coordination.pibt.SHIELD_RULES) or revert (the paper's "
                            "rules on the first choices)", choices=CONFLICT_RULES),
     "max_steps": Param(256, "tick limit: a one-shot run fails when robots are not all on goal "
                             "by then; continuous runs end there (0: no limit, continuous task "

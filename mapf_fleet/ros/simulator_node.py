@@ -3,13 +3,15 @@
 Tick k: publish the fleet state of k (and poses, markers); wait for every robot's move for k (a
 move missing after `decision_timeout` counts as "stay" and is reported, and the robot cannot be
 pushed); arbitrate the moves with `conflict_rule` (`arbiter.TickArbiter`: "pibt" = PIBT over the
-robots' ranked actions, "pibt_anchor" (default) = the same with the top-priority robot on its
-distance order, "revert" = the paper's grid.resolve_moves on their first choices);
+robots' ranked actions, "pibt_anchor" = the same with the top-priority robot on its
+distance order, their "_swap" / "_hindrance" variants (coordination.pibt.SHIELD_RULES; the
+default `pibt_anchor_swap`),
+"revert" = the paper's grid.resolve_moves on their first choices);
 command each robot's waypoint; publish progress; go on with k + 1. The run itself (cells, goals,
 tasks, arbiter, record) is the fleet core's `fleet.run.FleetRun` (`task_source`: the one-shot
 instance, lifelong goals, a task list, or external goals only); goals also come at run time
 (`ros.goals.GoalServer`: goal_pose, navigate_to_pose, fleet/submit_tasks). The state's `last_actions`
-are the executed actions under "pibt" / "pibt_anchor" (DCC's last-action input, as the evaluator's shield) and
+are the executed actions under the PIBT rules (DCC's last-action input, as the evaluator's shield) and
 the robots' first choices under "revert" (as the paper's environment). At the end the outcome
 (success, steps, collisions, missed decisions) is published (latched) and optionally written to
 `record_file` as JSON with the whole trajectory. The tick bookkeeping it shares with the

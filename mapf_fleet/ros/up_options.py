@@ -30,10 +30,13 @@ one process share one hub (one subscription per shared topic, batched inference)
 /robot_<i>/pose and follow /robot_<i>/waypoint. Every process gets
 ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST.
 
-The simulator (or the aggregator) arbitrates each tick with `--conflict-rule`: `pibt_anchor`
-(default: PIBT over the robots' ranked actions with the top-priority robot on its distance order;
-nothing is reverted), `pibt` (CS-PIBT as published) or `revert` (the paper's environment: conflicting
-first choices are reverted).
+The simulator (or the aggregator) arbitrates each tick with `--conflict-rule`: `pibt_anchor_swap`
+(default: PIBT over the robots' ranked actions with the top-priority robot on its distance order
+and lacam3's swap in corridors; nothing is reverted), `pibt_anchor` (the same without swap),
+`pibt` (CS-PIBT as published), the other `_swap` / `_hindrance` variants, `lacam` (a kept LaCAM
+plan over the robots' rankings, repaired when something leaves it, `--planning-budget` seconds per
+tick, else the anchored PIBT step) or `revert` (the paper's environment: conflicting first choices
+are reverted).
 
 With no arguments: 8 simulated robots on a generated 16x16 map, checkpoint models/default.pt.
 """
@@ -145,7 +148,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--conflict-rule", choices=CONFLICT_RULES, default=None,
                         help="how the arbiter resolves a tick: pibt (PIBT over the robots' "
                              "ranked actions), pibt_anchor (the same, the top-priority robot on "
-                             "its distance order) or revert (the paper's rules on first choices)"
+                             "its distance order), their _swap / _hindrance variants "
+                             "(docs/coordination.md) or revert (the paper's rules on first "
+                             "choices)"
                              + _default("conflict_rule"))
     parser.add_argument("--ranking", choices=P.RANKINGS, default=None,
                         help="how policy nodes rank their actions from Q-values (default: "

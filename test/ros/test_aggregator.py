@@ -52,7 +52,7 @@ def test_aggregator_follows_stand_in_robots_and_rejects_off_grid(tmp_path, ros_e
     assert record.exists(), log
     run = json.loads(record.read_text())
     assert run["steps"] == steps and run["missed_decisions"] == 0, log
-    assert run["conflict_rule"] == "pibt_anchor" and run["pose_conflicts"] == 0, log
+    assert run["conflict_rule"] == "pibt_anchor_swap" and run["pose_conflicts"] == 0, log
     positions = np.asarray(run["positions"])
     executed = np.asarray(run["executed"])
     waypoints = np.asarray(run["waypoints"])

@@ -9,12 +9,13 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from mapf_fleet.coordination.pibt import PIBTShield
+from mapf_fleet.coordination.pibt import SHIELD_RULES, PIBTShield, rule_options
 from mapf_fleet.grid.actions import ACTION_DELTAS
 from mapf_fleet.grid.actions import actions_between
 from mapf_fleet.grid.env import resolve_moves
 from mapf_fleet.grid.instance import generate_instance
-from mapf_fleet.fleet.arbiter import (TickArbiter, break_rotations, check_conflict_rule,
+from mapf_fleet.fleet.arbiter import (CONFLICT_RULES, TickArbiter, break_rotations,
+                                    check_conflict_rule,
                                     plan_robot_commands, ranking_problem, ready_to_send,
                                     single_choice_ranking, unsafe_commands)
 from mapf_fleet.ros.lockstep import FleetTicker
@@ -27,6 +28,11 @@ def _random_preferences(rng, n):
 def test_rule_names_and_rankings():
     assert check_conflict_rule("pibt") == "pibt" and check_conflict_rule("revert") == "revert"
     assert check_conflict_rule("pibt_anchor") == "pibt_anchor"
+    # every PIBT variant is a conflict rule of the simulator and the aggregator
+    assert set(SHIELD_RULES) < set(CONFLICT_RULES)
+    assert check_conflict_rule("pibt_anchor_swap_hindrance") == "pibt_anchor_swap_hindrance"
+    with pytest.raises(ValueError, match="conflict_rule"):
+        check_conflict_rule("pibt_hindrance_swap")  # options in their order only
     with pytest.raises(ValueError, match="conflict_rule"):
         check_conflict_rule("swap")
     assert single_choice_ranking(3) == [3, 0, 1, 2, 4]
@@ -36,14 +42,14 @@ def test_rule_names_and_rankings():
     assert "first preference" in ranking_problem(1, [2, 0, 1, 3, 4])
 
 
-@pytest.mark.parametrize("rule", ["pibt", "pibt_anchor"])
+@pytest.mark.parametrize("rule", SHIELD_RULES)
 def test_pibt_rule_is_the_evaluators_shield_tick_after_tick(rule):
     """Same positions, rankings and priorities as one PIBTShield per episode (the runner's
     `--shield pibt` / `pibt_anchor`)."""
     rng = np.random.default_rng(0)
     instance = generate_instance(10, 16, 0.25, 3)
     arbiter = TickArbiter(instance.grid, instance.goals, rule)
-    shield = PIBTShield(instance.grid, instance.goals, anchor=rule == "pibt_anchor")
+    shield = PIBTShield(instance.grid, instance.goals, **rule_options(rule))
     positions = np.asarray(instance.starts)
     overridden = 0
     for _ in range(30):
@@ -79,7 +85,7 @@ def test_revert_rule_is_resolve_moves_on_first_choices():
     assert collided_any
 
 
-@pytest.mark.parametrize("rule", ["pibt", "pibt_anchor", "revert"])
+@pytest.mark.parametrize("rule", CONFLICT_RULES)
 def test_held_robots_stay_reserved_cells_stay_free_and_commands_are_safe(rule):
     rng = np.random.default_rng(2 if rule != "revert" else 3)
     for seed in range(25):
@@ -175,13 +181,13 @@ def test_ticker_carries_rankings_and_falls_back_to_the_choice():
     assert decisions.missing == [2]
 
 
-@pytest.mark.parametrize("rule", ["pibt", "revert"])
+@pytest.mark.parametrize("rule", ["pibt", "revert", "pibt_anchor_swap_hindrance", "pibt_swap"])
 def test_real_robots_with_random_delays_never_share_a_cell(rule):
     """A plain-Python model of the aggregator's tick with robots that are slow: every robot
     sent a waypoint gets there at a random moment of the tick or only in a later tick. The
     commands, the followers' dispatch order and the arrivals must never put two robots in one
     cell, on an obstacle, or move one by more than one cell at a time."""
-    rng = np.random.default_rng(7 if rule == "pibt" else 8)
+    rng = np.random.default_rng(7 if rule != "revert" else 8)
     instance = generate_instance(12, 30, 0.3, 11)
     grid = np.asarray(instance.grid)
     arbiter = TickArbiter(grid, instance.goals, rule)
@@ -223,7 +229,7 @@ def test_real_robots_with_random_delays_never_share_a_cell(rule):
     assert moved > 50 and late_seen > 0
 
 
-def test_fleet_up_defaults_to_the_anchored_pibt_arbiter():
+def test_fleet_up_defaults_to_the_anchored_pibt_arbiter_with_swap():
     from mapf_fleet.ros import parameters
     from mapf_fleet.ros.launcher import build_parser
 
@@ -233,4 +239,6 @@ def test_fleet_up_defaults_to_the_anchored_pibt_arbiter():
     with pytest.raises(SystemExit):
         build_parser().parse_args(["--conflict-rule", "swap"])
     for table in (parameters.SIMULATOR, parameters.AGGREGATOR, parameters.POLICY):
-        assert table["conflict_rule"].default == "pibt_anchor"
+        assert table["conflict_rule"].default == "pibt_anchor_swap"
+    for rule in SHIELD_RULES:  # every PIBT variant reaches the simulator / aggregator
+        assert build_parser().parse_args(["--conflict-rule", rule]).conflict_rule == rule

@@ -41,14 +41,16 @@ def batched_rollout(checkpoint: str, instance, max_steps: int, comm=None):
     return actions, positions
 
 
-def batched_shielded_rollout(checkpoint: str, instance, max_steps: int, comm=None, anchor=False):
+def batched_shielded_rollout(checkpoint: str, instance, max_steps: int, comm=None, anchor=False,
+                             rule=None):
     """The batched evaluator's shielded path (`evaluation.runner.run_decentralized(...,
     shield="pibt")` with `CheckpointBatchPolicy`): each step the policy's Q-values ranked by
     `rank_actions` (the rule's default mode, `default_q_mode`: the fleet's policy nodes follow
     the conflict rule too; ties `tie_breakers(agent ids, step)`), one `PIBTShield` for
     the episode, the executed actions fed back as DCC's last action. Returns (first choices,
-    executed actions, positions, overridden robot ids per step)."""
-    from mapf_fleet.coordination.pibt import PIBTShield
+    executed actions, positions, overridden robot ids per step). `rule` (a shield rule) wins
+    over `anchor`."""
+    from mapf_fleet.coordination.pibt import make_shield
     from mapf_fleet.coordination.preferences import default_q_mode, rank_actions, tie_breakers
 
     torch.set_num_threads(1)
@@ -58,8 +60,9 @@ def batched_shielded_rollout(checkpoint: str, instance, max_steps: int, comm=Non
     obs = env.reset().astype(np.float32)[None]
     n = env.num_agents
     policy.reset(1, n)
-    shield = PIBTShield(instance.grid, instance.goals, anchor=anchor)
-    mode = default_q_mode("pibt_anchor" if anchor else "pibt")
+    rule = rule or ("pibt_anchor" if anchor else "pibt")
+    shield = make_shield(rule, instance.grid, instance.goals)
+    mode = default_q_mode(rule)
     choices, executed, overridden = [], [], []
     positions = [env.positions.tolist()]
     for tick in range(max_steps):
@@ -192,4 +195,23 @@ def test_anchored_fleet_matches_batched_anchored_rollout(tmp_path, ros_env, chec
                              extra=["--density", "0.2", "--nodes-per-process", "4",
                                     "--conflict-rule", "pibt_anchor"])
     assert_fleet_matches_rollout(record, proc, "pibt_anchor", f"seed 7: {record.get('summary')}",
+                                 choices, executed, positions, expected_overridden)
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_swap_hindrance_fleet_matches_batched_rollout(tmp_path, ros_env, checkpoints):
+    """`--conflict-rule pibt_anchor_swap_hindrance`: the simulator's arbiter runs the PIBT
+    variants exactly as the evaluator's `--shield pibt_anchor_swap_hindrance` (one dense
+    instance, 4 robots per process)."""
+    rule = "pibt_anchor_swap_hindrance"
+    instance = generate_instance(9, 12, 0.2, 7)
+    choices, executed, positions, expected_overridden = batched_shielded_rollout(
+        checkpoints["dcc_sensitive"], instance, 20, rule=rule)
+    anchored = batched_shielded_rollout(checkpoints["dcc_sensitive"], instance, 20, anchor=True)
+    assert anchored[1] != executed  # the variants changed moves: the comparison is not vacuous
+    record, proc = run_fleet(tmp_path, ros_env, checkpoints["dcc_sensitive"], 7, 12, 9, 20,
+                             extra=["--density", "0.2", "--nodes-per-process", "4",
+                                    "--conflict-rule", rule])
+    assert_fleet_matches_rollout(record, proc, rule, f"seed 7: {record.get('summary')}",
                                  choices, executed, positions, expected_overridden)
