@@ -40,8 +40,9 @@ from mapf_fleet.grid.actions import ACTION_DELTAS, NUM_ACTIONS
 from .preferences import tie_breakers
 
 # The shield rules every caller (evaluator `--shield`, trainer `shield`, fleet `conflict_rule`)
-# offers besides its unshielded rule: `make_shield` builds the one named.
-SHIELD_RULES = ("pibt", "pibt_anchor")
+# offers besides its unshielded rule: `make_shield` builds the one named. `lacam` is the planning
+# arbiter (`coordination.plan.PlanKeeper`: a kept LaCAM plan, the anchored step as its fallback).
+SHIELD_RULES = ("pibt", "pibt_anchor", "lacam")
 
 # Distance maps kept per shield (one per goal cell; 6.4 kB each at 40x40, 26 kB at 80x80)
 MAX_DISTANCE_MAPS = 4096
@@ -298,11 +299,17 @@ class PIBTShield:
         self.priorities = np.where(on_goal, self.base_priority, self.priorities + 1.0)
 
 
-def make_shield(rule: str, grid, goals) -> PIBTShield | None:
-    """The shield of a rule: None for "none" / "revert" (no shield), else `PIBTShield` (with the
-    anchor for "pibt_anchor")."""
+def make_shield(rule: str, grid, goals, planning_budget: float | None = None):
+    """The shield of a rule: None for "none" / "revert" (no shield), `PIBTShield` (with the anchor
+    for "pibt_anchor"), or for "lacam" a `coordination.plan.PlanKeeper` (same interface) with
+    `planning_budget` seconds per re-plan (default `plan.DEFAULT_PLANNING_BUDGET`)."""
     if rule in ("none", "revert"):
         return None
     if rule not in SHIELD_RULES:
         raise ValueError(f"shield rule must be 'none' or one of {SHIELD_RULES}, got {rule!r}")
+    if rule == "lacam":
+        from .plan import DEFAULT_PLANNING_BUDGET, PlanKeeper
+
+        return PlanKeeper(grid, goals, planning_budget=DEFAULT_PLANNING_BUDGET
+                          if planning_budget is None else planning_budget)
     return PIBTShield(grid, goals, anchor=rule == "pibt_anchor")

@@ -54,6 +54,9 @@ DEFAULT_Q_MODE = "q"
 # So `confidence` under pibt_anchor; `q` under plain pibt (measured there before; confidence
 # not measured under pibt).
 DEFAULT_Q_MODE_BY_RULE = {"pibt": "q", "pibt_anchor": "confidence"}
+# The planning arbiter ranks its root step and its fallback step (pibt_anchor's) by the robots'
+# rankings: a learned policy ranks as it would under its fallback rule unless it records one.
+RANKING_RULE_OF = {"lacam": "pibt_anchor"}
 # `confidence`: the Q lead of the argmax over the runner-up above which the network's choice
 # goes first (Q units: one step costs 0.075). Chosen on generated 40x40 maps (density 0.3, seed
 # 101, 50 instances, 64 agents, pibt_anchor; never the published sets), the then default
@@ -72,6 +75,8 @@ def default_q_mode(rule: str, recorded: Mapping[str, str] | None = None) -> str:
     0.66), whatever the rule's default measured best for models/archive/dcc_4x25_cl_alpha1.0.pt."""
     if recorded and rule in recorded:
         return recorded[rule]
+    if rule in RANKING_RULE_OF:  # a rule without rankings of its own: its fallback rule's
+        return default_q_mode(RANKING_RULE_OF[rule], recorded)
     return DEFAULT_Q_MODE_BY_RULE.get(rule, DEFAULT_Q_MODE)
 
 # distance classes of a move, lower is better

@@ -109,11 +109,12 @@ def lifelong_instances(kind: str, size: int, num_agents: int, count: int, seed: 
 
 
 def lifelong_runs(instances: InstanceSet, steps: int, rule: str, seed: int,
-                  series=("overridden",)) -> list[FleetRun]:
+                  series=("overridden",), planning_budget: float | None = None) -> list[FleetRun]:
     """One lifelong `FleetRun` per instance; episode k's goal generator is seeded (seed, k)."""
     return [FleetRun(instances.maps[k], instances.starts[k],
                      LifelongTasks(grid=instances.maps[k], seed=episode_seed(seed, k)),
-                     instances.goals[k], rule=rule, max_steps=steps, series=series)
+                     instances.goals[k], rule=rule, max_steps=steps, series=series,
+                     planning_budget=planning_budget)
             for k in range(len(instances))]
 
 
@@ -212,7 +213,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--checkpoint", nargs="+", default=["heuristic"], metavar="C",
                    help="checkpoint files, `heuristic` and/or `lacam` (default: heuristic)")
     p.add_argument("--shield", nargs="+", default=["pibt_anchor"],
-                   choices=["none", "pibt", "pibt_anchor"],
+                   choices=["none", "pibt", "pibt_anchor", "lacam"],
                    help="conflict rule(s) for decentralized policies, one row each "
                         "(default: pibt_anchor, the fleet's default; none = the paper's rule)")
     p.add_argument("--preferences", default=None, metavar="MODE",
@@ -230,6 +231,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="seed of maps, starts and goal streams")
     p.add_argument("--planner-time-limit", type=float, default=1.0,
                    help="lacam: seconds per replanning call (default 1)")
+    p.add_argument("--planning-budget", type=float, metavar="S",
+                   help="--shield lacam: seconds per re-plan (default 1)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--json", metavar="OUT")
     p.add_argument("--csv", metavar="OUT")
@@ -277,7 +280,8 @@ def evaluate_lifelong(args) -> list[LifelongResult]:
                 # a plan's moves are conflict-free: plain PIBT passes them unchanged (the anchor
                 # would put the top agent on its distance order instead of its plan)
                 rule_of_run = "pibt" if base.is_planner else (rule if rule != "none" else "revert")
-                runs = lifelong_runs(instances, args.steps, rule_of_run, args.seed)
+                runs = lifelong_runs(instances, args.steps, rule_of_run, args.seed,
+                                     planning_budget=args.planning_budget)
                 result = LifelongResult(spec.name, label.rsplit(" ", 1)[0],
                                         instances.starts.shape[1], args.steps)
                 if not base.is_planner and rule != "none":

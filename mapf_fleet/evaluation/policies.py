@@ -28,7 +28,7 @@ REFERENCE_NAMES = (HEURISTIC, *PLANNER_NAMES)
 # rankings; pibt_anchor: the same with the top-priority agent on its distance order
 # (`PIBTShield(anchor=True)`)
 SHIELDS = ("none", *SHIELD_RULES)
-SHIELD_LABELS = {"pibt": "+PIBT", "pibt_anchor": "+PIBT-anchor"}
+SHIELD_LABELS = {"pibt": "+PIBT", "pibt_anchor": "+PIBT-anchor", "lacam": "+LaCAM"}
 
 
 @dataclass(frozen=True)
@@ -46,6 +46,7 @@ class PolicySpec:
     preferences: str | None = None  # preference mode under the shield (None: the default)
     # a checkpoint's recorded rankings (metadata `rankings`), ((rule, mode), ...): its default
     rankings: tuple[tuple[str, str], ...] = ()
+    planning_budget: float | None = None  # shield "lacam": seconds per re-plan (None: default)
 
     @property
     def is_planner(self) -> bool:
@@ -78,7 +79,7 @@ def with_shield(spec: PolicySpec, shield: str, preferences: str | None = None) -
                          f"(its ranking is 'distance'); the Q modes are {Q_MODES}")
     # the ranking is named unless it comes from the rule's table: asked for, or the checkpoint's
     named = preferences if preferences is not None else dict(spec.rankings).get(shield)
-    label = SHIELD_LABELS[shield] + ("" if named is None else f"({named})")
+    label = SHIELD_LABELS.get(shield, "+" + shield) + ("" if named is None else f"({named})")
     return replace(spec, name=f"{spec.name} {label}", shield=shield, preferences=preferences)
 
 

@@ -8,6 +8,9 @@ Rules (`CONFLICT_RULES`):
           The batched evaluator's `--shield pibt` (`evaluation.runner.run_decentralized`).
   pibt_anchor  the same, with the highest-priority robot on its distance order whatever it
           ranked (`PIBTShield(anchor=True)`; measured in docs/results.md).
+  lacam   the planning arbiter (`coordination.plan.PlanKeeper`): a kept LaCAM plan whose root
+          step ranks each robot's moves by its ranking, re-planned when something leaves it,
+          `planning_budget` seconds per re-plan; a tick without a plan is pibt_anchor's step.
   revert  the paper's environment: `grid.env.resolve_moves` on the first choices (a conflicting
           move is reverted to "stay").
 
@@ -95,6 +98,7 @@ class TickArbiter:
     grid: np.ndarray
     goals: np.ndarray
     rule: str = DEFAULT_CONFLICT_RULE
+    planning_budget: float | None = None  # lacam: seconds per re-plan (None: the default)
     overridden_total: int = field(default=0, init=False)
     collided_total: int = field(default=0, init=False)
 
@@ -102,7 +106,8 @@ class TickArbiter:
         check_conflict_rule(self.rule)
         self.grid = np.asarray(self.grid) != 0
         self.goals = np.array(self.goals, dtype=np.int64)  # own copy: `set_goals` replaces it
-        self.shield = make_shield(self.rule, self.grid, self.goals)
+        self.shield = make_shield(self.rule, self.grid, self.goals,
+                                  planning_budget=self.planning_budget)
 
     def set_goals(self, goals) -> None:
         """New goals without rebuilding the arbiter (a fleet that takes goals at run time): the

@@ -78,7 +78,7 @@ class FleetStateAggregator(Node):
         super().__init__("mapf_aggregator", **node_kwargs)
         p = self.params = fleet_io.declare_parameters(self, PARAMETERS)
         require_positive(p, ["decision_timeout", "arrival_timeout", "startup_timeout",
-                             "pose_timeout"])
+                             "pose_timeout", "planning_budget"])
         source = instance_source(p)
         instance = source.load()
         self.grid = np.asarray(instance.grid, dtype=np.uint8)

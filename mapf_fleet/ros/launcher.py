@@ -127,7 +127,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--conflict-rule", choices=CONFLICT_RULES, default=DEFAULT_CONFLICT_RULE,
                         help="how the arbiter resolves a tick: pibt (PIBT over the robots' "
                              "ranked actions), pibt_anchor (the same, the top-priority robot on "
-                             "its distance order) or revert (the paper's rules on first choices)")
+                             "its distance order), lacam (a kept LaCAM plan over the robots' "
+                             "rankings) or revert (the paper's rules on first choices)")
+    parser.add_argument("--planning-budget", type=float, default=None,
+                        help="--conflict-rule lacam: seconds of planning per re-plan "
+                             "(default 1; > 0)")
     parser.add_argument("--preference-mode", default=None,
                         help="how policy nodes rank their actions from Q-values (default: "
                              "the policy nodes' preference_mode if a params file sets it, else "
@@ -181,7 +185,7 @@ SIM_OPTION_PARAMS = {"instance": "instance_file", "map": "map_file", "scen": "sc
                      "conflict_rule": "conflict_rule", "arrival_timeout": "arrival_timeout",
                      "record": "record_file", "resolution": "resolution",
                      "task_source": "task_source", "goal_seed": "goal_seed",
-                     "cell_size": "cell_size"}
+                     "cell_size": "cell_size", "planning_budget": "planning_budget"}
 POLICY_OPTION_PARAMS = {"checkpoint": "checkpoint", "comm_timeout": "comm_timeout",
                         "preference_mode": "preference_mode"}
 
@@ -477,7 +481,7 @@ def node_parameters(args, checkpoint: str, record: str, num_robots: int) -> tupl
     sim_params = {k: v for k, v in sim_params.items() if v != ""}
     if args.resolution is not None:
         sim_params["resolution"] = args.resolution
-    for option in ("goal_seed", "cell_size"):
+    for option in ("goal_seed", "cell_size", "planning_budget"):
         if getattr(args, option) is not None:
             sim_params[option] = getattr(args, option)
     if args.real_robots:

@@ -41,8 +41,11 @@ INSTANCE_PARAMETERS = {
 RUN_PARAMETERS = {
     "conflict_rule": (DEFAULT_CONFLICT_RULE, "how the tick's decisions become moves: pibt (PIBT over the "
                               "robots' ranked actions, nothing reverted), pibt_anchor (the same, "
-                              "the top-priority robot on its distance order) or revert (the "
-                              "paper's rules on the first choices)"),
+                              "the top-priority robot on its distance order), lacam (a kept "
+                              "LaCAM plan over the robots' rankings, re-planned when something "
+                              "leaves it) or revert (the paper's rules on the first choices)"),
+    "planning_budget": (1.0, "conflict_rule lacam: seconds of planning per re-plan; a tick "
+                             "without a plan in it takes pibt_anchor's step (> 0)"),
     "max_steps": (256, "tick limit: a one-shot run fails when robots are not all on goal by "
                        "then; continuous runs end there (0: no limit, continuous task sources)"),
     "task_source": ("instance", f"where goals come from: {' | '.join(TASK_SOURCES)} (instance: "
@@ -127,7 +130,8 @@ def fleet_run(params: dict, grid, starts, goals, episode: int, series, geometry=
                              cell_of=cell_of)
     return FleetRun(grid, starts, tasks, goals, rule=str(params["conflict_rule"]),
                     max_steps=int(params["max_steps"]), episode=episode, series=series,
-                    start_tick=start_tick)
+                    start_tick=start_tick,
+                    planning_budget=float(params.get("planning_budget", 1.0)))
 
 
 def require_positive(params: dict, names) -> None:

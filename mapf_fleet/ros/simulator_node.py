@@ -50,7 +50,7 @@ class SimulatorNode(Node):
         p = self.params = fleet_io.declare_parameters(self, PARAMETERS)
         source = instance_source(p)
         self.instance = source.load()
-        require_positive(p, ["decision_timeout"])
+        require_positive(p, ["decision_timeout", "planning_budget"])
         # a Nav2 map sets the metres of the map frame; else `resolution` with the origin at 0
         self.geometry = common.MapGeometry(*(source.geometry() or (float(p["resolution"]),)))
         self.num_robots = self.instance.num_agents

@@ -1,0 +1,363 @@
+"""The plan keeper: a committed joint plan executed tick by tick (the `lacam` conflict rule), and
+the committed expert that labels from the same kept plan.
+
+`PlanKeeper` keeps a LaCAM plan (`coordination.lacam`, the robots' rankings ranking the root
+step's moves) and commands its next step every tick. It re-plans from the current state only when
+something leaves the plan:
+- a new goal (`set_goals`: lifelong streams, tasks, goals at run time),
+- a held robot (`fixed`, or standing on a reserved cell) that the plan moves this tick, or a
+  plan step into a reserved cell,
+- a robot not where the plan put it (a missed decision, a robot the arbiter did not command),
+- every `replan_every` ticks when asked (0: never; a failed periodic re-plan keeps the old plan).
+Each re-plan gets `planning_budget` seconds of wall clock. When the planner finds no plan in it,
+the tick falls back to the anchored PIBT step (`PIBTShield(anchor=True)`) over the robots'
+rankings, and the next tick tries again: the tick rate is bounded by the budget, and every tick
+keeps PIBT's guarantees.
+
+Guarantees of `PlanKeeper.step` (property-tested), as `PIBTShield.step`: no two agents in one
+cell, no two agents trading cells, no agent on an obstacle or off the map, every agent moves at
+most one cell, a `fixed` agent stays and `reserved` cells stay free. A plan step satisfies them by
+construction (LaCAM's plans are checked valid, and a re-plan holds the fixed agents and keeps
+the reserved cells free on its first step); a fallback step is PIBT's.
+
+Priorities: the keeper's PIBT priorities (`priorities`, `base_priority`, `advance_priorities`)
+advance every tick as the shield's do; a re-plan starts LaCAM from them, so a robot that has
+waited long leads the plan's first step, and the fallback step uses them.
+
+`CommittedExpert` gives, for a state, every agent's next move from a kept plan (re-planning, with
+the kept plan's next moves ranked first at the root for the agents still on it, only when some
+agent left it or every k steps) and the plan's remaining trajectory: an expert whose labels add
+up to one plan, instead of a fresh plan's first move every step.
+
+numpy only, as `pibt`.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from mapf_fleet.grid.actions import NUM_ACTIONS
+
+from .lacam import LaCAM
+from .pibt import PIBTShield, ShieldStep, validate_preferences
+
+# The planning arbiter's default per-tick planning budget (seconds of wall clock)
+DEFAULT_PLANNING_BUDGET = 1.0
+
+
+class PlanKeeper:
+    """The `lacam` conflict rule: the interface of `PIBTShield` (`step`, `set_goals`, `reset`,
+    `advance_priorities`, `goals`, `priorities`, `base_priority`, `tick`) over a kept LaCAM plan.
+
+    grid: (H, W), nonzero = obstacle. goals: (N, 2). planning_budget: seconds per re-plan.
+    replan_every: re-plan every k ticks even when the plan holds (0: only when it breaks).
+    max_nodes: LaCAM's node budget per call. seed: LaCAM's tie-breaking seed."""
+
+    def __init__(self, grid, goals, planning_budget: float = DEFAULT_PLANNING_BUDGET,
+                 replan_every: int = 0, max_nodes: int = 1_000_000, seed: int = 0):
+        if not planning_budget > 0:
+            raise ValueError(f"planning_budget must be a positive number of seconds, got "
+                             f"{planning_budget!r}")
+        if int(replan_every) < 0:
+            raise ValueError(f"replan_every must be >= 0 (0: never), got {replan_every!r}")
+        self.fallback = PIBTShield(grid, goals, anchor=True)
+        self.grid = self.fallback.grid
+        self.height, self.width = self.grid.shape
+        self.num_agents = self.fallback.num_agents
+        self.planner = LaCAM(self.grid, seed=seed)
+        self.planning_budget = float(planning_budget)
+        self.replan_every = int(replan_every)
+        self.max_nodes = int(max_nodes)
+        self.plan: np.ndarray | None = None  # (T+1, N, 2), plan[self.index] = where we are
+        self.index = 0
+        self.anchor = True
+        self.reset_counters()
+
+    # --- the PIBTShield interface ------------------------------------------------------------
+    @property
+    def goals(self) -> np.ndarray:
+        return self.fallback.goals
+
+    @property
+    def priorities(self) -> np.ndarray:
+        return self.fallback.priorities
+
+    @priorities.setter
+    def priorities(self, value) -> None:
+        self.fallback.priorities = value
+
+    @property
+    def base_priority(self) -> np.ndarray:
+        return self.fallback.base_priority
+
+    @property
+    def tick(self) -> int:
+        return self.fallback.tick
+
+    def distance_map(self, agent: int) -> np.ndarray:
+        return self.fallback.distance_map(agent)
+
+    def reset(self) -> None:
+        """A new episode: priorities back to their tie-breakers, no plan."""
+        self.fallback.reset()
+        self.plan = None
+        self.index = 0
+
+    def set_goals(self, goals) -> np.ndarray:
+        """New goals (N, 2); the plan is dropped when any changed (`PIBTShield.set_goals`)."""
+        changed = self.fallback.set_goals(goals)
+        if changed.any():
+            self.plan = None
+            self.counters["goal_changes"] += 1
+        return changed
+
+    def advance_priorities(self, positions) -> None:
+        """As `PIBTShield.advance_priorities`; a tick where everyone was held leaves the plan
+        where it was (the robots are still where it put them)."""
+        self.fallback.advance_priorities(positions)
+
+    # --- counters ----------------------------------------------------------------------------
+    def reset_counters(self) -> None:
+        self.counters = {"ticks": 0, "planner_calls": 0, "planner_seconds": 0.0,
+                         "planner_max_seconds": 0.0, "planned_ticks": 0, "fallback_ticks": 0,
+                         "tick_seconds": 0.0, "tick_max_seconds": 0.0, "goal_changes": 0,
+                         "repairs_held": 0, "repairs_off_plan": 0, "repairs_periodic": 0,
+                         "plans_found": 0}
+
+    def stats(self) -> dict:
+        """The counters plus the rates: mean planner seconds per call and per tick, fallback
+        rate (fallback ticks / ticks)."""
+        c = dict(self.counters)
+        ticks = max(c["ticks"], 1)
+        c["planner_seconds_per_call"] = c["planner_seconds"] / max(c["planner_calls"], 1)
+        c["tick_seconds_mean"] = c["tick_seconds"] / ticks
+        c["fallback_rate"] = c["fallback_ticks"] / ticks
+        return c
+
+    # --- the kept plan -----------------------------------------------------------------------
+    def remaining_plan(self) -> np.ndarray | None:
+        """The kept plan from the current configuration on, (T'+1, N, 2), or None."""
+        return None if self.plan is None else self.plan[self.index:].copy()
+
+    def _next_cells(self) -> np.ndarray:
+        plan = self.plan
+        return plan[min(self.index + 1, len(plan) - 1)]
+
+    def why_replan(self, positions, fixed, reserved_flat) -> str:
+        """"" when the kept plan holds for this state, else the reason to re-plan."""
+        if self.plan is None:
+            return "no plan"
+        if not np.array_equal(positions, self.plan[self.index]):
+            return "off plan"
+        nxt = self._next_cells()
+        if fixed.any() and (nxt[fixed] != positions[fixed]).any():
+            return "held"
+        if reserved_flat:
+            flat = nxt[:, 0] * self.width + nxt[:, 1]
+            now = positions[:, 0] * self.width + positions[:, 1]
+            entering = np.isin(flat, list(reserved_flat)) & (flat != now)
+            if entering.any():
+                return "held"
+        if self.replan_every and self.index >= self.replan_every:
+            return "periodic"
+        return ""
+
+    def planning_goals(self, positions) -> np.ndarray:
+        """The goals a plan heads for: the robots' goals where they are distinct; where several
+        robots share a goal cell (lifelong streams draw goals per robot), the one nearest to it
+        keeps it and the others head for the nearest cells no robot heads for (their own goal
+        comes back with the next re-plan, after the first one moves on). A robot cut off from
+        its goal heads for the nearest such cell it can reach."""
+        goals = self.goals
+        w = self.width
+        flat = (goals[:, 0] * w + goals[:, 1]).tolist()
+        now = (np.asarray(positions)[:, 0] * w + np.asarray(positions)[:, 1]).tolist()
+        dist = self.planner.distances(flat)
+        cut_off = [dist[i][now[i]] < 0 for i in range(len(flat))]
+        if len(set(flat)) == len(flat) and not any(cut_off):
+            return goals
+        nearest = sorted(range(len(flat)), key=lambda i: (cut_off[i], dist[i][now[i]], i))
+        used: set[int] = set()
+        losers = []
+        for i in nearest:
+            if flat[i] in used or cut_off[i]:
+                losers.append(i)
+            else:
+                used.add(flat[i])
+        out = goals.copy()
+        for i in losers:
+            d = np.asarray(self.planner.distances([now[i]])[0] if cut_off[i] else dist[i])
+            cells = np.flatnonzero(d >= 0)
+            for cell in cells[np.argsort(d[cells], kind="stable")].tolist():
+                if cell not in used:
+                    used.add(cell)
+                    out[i] = divmod(cell, w)
+                    break
+        return out
+
+    def replan(self, positions, rankings=None, fixed=None, reserved=()) -> bool:
+        """Plan from `positions` within the budget; keeps the plan and returns True when found."""
+        began = time.perf_counter()
+        result = self.planner.plan(positions, self.planning_goals(positions), rankings=rankings,
+                                   priorities=self.priorities, fixed=fixed, reserved=reserved,
+                                   time_limit=self.planning_budget, max_nodes=self.max_nodes)
+        spent = time.perf_counter() - began
+        c = self.counters
+        c["planner_calls"] += 1
+        c["planner_seconds"] += spent
+        c["planner_max_seconds"] = max(c["planner_max_seconds"], spent)
+        if result.solved:
+            self.plan = result.positions
+            self.index = 0
+            c["plans_found"] += 1
+            return True
+        return False
+
+    def step(self, positions, preferences, fixed=None, reserved=()) -> ShieldStep:
+        """One tick (arguments as `PIBTShield.step`): the kept plan's next step, a re-planned
+        one, or the anchored PIBT step over `preferences` when no plan is found in the budget."""
+        began = time.perf_counter()
+        positions = self.fallback._check_positions(positions)
+        n = self.num_agents
+        prefs = validate_preferences(preferences, n)
+        fixed = np.zeros(n, dtype=bool) if fixed is None else np.asarray(fixed, dtype=bool).copy()
+        if fixed.shape != (n,):
+            raise ValueError(f"fixed must have shape ({n},), got {fixed.shape}")
+        w = self.width
+        now = positions[:, 0] * w + positions[:, 1]
+        reserved_flat = set()
+        for cell in reserved:
+            r, c = int(cell[0]), int(cell[1])
+            if 0 <= r < self.height and 0 <= c < w:
+                reserved_flat.add(r * w + c)
+        if reserved_flat:
+            fixed |= np.isin(now, list(reserved_flat))  # standing on a reserved cell: held
+        reason = self.why_replan(positions, fixed, reserved_flat)
+        c = self.counters
+        if reason:
+            if reason in ("held", "off plan", "periodic"):
+                c["repairs_" + reason.replace(" ", "_")] += 1
+            found = self.replan(positions, prefs, fixed, reserved)
+            if not found and reason == "periodic":
+                found = True  # the old plan still holds here (checked above): keep it
+        else:
+            found = True
+        if not found:
+            self.plan = None
+            step = self.fallback.step(positions, prefs, fixed=fixed, reserved=reserved)
+            c["fallback_ticks"] += 1
+        else:
+            nxt = self._next_cells().copy()
+            self.index = min(self.index + 1, len(self.plan) - 1)
+            actions = self.fallback._action_of_delta[nxt[:, 0] * w + nxt[:, 1] - now + w]
+            overridden = (actions != prefs[:, 0]) & ~fixed
+            self.fallback.advance_priorities(nxt)
+            self.fallback.tick += 1
+            step = ShieldStep(nxt, actions, overridden)
+            c["planned_ticks"] += 1
+        spent = time.perf_counter() - began
+        c["ticks"] += 1
+        c["tick_seconds"] += spent
+        c["tick_max_seconds"] = max(c["tick_max_seconds"], spent)
+        return step
+
+
+def distance_rankings(keeper_or_shield, positions) -> np.ndarray:
+    """(N, 5) every agent's actions by distance to its goal (plain PIBT's ranking, this tick's
+    tie-breakers), from a `PIBTShield` or `PlanKeeper`."""
+    shield = getattr(keeper_or_shield, "fallback", keeper_or_shield)
+    positions = np.asarray(positions, dtype=np.int64)
+    flat = positions[:, 0] * shield.width + positions[:, 1]
+    return np.stack([shield.anchored_ranking(i, int(flat[i])) for i in range(len(flat))]) \
+        if len(flat) else np.zeros((0, NUM_ACTIONS), dtype=np.int64)
+
+
+class CommittedExpert:
+    """An expert that commits to a plan: `moves(positions)` gives every agent's next action from
+    the kept plan. When some agents are not where the plan put them (the policy moved them
+    elsewhere), it re-plans from the state with the kept plan's next moves ranked first at the
+    root for the agents still on it (distance order for the others), so their labels stay on
+    the plan where LaCAM's first step can keep them; it also re-plans every `replan_every`
+    steps (0: never). When no plan is found in the budget, the labels are the anchored PIBT
+    step's (`fallback` is True in `last`).
+
+    The expert does not advance with the executed moves: call `moves` with each state the
+    rollout visits (it follows the plan's index while the agents stay on it)."""
+
+    def __init__(self, grid, goals, planning_budget: float = 5.0, replan_every: int = 0,
+                 max_nodes: int = 1_000_000, seed: int = 0):
+        self.keeper = PlanKeeper(grid, goals, planning_budget=planning_budget,
+                                 replan_every=replan_every, max_nodes=max_nodes, seed=seed)
+        self.last: dict = {}
+
+    @property
+    def goals(self) -> np.ndarray:
+        return self.keeper.goals
+
+    def set_goals(self, goals) -> np.ndarray:
+        return self.keeper.set_goals(goals)
+
+    def reset(self) -> None:
+        self.keeper.reset()
+
+    def _locate(self, positions) -> int:
+        """The index of the kept plan's configuration `positions` is at, searched from the
+        current index on (the rollout may have followed the plan for several steps), or -1."""
+        plan = self.keeper.plan
+        if plan is None:
+            return -1
+        for t in range(self.keeper.index, min(self.keeper.index + 2, len(plan))):
+            if np.array_equal(plan[t], positions):
+                return t
+        return -1
+
+    def moves(self, positions) -> np.ndarray:
+        """(N,) every agent's next action (DHC order) at `positions` (N, 2)."""
+        keeper = self.keeper
+        positions = keeper.fallback._check_positions(positions)
+        t = self._locate(positions)
+        periodic = keeper.replan_every and t >= 0 and t >= keeper.replan_every
+        if t >= 0 and not periodic:
+            keeper.index = t
+            self.last = {"replanned": False, "fallback": False, "on_plan": keeper.num_agents}
+            return self._actions(positions)
+        rankings = distance_rankings(keeper, positions)
+        on_plan = np.zeros(keeper.num_agents, dtype=bool)
+        if keeper.plan is not None:
+            # the agents standing where the kept plan expected them (one step on from the last
+            # labelled state) keep their next planned move first
+            plan, w = keeper.plan, keeper.width
+            expected = min(keeper.index + 1, len(plan) - 1)
+            on_plan = (plan[expected] == positions).all(axis=1)
+            nxt = plan[min(expected + 1, len(plan) - 1)]
+            for i in np.flatnonzero(on_plan).tolist():
+                first = int(keeper.fallback._action_of_delta[
+                    (nxt[i, 0] - positions[i, 0]) * w + nxt[i, 1] - positions[i, 1] + w])
+                rankings[i] = [first] + [a for a in rankings[i].tolist() if a != first]
+        old = (keeper.plan, keeper.index)
+        found = keeper.replan(positions, rankings)
+        if not found and periodic:
+            keeper.plan, keeper.index = old
+            found = True
+        self.last = {"replanned": True, "fallback": not found, "on_plan": int(on_plan.sum())}
+        if found:
+            return self._actions(positions)
+        keeper.plan = None
+        return keeper.fallback.step(positions, rankings).actions
+
+    def _actions(self, positions) -> np.ndarray:
+        keeper = self.keeper
+        nxt = keeper._next_cells()
+        w = keeper.width
+        delta = (nxt[:, 0] - positions[:, 0]) * w + (nxt[:, 1] - positions[:, 1]) + w
+        return keeper.fallback._action_of_delta[delta].copy()
+
+    def trajectory(self) -> np.ndarray | None:
+        """The kept plan's remaining trajectory (T'+1, N, 2) from the configuration of the last
+        `moves` call, or None."""
+        return self.keeper.remaining_plan()
+
+
+__all__ = ["PlanKeeper", "CommittedExpert", "DEFAULT_PLANNING_BUDGET", "distance_rankings"]
