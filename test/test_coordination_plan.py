@@ -285,3 +285,23 @@ def test_shared_and_cut_off_goals_still_get_a_plan():
     assert len({tuple(p) for p in positions.tolist()}) == 3
     assert (positions[0] == [2, 3]).all() or (positions[1] == [2, 3]).all()
     assert not grid[positions[:, 0], positions[:, 1]].any()
+
+
+def test_regions_without_a_plan_fall_back_alone_and_retries_back_off():
+    """Two regions: a corridor where two robots must trade ends (no plan exists) and an open
+    room. The room's robots follow their plan to their goals; the corridor's take the anchored
+    PIBT step; failed re-plans wait 1, 2, 4, ... ticks, so 40 ticks cost a handful of calls."""
+    grid = np.zeros((6, 6), dtype=bool)
+    grid[1, :] = True  # row 0 is a corridor cut off from rows 2..5
+    starts = np.array([[0, 0], [0, 5], [2, 0], [5, 5], [3, 3]])
+    goals = np.array([[0, 5], [0, 0], [5, 5], [2, 0], [4, 1]])
+    keeper = PlanKeeper(grid, goals, planning_budget=1.0, max_retry_interval=16)
+    positions = starts.copy()
+    for _ in range(40):
+        before = positions
+        positions = keeper.step(positions, distance_rankings(keeper, positions)).positions
+        assert unsafe_commands(grid, before, positions) == []
+    assert (positions[2:] == goals[2:]).all()
+    stats = keeper.stats()
+    assert stats["fallback_agent_ticks"] >= 2 * 40 and stats["planner_calls"] <= 8
+    assert keeper.unplanned.tolist() == [True, True, False, False, False]

@@ -55,6 +55,10 @@ class LaCAMResult:
     nodes: int
     seconds: float
     reason: str = ""
+    # where some regions have a plan and others not: their plans (agents of the unplanned
+    # regions stay put), and the (N,) bool mask of those agents
+    partial: np.ndarray | None = None
+    unsolved: np.ndarray | None = None
 
     @property
     def solved(self) -> bool:
@@ -100,6 +104,7 @@ class LaCAM:
         self._moves = [[c for c in row[1:] if c >= 0] + [int(row[0])]
                        for row in self._targets.tolist()]
         self._distances: dict[int, list] = {}
+        self._regions = None  # free-region labels, computed when first needed
 
     # ------------------------------------------------------------------------------------------
     def distances(self, goals_flat: list[int]) -> list[list]:
@@ -130,7 +135,61 @@ class LaCAM:
 
     def plan(self, starts, goals, rankings=None, priorities=None, fixed=None, reserved=(),
              time_limit: float = 1.0, max_nodes: int = 1_000_000) -> LaCAMResult:
-        """A plan from `starts` to `goals` ((N, 2) cells each).
+        """A plan from `starts` to `goals` ((N, 2) cells each), arguments as `plan_region`.
+
+        Agents of different free regions of the map never meet: each region is planned on its
+        own, smallest first, within the one deadline (random maps cut off small pockets whose
+        search is short, where one joint search over every agent can spend the budget in the
+        pocket's combinatorics). When some regions have no plan, `partial` holds the others'."""
+        began = time.perf_counter()
+        starts = np.asarray(starts, dtype=np.int64)
+        goals = np.asarray(goals, dtype=np.int64)
+        self._flat(starts, "starts")
+        if len(starts) == 0:
+            return LaCAMResult(np.zeros((1, 0, 2), dtype=np.int64), 0, 0.0)
+        if self._regions is None:
+            from mapf_fleet.grid.instance import free_components
+
+            self._regions = free_components(self.grid)
+        region = self._regions[starts[:, 0], starts[:, 1]]
+        labels, counts = np.unique(region, return_counts=True)
+        if len(labels) == 1:
+            return self.plan_region(starts, goals, rankings, priorities, fixed, reserved,
+                                    time_limit, max_nodes)
+        n = len(starts)
+        pieces, nodes, reasons = [], 0, []
+        unsolved = np.zeros(n, dtype=bool)
+        rankings = None if rankings is None else validate_preferences(rankings, n)
+        fixed = None if fixed is None else np.asarray(fixed, dtype=bool)
+        for label in labels[np.argsort(counts, kind="stable")]:
+            idx = np.flatnonzero(region == label)
+            if np.array_equal(starts[idx], goals[idx]):
+                continue
+            left = time_limit - (time.perf_counter() - began)
+            result = self.plan_region(
+                starts[idx], goals[idx], None if rankings is None else rankings[idx],
+                None if priorities is None else np.asarray(priorities)[idx],
+                None if fixed is None else fixed[idx], reserved, max(left, 0.0),
+                max_nodes - nodes)
+            nodes += result.nodes
+            if result.solved:
+                pieces.append((idx, result.positions))
+            else:
+                unsolved[idx] = True
+                reasons.append(f"{len(idx)} agent(s): {result.reason}")
+        horizon = max([len(p) for _, p in pieces], default=1)
+        positions = np.repeat(starts[None], horizon, axis=0)
+        for idx, path in pieces:
+            positions[: len(path), idx] = path
+            positions[len(path):, idx] = path[-1]
+        seconds = time.perf_counter() - began
+        if unsolved.any():
+            return LaCAMResult(None, nodes, seconds, "; ".join(reasons), positions, unsolved)
+        return LaCAMResult(positions, nodes, seconds)
+
+    def plan_region(self, starts, goals, rankings=None, priorities=None, fixed=None, reserved=(),
+                    time_limit: float = 1.0, max_nodes: int = 1_000_000) -> LaCAMResult:
+        """A plan from `starts` to `goals` ((N, 2) cells each) by one joint search.
 
         rankings: optional (N, 5) actions best first: the root step's move order per agent
             (default: distance order).

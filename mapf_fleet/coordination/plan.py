@@ -45,6 +45,8 @@ from .pibt import PIBTShield, ShieldStep, validate_preferences
 
 # The planning arbiter's default per-tick planning budget (seconds of wall clock)
 DEFAULT_PLANNING_BUDGET = 1.0
+# After a failed planner call the next waits 1, 2, 4, ... ticks, at most this many
+DEFAULT_MAX_RETRY_INTERVAL = 16
 
 
 class PlanKeeper:
@@ -56,7 +58,8 @@ class PlanKeeper:
     max_nodes: LaCAM's node budget per call. seed: LaCAM's tie-breaking seed."""
 
     def __init__(self, grid, goals, planning_budget: float = DEFAULT_PLANNING_BUDGET,
-                 replan_every: int = 0, max_nodes: int = 1_000_000, seed: int = 0):
+                 replan_every: int = 0, max_nodes: int = 1_000_000, seed: int = 0,
+                 max_retry_interval: int = DEFAULT_MAX_RETRY_INTERVAL):
         if not planning_budget > 0:
             raise ValueError(f"planning_budget must be a positive number of seconds, got "
                              f"{planning_budget!r}")
@@ -70,8 +73,14 @@ class PlanKeeper:
         self.planning_budget = float(planning_budget)
         self.replan_every = int(replan_every)
         self.max_nodes = int(max_nodes)
+        if int(max_retry_interval) < 1:
+            raise ValueError(f"max_retry_interval must be >= 1 tick, got {max_retry_interval!r}")
+        self.max_retry_interval = int(max_retry_interval)
         self.plan: np.ndarray | None = None  # (T+1, N, 2), plan[self.index] = where we are
         self.index = 0
+        self.unplanned = np.zeros(self.num_agents, dtype=bool)  # agents the plan leaves out
+        self._retry_at, self._retry_interval = 0, 1
+        self._subset = slice(None)
         self.anchor = True
         self.reset_counters()
 
@@ -104,12 +113,14 @@ class PlanKeeper:
         self.fallback.reset()
         self.plan = None
         self.index = 0
+        self._retry_at, self._retry_interval = 0, 1
 
     def set_goals(self, goals) -> np.ndarray:
         """New goals (N, 2); the plan is dropped when any changed (`PIBTShield.set_goals`)."""
         changed = self.fallback.set_goals(goals)
         if changed.any():
             self.plan = None
+            self._retry_at, self._retry_interval = 0, 1  # a new goal: plan at once
             self.counters["goal_changes"] += 1
         return changed
 
@@ -121,7 +132,7 @@ class PlanKeeper:
     # --- counters ----------------------------------------------------------------------------
     def reset_counters(self) -> None:
         self.counters = {"ticks": 0, "planner_calls": 0, "planner_seconds": 0.0,
-                         "planner_max_seconds": 0.0, "planned_ticks": 0, "fallback_ticks": 0,
+                         "planner_max_seconds": 0.0, "planned_ticks": 0, "fallback_ticks": 0, "fallback_agent_ticks": 0,
                          "tick_seconds": 0.0, "tick_max_seconds": 0.0, "goal_changes": 0,
                          "repairs_held": 0, "repairs_off_plan": 0, "repairs_periodic": 0,
                          "plans_found": 0}
@@ -146,22 +157,25 @@ class PlanKeeper:
         return plan[min(self.index + 1, len(plan) - 1)]
 
     def why_replan(self, positions, fixed, reserved_flat) -> str:
-        """"" when the kept plan holds for this state, else the reason to re-plan."""
+        """"" when the kept plan holds for this state, else the reason to plan: "no plan",
+        "off plan", "held", "periodic", or "unplanned" (the plan covers some regions only)."""
         if self.plan is None:
             return "no plan"
-        if not np.array_equal(positions, self.plan[self.index]):
+        planned = ~self.unplanned
+        if not np.array_equal(positions[planned], self.plan[self.index][planned]):
             return "off plan"
         nxt = self._next_cells()
-        if fixed.any() and (nxt[fixed] != positions[fixed]).any():
+        moving = planned & (nxt != positions).any(axis=1)
+        if (fixed & moving).any():
             return "held"
-        if reserved_flat:
-            flat = nxt[:, 0] * self.width + nxt[:, 1]
-            now = positions[:, 0] * self.width + positions[:, 1]
-            entering = np.isin(flat, list(reserved_flat)) & (flat != now)
-            if entering.any():
+        if reserved_flat and moving.any():
+            flat = nxt[moving, 0] * self.width + nxt[moving, 1]
+            if np.isin(flat, list(reserved_flat)).any():
                 return "held"
         if self.replan_every and self.index >= self.replan_every:
             return "periodic"
+        if self.unplanned.any():
+            return "unplanned"
         return ""
 
     def planning_goals(self, positions) -> np.ndarray:
@@ -197,27 +211,76 @@ class PlanKeeper:
                     break
         return out
 
-    def replan(self, positions, rankings=None, fixed=None, reserved=()) -> bool:
-        """Plan from `positions` within the budget; keeps the plan and returns True when found."""
+    def _call_planner(self, positions, goals, rankings, fixed, reserved):
         began = time.perf_counter()
-        result = self.planner.plan(positions, self.planning_goals(positions), rankings=rankings,
-                                   priorities=self.priorities, fixed=fixed, reserved=reserved,
-                                   time_limit=self.planning_budget, max_nodes=self.max_nodes)
+        result = self.planner.plan(positions, goals, rankings=rankings,
+                                   priorities=self.priorities[self._subset], fixed=fixed,
+                                   reserved=reserved, time_limit=self.planning_budget,
+                                   max_nodes=self.max_nodes)
         spent = time.perf_counter() - began
         c = self.counters
         c["planner_calls"] += 1
         c["planner_seconds"] += spent
         c["planner_max_seconds"] = max(c["planner_max_seconds"], spent)
+        return result
+
+    def replan(self, positions, rankings=None, fixed=None, reserved=()) -> bool:
+        """Plan every agent from `positions` within the budget. Keeps what was found (a whole
+        plan, or the plans of the regions that have one) and returns True when every agent
+        has a plan."""
+        self._subset = slice(None)
+        result = self._call_planner(positions, self.planning_goals(positions), rankings, fixed,
+                                    reserved)
         if result.solved:
-            self.plan = result.positions
-            self.index = 0
-            c["plans_found"] += 1
+            self._keep(result.positions, np.zeros(self.num_agents, dtype=bool))
             return True
+        if result.partial is not None and not result.unsolved.all():
+            self._keep(result.partial, result.unsolved)
+        else:
+            self.plan = None
+        self._failed()
         return False
+
+    def _plan_unplanned(self, positions, rankings, fixed, reserved) -> bool:
+        """Plan the agents of the regions without a plan, keeping the others' plan."""
+        idx = np.flatnonzero(self.unplanned)
+        self._subset = idx
+        result = self._call_planner(positions[idx], self.planning_goals(positions)[idx],
+                                    rankings[idx], fixed[idx], reserved)
+        self._subset = slice(None)
+        new, still = result.positions, np.zeros(len(idx), dtype=bool)
+        if new is None:
+            if result.partial is None or result.unsolved.all():
+                self._failed()
+                return False
+            new, still = result.partial, result.unsolved
+        old = self.plan[self.index:]
+        horizon = max(len(old), len(new))
+        merged = np.concatenate([old, np.repeat(old[-1:], horizon - len(old), axis=0)])
+        merged[:, idx] = np.concatenate([new, np.repeat(new[-1:], horizon - len(new), axis=0)])
+        unplanned = np.zeros(self.num_agents, dtype=bool)
+        unplanned[idx[still]] = True
+        self._keep(merged, unplanned)
+        if still.any():
+            self._failed()
+            return False
+        return True
+
+    def _keep(self, plan, unplanned) -> None:
+        self.plan, self.index, self.unplanned = plan, 0, unplanned
+        self.counters["plans_found"] += 1
+        if not unplanned.any():
+            self._retry_interval = 1
+
+    def _failed(self) -> None:
+        """No (whole) plan: the next try waits 1, 2, 4, ... ticks (up to `max_retry_interval`),
+        so an instance the planner cannot solve does not spend the budget every tick."""
+        self._retry_at = self.counters["ticks"] + self._retry_interval
+        self._retry_interval = min(2 * self._retry_interval, self.max_retry_interval)
 
     def step(self, positions, preferences, fixed=None, reserved=()) -> ShieldStep:
         """One tick (arguments as `PIBTShield.step`): the kept plan's next step, a re-planned
-        one, or the anchored PIBT step over `preferences` when no plan is found in the budget."""
+        one, or the anchored PIBT step over `preferences` for the agents without a plan."""
         began = time.perf_counter()
         positions = self.fallback._check_positions(positions)
         n = self.num_agents
@@ -236,27 +299,41 @@ class PlanKeeper:
             fixed |= np.isin(now, list(reserved_flat))  # standing on a reserved cell: held
         reason = self.why_replan(positions, fixed, reserved_flat)
         c = self.counters
-        if reason:
+        if reason in ("no plan", "unplanned") and c["ticks"] < self._retry_at:
+            reason = ""  # the last try failed: wait for the next one
+        if reason == "unplanned":
+            self._plan_unplanned(positions, prefs, fixed, reserved)
+        elif reason:
             if reason in ("held", "off plan", "periodic"):
                 c["repairs_" + reason.replace(" ", "_")] += 1
-            found = self.replan(positions, prefs, fixed, reserved)
-            if not found and reason == "periodic":
-                found = True  # the old plan still holds here (checked above): keep it
-        else:
-            found = True
-        if not found:
-            self.plan = None
+            old = (self.plan, self.index, self.unplanned)
+            if not self.replan(positions, prefs, fixed, reserved) and reason == "periodic":
+                self.plan, self.index, self.unplanned = old  # it still holds here: keep it
+        if self.plan is None:
             step = self.fallback.step(positions, prefs, fixed=fixed, reserved=reserved)
             c["fallback_ticks"] += 1
+            c["fallback_agent_ticks"] += n
         else:
             nxt = self._next_cells().copy()
             self.index = min(self.index + 1, len(self.plan) - 1)
+            unplanned = self.unplanned
+            if unplanned.any():
+                # regions never meet: PIBT's moves for the unplanned regions, the plan's for
+                # the rest; priorities advance once, from the cells finally commanded
+                saved = self.fallback.priorities.copy()
+                pibt = self.fallback.step(positions, prefs, fixed=fixed, reserved=reserved)
+                nxt[unplanned] = pibt.positions[unplanned]
+                self.fallback.priorities = saved
+                self.fallback.tick -= 1
+                c["fallback_ticks"] += 1
+                c["fallback_agent_ticks"] += int(unplanned.sum())
+            else:
+                c["planned_ticks"] += 1
             actions = self.fallback._action_of_delta[nxt[:, 0] * w + nxt[:, 1] - now + w]
             overridden = (actions != prefs[:, 0]) & ~fixed
             self.fallback.advance_priorities(nxt)
             self.fallback.tick += 1
             step = ShieldStep(nxt, actions, overridden)
-            c["planned_ticks"] += 1
         spent = time.perf_counter() - began
         c["ticks"] += 1
         c["tick_seconds"] += spent
@@ -303,13 +380,15 @@ class CommittedExpert:
         self.keeper.reset()
 
     def _locate(self, positions) -> int:
-        """The index of the kept plan's configuration `positions` is at, searched from the
-        current index on (the rollout may have followed the plan for several steps), or -1."""
-        plan = self.keeper.plan
+        """The index of the kept plan's configuration the planned agents are at (the current
+        index or the next: the rollout followed the last labels), or -1."""
+        keeper = self.keeper
+        plan = keeper.plan
         if plan is None:
             return -1
-        for t in range(self.keeper.index, min(self.keeper.index + 2, len(plan))):
-            if np.array_equal(plan[t], positions):
+        planned = ~keeper.unplanned
+        for t in range(keeper.index, min(keeper.index + 2, len(plan))):
+            if np.array_equal(plan[t][planned], positions[planned]):
                 return t
         return -1
 
@@ -321,7 +400,8 @@ class CommittedExpert:
         periodic = keeper.replan_every and t >= 0 and t >= keeper.replan_every
         if t >= 0 and not periodic:
             keeper.index = t
-            self.last = {"replanned": False, "fallback": False, "on_plan": keeper.num_agents}
+            self.last = {"replanned": False, "fallback": bool(keeper.unplanned.any()),
+                         "on_plan": int((~keeper.unplanned).sum())}
             return self._actions(positions)
         rankings = distance_rankings(keeper, positions)
         on_plan = np.zeros(keeper.num_agents, dtype=bool)
@@ -330,26 +410,33 @@ class CommittedExpert:
             # labelled state) keep their next planned move first
             plan, w = keeper.plan, keeper.width
             expected = min(keeper.index + 1, len(plan) - 1)
-            on_plan = (plan[expected] == positions).all(axis=1)
+            on_plan = (plan[expected] == positions).all(axis=1) & ~keeper.unplanned
             nxt = plan[min(expected + 1, len(plan) - 1)]
             for i in np.flatnonzero(on_plan).tolist():
                 first = int(keeper.fallback._action_of_delta[
                     (nxt[i, 0] - positions[i, 0]) * w + nxt[i, 1] - positions[i, 1] + w])
                 rankings[i] = [first] + [a for a in rankings[i].tolist() if a != first]
-        old = (keeper.plan, keeper.index)
+        old = (keeper.plan, keeper.index, keeper.unplanned)
         found = keeper.replan(positions, rankings)
         if not found and periodic:
-            keeper.plan, keeper.index = old
+            keeper.plan, keeper.index, keeper.unplanned = old
             found = True
         self.last = {"replanned": True, "fallback": not found, "on_plan": int(on_plan.sum())}
-        if found:
-            return self._actions(positions)
-        keeper.plan = None
-        return keeper.fallback.step(positions, rankings).actions
+        if keeper.plan is None:
+            return keeper.fallback.step(positions, rankings).actions
+        return self._actions(positions, rankings)
 
-    def _actions(self, positions) -> np.ndarray:
+    def _actions(self, positions, rankings=None) -> np.ndarray:
+        """The plan's next moves; the anchored PIBT step's for agents without a plan."""
         keeper = self.keeper
-        nxt = keeper._next_cells()
+        nxt = keeper._next_cells().copy()
+        if keeper.unplanned.any():
+            if rankings is None:
+                rankings = distance_rankings(keeper, positions)
+            saved = keeper.fallback.priorities.copy()
+            pibt = keeper.fallback.step(positions, rankings)
+            keeper.fallback.priorities = saved
+            nxt[keeper.unplanned] = pibt.positions[keeper.unplanned]
         w = keeper.width
         delta = (nxt[:, 0] - positions[:, 0]) * w + (nxt[:, 1] - positions[:, 1]) + w
         return keeper.fallback._action_of_delta[delta].copy()
