@@ -508,6 +508,15 @@ class FleetRun:
                           final_goals=self.goals.tolist())
         if rec.conflict_rule:
             rec.record["overridden_moves"] = rec.overridden
+        planner = getattr(self.arbiter.shield, "stats", None)
+        if planner is not None:  # the planning arbiter's counters (calls, time, fallbacks)
+            stats = planner()
+            rec.record["planner"] = stats
+            summary += (f"; planner: {stats['planner_calls']} calls, "
+                        f"{stats['planner_seconds_per_call'] * 1000:.0f} ms per call (max "
+                        f"{stats['planner_max_seconds'] * 1000:.0f}), fallback ticks "
+                        f"{stats['fallback_ticks']}/{stats['ticks']}")
+            rec.record["summary"] = summary
         return dict(episode=rec.episode, success=success, steps=rec.steps,
                     num_robots=self.num_robots, collisions=rec.collisions,
                     missed_decisions=rec.missed, missed_robots=sorted(rec.missed_robots),
