@@ -305,3 +305,49 @@ def test_regions_without_a_plan_fall_back_alone_and_retries_back_off():
     stats = keeper.stats()
     assert stats["fallback_agent_ticks"] >= 2 * 40 and stats["planner_calls"] <= 8
     assert keeper.unplanned.tolist() == [True, True, False, False, False]
+
+
+def test_real_robots_with_random_delays_never_share_a_cell_under_lacam():
+    """The aggregator's tick with slow robots (the model of test/ros/test_arbiter.py): robots
+    still driving are held and their waypoints reserved, some decisions are missing; the
+    planning arbiter's commands pass `unsafe_commands` every tick and robots never share a
+    cell, while the plan is repaired around the held robots."""
+    from mapf_fleet.fleet.arbiter import ready_to_send
+
+    rng = np.random.default_rng(7)
+    instance = generate_instance(12, 30, 0.3, 11)
+    grid = np.asarray(instance.grid)
+    arbiter = TickArbiter(grid, instance.goals, "lacam", planning_budget=0.5)
+    n = instance.num_agents
+    actual = np.asarray(instance.starts).copy()
+    state, waypoints, heading = actual.copy(), actual.copy(), {}
+    moved = late_seen = 0
+    for _ in range(60):
+        missing = [i for i in range(n) if rng.random() < 0.05]
+        prefs = np.stack([rng.permutation(5) for _ in range(n)])
+        plan = plan_robot_commands(arbiter, state, waypoints, prefs, missing)
+        assert plan.problems == []
+        late_seen += int(plan.late.sum())
+        commanded = plan.waypoints.copy()
+        sent = np.zeros(n, dtype=bool)
+        for _ in range(int(rng.integers(1, 4 * n))):
+            reported = {i: tuple(actual[i]) for i in range(n)}
+            for i in ready_to_send(commanded, reported, np.flatnonzero(~sent).tolist()):
+                sent[i] = True
+                heading[i] = tuple(commanded[i])
+            movers = [i for i, cell in heading.items() if tuple(actual[i]) != cell]
+            if not movers:
+                break
+            i = movers[int(rng.integers(len(movers)))]
+            if rng.random() < 0.7:
+                assert np.abs(np.asarray(heading[i]) - actual[i]).sum() == 1
+                actual[i] = heading[i]
+                moved += 1
+                assert len({tuple(c) for c in actual}) == n, "two robots in one cell"
+        unsent = ~sent & ~plan.late
+        commanded[unsent] = state[unsent]
+        waypoints = commanded
+        state = actual.copy()
+    stats = arbiter.shield.stats()
+    assert moved > 50 and late_seen > 0
+    assert stats["repairs_held"] + stats["repairs_off_plan"] > 0 and stats["plans_found"] > 0
