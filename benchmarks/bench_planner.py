@@ -11,10 +11,16 @@ robots; `--instances` per cell, generated from `--seed`):
   per tick (mean, max), fallback rate, success;
 - **lifelong under the keeper** (`--lifelong`): the lifelong task source (a new goal on arrival)
   for `--steps` ticks: the same counters and the goals reached per tick.
+- **rankings A/B** (`--ab C ...`, e.g. `heuristic models/default.pt`): the evaluator's rollout
+  (`run_decentralized`, `--shield lacam`) on the generated dense maps (`--kinds dense`, seed 0,
+  `--instances` each of `--agents`), the planner's root step ranked by each policy's rankings:
+  success, average steps, planner seconds per tick, fallback rate.
 Wall-clock seconds (the planner's budget is wall clock); run it niced on a quiet machine.
 
     .venv/bin/python benchmarks/bench_planner.py [--sizes 40 80] [--agents 32 64 128 256]
         [--instances 3] [--budget 5] [--tick-budget 1] [--steps 256] [--lifelong] [--json OUT]
+    .venv/bin/python benchmarks/bench_planner.py --ab heuristic models/default.pt --agents 48 64
+        --instances 20 --tick-budget 1
 """
 
 from __future__ import annotations
@@ -76,6 +82,33 @@ def keeper_run(inst, tick_budget: float, steps: int, lifelong: bool, seed: int) 
             "fallback_rate": s["fallback_rate"], **extra}
 
 
+def rankings_ab(policies, agents, count, tick_budget) -> list[dict]:
+    from mapf_fleet.evaluation.cli import dense_scenarios
+    from mapf_fleet.evaluation.policies import build_policy, parse_policy, with_shield
+    from mapf_fleet.evaluation.runner import run_decentralized
+
+    rows = []
+    for scenario, instances in dense_scenarios(count, 0, agents=agents):
+        for name in policies:
+            spec = with_shield(parse_policy(name), "lacam")
+            stats: list = []
+            records = run_decentralized(build_policy(spec), instances, scenario.max_steps,
+                                        "lacam", planning_budget=tick_budget, stats=stats)
+            ticks = sum(s["ticks"] for s in stats)
+            row = {"policy": spec.name, "ranking": spec.preference_mode,
+                   "map": scenario.map_name, "agents": scenario.num_agents,
+                   "success": sum(r.success for r in records) / len(records),
+                   "average_steps": statistics.mean(r.steps for r in records),
+                   "planner_s_per_tick": sum(s["planner_seconds"] for s in stats) / ticks,
+                   "planner_max_s": max(s["planner_max_seconds"] for s in stats),
+                   "planner_calls_per_episode": statistics.mean(s["planner_calls"] for s in stats),
+                   "fallback_rate": sum(s["fallback_ticks"] for s in stats) / ticks}
+            rows.append(row)
+            print(json.dumps({k: (round(v, 4) if isinstance(v, float) else v)
+                              for k, v in row.items()}), flush=True)
+    return rows
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--sizes", nargs="+", type=int, default=[40, 80])
@@ -88,8 +121,15 @@ def main(argv=None) -> int:
     p.add_argument("--steps", type=int, default=256)
     p.add_argument("--lifelong", action="store_true", help="also run the lifelong stream")
     p.add_argument("--no-keeper", action="store_true", help="planner calls only")
+    p.add_argument("--ab", nargs="+", metavar="C",
+                   help="rankings A/B on the dense maps with these policies instead")
     p.add_argument("--json", metavar="OUT")
     args = p.parse_args(argv)
+    if args.ab:
+        rows = rankings_ab(args.ab, args.agents, args.instances, args.tick_budget)
+        if args.json:
+            Path(args.json).write_text(json.dumps({"argv": sys.argv, "rows": rows}, indent=1))
+        return 0
     rows = []
     for size in args.sizes:
         for n in args.agents:
