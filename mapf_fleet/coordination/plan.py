@@ -116,11 +116,14 @@ class PlanKeeper:
         self._retry_at, self._retry_interval = 0, 1
 
     def set_goals(self, goals) -> np.ndarray:
-        """New goals (N, 2); the plan is dropped when any changed (`PIBTShield.set_goals`)."""
+        """New goals (N, 2); the plan is dropped when any changed (`PIBTShield.set_goals`) and
+        made again at the next tick (or, after a failed call, at its retry tick)."""
         changed = self.fallback.set_goals(goals)
         if changed.any():
+            # re-planned at the next tick, unless the last call failed: then at its retry tick
+            # (lifelong streams change goals nearly every tick; a crowd the planner cannot
+            # solve would otherwise cost the whole budget every tick)
             self.plan = None
-            self._retry_at, self._retry_interval = 0, 1  # a new goal: plan at once
             self.counters["goal_changes"] += 1
         return changed
 
