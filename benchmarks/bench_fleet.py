@@ -173,6 +173,14 @@ def main():
                   + " ".join(f"{split[p]:>7.1f}" for p in PHASES)
                   + f" {rest:>8.1f} | {comm:>10} | {batched:>7.1f} {per_tick / batched:>5.0f}",
                   flush=True)
+            planner = run.get("planner")
+            if planner:  # the planning arbiter's counters (conflict rule lacam)
+                print(f"{'':>6} planner: {planner['planner_calls']} calls, "
+                      f"{planner['planner_seconds_per_call'] * 1000:.0f} ms per call (max "
+                      f"{planner['planner_max_seconds'] * 1000:.0f}), "
+                      f"{planner['planner_seconds'] / max(planner['ticks'], 1) * 1000:.1f} ms per "
+                      f"tick, fallback ticks {planner['fallback_ticks']}/{planner['ticks']}",
+                      flush=True)
 
 
 if __name__ == "__main__":
