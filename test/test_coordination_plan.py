@@ -219,10 +219,13 @@ def test_lifelong_rollout_under_lacam():
 
 
 def test_trainers_refuse_lacam():
+    from mapf_fleet.training.config import TrainConfig, TrainConfigError
     from mapf_fleet.training.dagger import DaggerConfig, DaggerConfigError
 
     with pytest.raises(DaggerConfigError, match="shield.*planning arbiter"):
         DaggerConfig(shield="lacam")
+    with pytest.raises(TrainConfigError, match="shield.*planning arbiter"):
+        TrainConfig(shield="lacam")
 
 
 def test_committed_expert_labels_from_one_plan():
