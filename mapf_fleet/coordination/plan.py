@@ -11,8 +11,11 @@ something leaves the plan:
 - every `replan_every` ticks when asked (0: never; a failed periodic re-plan keeps the old plan).
 Each re-plan gets `planning_budget` seconds of wall clock. When the planner finds no plan in it,
 the tick falls back to the anchored PIBT step (`PIBTShield(anchor=True)`) over the robots'
-rankings, and the next tick tries again: the tick rate is bounded by the budget, and every tick
-keeps PIBT's guarantees.
+rankings (only for the robots of the free regions without a plan: regions never meet), and the
+planner tries again next tick, then after 2, 4, ... ticks while it keeps failing (at most
+`max_retry_interval`): the tick time is bounded by the budget, an unsolvable crowd does not cost
+it every tick, and every tick keeps PIBT's guarantees. Robots sharing a goal cell plan towards
+distinct cells (`planning_goals`).
 
 Guarantees of `PlanKeeper.step` (property-tested), as `PIBTShield.step`: no two agents in one
 cell, no two agents trading cells, no agent on an obstacle or off the map, every agent moves at
@@ -55,7 +58,8 @@ class PlanKeeper:
 
     grid: (H, W), nonzero = obstacle. goals: (N, 2). planning_budget: seconds per re-plan.
     replan_every: re-plan every k ticks even when the plan holds (0: only when it breaks).
-    max_nodes: LaCAM's node budget per call. seed: LaCAM's tie-breaking seed."""
+    max_nodes: LaCAM's node budget per call. seed: LaCAM's tie-breaking seed.
+    max_retry_interval: the longest wait (ticks) between tries after failed calls."""
 
     def __init__(self, grid, goals, planning_budget: float = DEFAULT_PLANNING_BUDGET,
                  replan_every: int = 0, max_nodes: int = 1_000_000, seed: int = 0,
