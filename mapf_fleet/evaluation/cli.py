@@ -59,7 +59,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="coordination of decentralized policies: none (the paper's rule: "
                         "conflicting moves are reverted) and/or pibt (CS-PIBT over each agent's "
                         "ranked actions) and/or pibt_anchor (the same, the top-priority agent on "
-                        "its distance order); several give one row each (default: none)")
+                        "its distance order) and/or lacam (a kept LaCAM plan over the rankings, "
+                        "--planning-budget per re-plan); several give one row each (default: "
+                        "none)")
     p.add_argument("--preferences", nargs="+", choices=list(PREFERENCE_MODES), metavar="MODE",
                    help=f"how a policy ranks its actions under the shield, one row per mode: "
                         f"{', '.join(PREFERENCE_MODES)} (default: for a checkpoint the ranking "

@@ -11,7 +11,8 @@ scenario: **average throughput** (POGEMA: goals reached by all agents / episode 
 agent, collisions (reverted moves, the paper's rule) and overridden moves (shields).
 
 Policies: checkpoints and `heuristic` under each `--shield` (`pibt_anchor` with the heuristic
-is plain PIBT), and the centralized reference `lacam`: LaCAM (pymapf) replanned from the current
+is plain PIBT; `--shield lacam` is the planning arbiter, `coordination.plan.PlanKeeper`, with
+`--planning-budget` seconds per re-plan), and the centralized reference `lacam`: LaCAM (pymapf) replanned from the current
 state whenever a goal changes, with `--planner-time-limit` per call (default 1 s); between goal
 changes the robots follow the plan; where a call leaves agents without a plan (time limit), those
 agents' moves come from plain PIBT over the same state for that tick (counted as `fallbacks`).
