@@ -354,3 +354,15 @@ def test_real_robots_with_random_delays_never_share_a_cell_under_lacam():
     stats = arbiter.shield.stats()
     assert moved > 50 and late_seen > 0
     assert stats["repairs_held"] + stats["repairs_off_plan"] > 0 and stats["plans_found"] > 0
+
+
+def test_committed_expert_replans_when_the_labels_were_not_executed():
+    """A shield overrode the labels and nobody moved: the same state again is off the plan
+    (labelling it from the same plan index would repeat the same labels forever)."""
+    inst = generate_instance(12, 16, 0.2, np.random.default_rng(13))
+    expert = CommittedExpert(inst.grid, inst.goals, planning_budget=5.0)
+    positions = inst.starts.copy()
+    expert.moves(positions)
+    assert expert.last["replanned"]
+    expert.moves(positions)  # the rollout did not advance
+    assert expert.last["replanned"] and expert.keeper.stats()["planner_calls"] == 2

@@ -367,14 +367,16 @@ class CommittedExpert:
     steps (0: never). When no plan is found in the budget, the labels are the anchored PIBT
     step's (`fallback` is True in `last`).
 
-    The expert does not advance with the executed moves: call `moves` with each state the
-    rollout visits (it follows the plan's index while the agents stay on it)."""
+    The expert does not advance with the executed moves: call `moves` once with each state the
+    rollout visits (it follows the plan's index while the agents stay on it; a state that is not
+    the one the last labels lead to is off the plan)."""
 
     def __init__(self, grid, goals, planning_budget: float = 5.0, replan_every: int = 0,
                  max_nodes: int = 1_000_000, seed: int = 0):
         self.keeper = PlanKeeper(grid, goals, planning_budget=planning_budget,
                                  replan_every=replan_every, max_nodes=max_nodes, seed=seed)
         self.last: dict = {}
+        self._expect: int | None = None  # the plan index the next state should be at
 
     @property
     def goals(self) -> np.ndarray:
@@ -385,19 +387,21 @@ class CommittedExpert:
 
     def reset(self) -> None:
         self.keeper.reset()
+        self._expect = None
 
     def _locate(self, positions) -> int:
-        """The index of the kept plan's configuration the planned agents are at (the current
-        index or the next: the rollout followed the last labels), or -1."""
+        """The index of the kept plan's configuration the planned agents are at: the one the
+        last labels lead to (the rollout followed them), or the current one right after a
+        (re-)plan; -1 otherwise. A state that did not advance while the plan moves someone
+        counts as off the plan: the executed step did not follow the labels (a shield
+        overriding them), and labelling it again would repeat the same labels forever."""
         keeper = self.keeper
         plan = keeper.plan
         if plan is None:
             return -1
         planned = ~keeper.unplanned
-        for t in range(keeper.index, min(keeper.index + 2, len(plan))):
-            if np.array_equal(plan[t][planned], positions[planned]):
-                return t
-        return -1
+        t = keeper.index if self._expect is None else self._expect
+        return t if np.array_equal(plan[t][planned], positions[planned]) else -1
 
     def moves(self, positions) -> np.ndarray:
         """(N,) every agent's next action (DHC order) at `positions` (N, 2)."""
@@ -405,8 +409,10 @@ class CommittedExpert:
         positions = keeper.fallback._check_positions(positions)
         t = self._locate(positions)
         periodic = keeper.replan_every and t >= 0 and t >= keeper.replan_every
+        if t >= 0:
+            keeper.index = t  # where the state is (a failed periodic re-plan resumes here)
         if t >= 0 and not periodic:
-            keeper.index = t
+            self._expect = min(t + 1, len(keeper.plan) - 1)
             self.last = {"replanned": False, "fallback": bool(keeper.unplanned.any()),
                          "on_plan": int((~keeper.unplanned).sum())}
             return self._actions(positions)
@@ -430,7 +436,9 @@ class CommittedExpert:
             found = True
         self.last = {"replanned": True, "fallback": not found, "on_plan": int(on_plan.sum())}
         if keeper.plan is None:
+            self._expect = None
             return keeper.fallback.step(positions, rankings).actions
+        self._expect = min(keeper.index + 1, len(keeper.plan) - 1)
         return self._actions(positions, rankings)
 
     def _actions(self, positions, rankings=None) -> np.ndarray:
