@@ -29,7 +29,6 @@ import argparse
 import json
 import statistics
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -134,7 +133,8 @@ def main(argv=None) -> int:
     for size in args.sizes:
         for n in args.agents:
             rng = np.random.default_rng([args.seed, size, n])
-            instances = [generate_instance(size, n, args.density, rng) for _ in range(args.instances)]
+            instances = [generate_instance(size, n, args.density, rng)
+                         for _ in range(args.instances)]
             calls = [planner_call(inst, args.budget) for inst in instances]
             row = {"size": size, "agents": n, "instances": len(instances),
                    "call_solved": sum(c["solved"] for c in calls) / len(calls),
@@ -153,7 +153,8 @@ def main(argv=None) -> int:
                     r["planner_seconds_per_tick"] * r["ticks"] for r in runs) / ticks
                 row[f"{key}_planner_max_s"] = max(r["planner_max_seconds"] for r in runs)
                 row[f"{key}_tick_max_s"] = max(r["tick_max_seconds"] for r in runs)
-                row[f"{key}_fallback_rate"] = sum(r["fallback_rate"] * r["ticks"] for r in runs) / ticks
+                row[f"{key}_fallback_rate"] = sum(
+                    r["fallback_rate"] * r["ticks"] for r in runs) / ticks
                 row[f"{key}_planner_calls_per_tick"] = sum(r["planner_calls"] for r in runs) / ticks
                 if lifelong:
                     row["lifelong_throughput"] = statistics.mean(r["throughput"] for r in runs)

@@ -203,7 +203,8 @@ def test_evaluate_cli_refuses_a_bad_planning_budget(capsys):
 
     assert main(["--checkpoint", "heuristic", "--no-references", "--shield", "lacam",
                  "--planning-budget", "0", "--kinds", "dense", "--instances", "1"]) == 2
-    assert "--planning-budget must be a positive number of seconds, got 0" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "--planning-budget must be a positive number of seconds, got 0" in err
 
 
 def test_lifelong_rollout_under_lacam():

@@ -139,7 +139,8 @@ class PlanKeeper:
     # --- counters ----------------------------------------------------------------------------
     def reset_counters(self) -> None:
         self.counters = {"ticks": 0, "planner_calls": 0, "planner_seconds": 0.0,
-                         "planner_max_seconds": 0.0, "planned_ticks": 0, "fallback_ticks": 0, "fallback_agent_ticks": 0,
+                         "planner_max_seconds": 0.0, "planned_ticks": 0, "fallback_ticks": 0,
+                         "fallback_agent_ticks": 0,
                          "tick_seconds": 0.0, "tick_max_seconds": 0.0, "goal_changes": 0,
                          "repairs_held": 0, "repairs_off_plan": 0, "repairs_periodic": 0,
                          "plans_found": 0}
