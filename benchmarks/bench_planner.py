@@ -15,11 +15,16 @@ robots; `--instances` per cell, generated from `--seed`):
   (`run_decentralized`, `--shield lacam`) on the generated dense maps (`--kinds dense`, seed 0,
   `--instances` each of `--agents`), the planner's root step ranked by each policy's rankings:
   success, average steps, planner seconds per tick, fallback rate.
+- **committed expert as the policy** (`--expert-under RULE ...`, e.g. `pibt pibt_anchor`): on
+  the same dense maps, `CommittedExpert`'s labels (its next move first, then the distance order)
+  go through the shield of each rule every tick: success, average steps, re-plans per episode.
 Wall-clock seconds (the planner's budget is wall clock); run it niced on a quiet machine.
 
     .venv/bin/python benchmarks/bench_planner.py [--sizes 40 80] [--agents 32 64 128 256]
         [--instances 3] [--budget 5] [--tick-budget 1] [--steps 256] [--lifelong] [--json OUT]
     .venv/bin/python benchmarks/bench_planner.py --ab heuristic models/default.pt --agents 48 64
+        --instances 20 --tick-budget 1
+    .venv/bin/python benchmarks/bench_planner.py --expert-under pibt pibt_anchor --agents 48 64
         --instances 20 --tick-budget 1
 """
 
@@ -108,6 +113,41 @@ def rankings_ab(policies, agents, count, tick_budget) -> list[dict]:
     return rows
 
 
+def expert_as_policy(rules, agents, count, tick_budget) -> list[dict]:
+    from mapf_fleet.coordination.pibt import make_shield
+    from mapf_fleet.coordination.plan import CommittedExpert
+    from mapf_fleet.evaluation.cli import dense_scenarios
+
+    rows = []
+    for scenario, instances in dense_scenarios(count, 0, agents=agents):
+        for rule in rules:
+            solved, steps, replans = 0, [], 0
+            for k in range(len(instances)):
+                inst = instances.instance(k)
+                expert = CommittedExpert(inst.grid, inst.goals, planning_budget=tick_budget)
+                shield = make_shield(rule, inst.grid, inst.goals)
+                positions, done = inst.starts.copy(), None
+                for t in range(scenario.max_steps):
+                    labels = expert.moves(positions)
+                    replans += expert.last["replanned"]
+                    rest = distance_rankings(shield, positions)
+                    prefs = np.array([[a] + [x for x in row if x != a]
+                                      for a, row in zip(labels.tolist(), rest.tolist())])
+                    positions = shield.step(positions, prefs).positions
+                    if (positions == inst.goals).all():
+                        done = t + 1
+                        break
+                solved += done is not None
+                steps.append(done or scenario.max_steps)
+            row = {"expert": "committed", "rule": rule, "map": scenario.map_name,
+                   "agents": scenario.num_agents, "success": solved / len(instances),
+                   "average_steps": statistics.mean(steps),
+                   "replans_per_episode": replans / len(instances)}
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+    return rows
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--sizes", nargs="+", type=int, default=[40, 80])
@@ -122,8 +162,15 @@ def main(argv=None) -> int:
     p.add_argument("--no-keeper", action="store_true", help="planner calls only")
     p.add_argument("--ab", nargs="+", metavar="C",
                    help="rankings A/B on the dense maps with these policies instead")
+    p.add_argument("--expert-under", nargs="+", metavar="RULE",
+                   help="the committed expert as the policy under these rules instead")
     p.add_argument("--json", metavar="OUT")
     args = p.parse_args(argv)
+    if args.expert_under:
+        rows = expert_as_policy(args.expert_under, args.agents, args.instances, args.tick_budget)
+        if args.json:
+            Path(args.json).write_text(json.dumps({"argv": sys.argv, "rows": rows}, indent=1))
+        return 0
     if args.ab:
         rows = rankings_ab(args.ab, args.agents, args.instances, args.tick_budget)
         if args.json:
