@@ -20,6 +20,7 @@ carried them (one DccBatch per pair of processes and phase).
 
     python benchmarks/bench_fleet.py [--robots 32 64 128 256] [--algos dcc dhc] [--steps 60]
         [--task-source lifelong]   (a continuous run: a new goal on arrival, every tick played)
+        [--conflict-rule lacam --planning-budget 0.2]
 
 On the 2-core development machine one core was busy with a training job: figures are as measured.
 """
@@ -99,15 +100,19 @@ def hub_split(log_dir: str) -> tuple[dict, float, float]:
 
 
 def run_fleet(checkpoint, robots, size, per_process, seed, steps, domain,
-              task_source="instance"):
+              task_source="instance", conflict_rule=None, planning_budget=None):
     work = tempfile.mkdtemp(prefix="bench_fleet_")
     record, logs = os.path.join(work, "run.json"), os.path.join(work, "logs")
     cmd = [sys.executable, "-m", "mapf_fleet.cli", "up", "--checkpoint", str(checkpoint),
            "--num-robots", str(robots), "--size", str(size), "--seed", str(seed),
            "--max-steps", str(steps), "--record", record, "--domain-id", str(domain),
            "--nodes-per-process", str(per_process), "--log-dir", logs,
-           "--task-source", task_source,
-           "--ros-args", "-p", "progress_every:=5"]
+           "--task-source", task_source]
+    if conflict_rule:
+        cmd += ["--conflict-rule", conflict_rule]
+    if planning_budget is not None:
+        cmd += ["--planning-budget", str(planning_budget)]
+    cmd += ["--ros-args", "-p", "progress_every:=5"]
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=1800)
     try:
@@ -130,6 +135,10 @@ def main():
                         help="instance: the one-shot episode (ends when all are on goal); "
                              "lifelong: a continuous run, a new goal on arrival, all --steps "
                              "ticks (issue 22 item 8)")
+    parser.add_argument("--conflict-rule", default=None,
+                        help="the arbiter's conflict rule (default: up's, pibt_anchor)")
+    parser.add_argument("--planning-budget", type=float, default=None,
+                        help="--conflict-rule lacam: seconds per re-plan (default: up's, 1)")
     parser.add_argument("--domain-id", type=int, default=150,
                         help="first ROS_DOMAIN_ID used (one per run; default: 150)")
     args = parser.parse_args()
@@ -149,7 +158,7 @@ def main():
             batched = batched_ms_per_step(checkpoint, instance, args.steps)
             run, ticks, (split, messages, calls) = run_fleet(
                 checkpoint, robots, size, per_process, args.seed, args.steps, domain,
-                args.task_source)
+                args.task_source, args.conflict_rule, args.planning_budget)
             domain += 1
             ticks, rate = ticks
             quarter = max(1, len(ticks) // 4)
@@ -164,6 +173,14 @@ def main():
                   + " ".join(f"{split[p]:>7.1f}" for p in PHASES)
                   + f" {rest:>8.1f} | {comm:>10} | {batched:>7.1f} {per_tick / batched:>5.0f}",
                   flush=True)
+            planner = run.get("planner")
+            if planner:  # the planning arbiter's counters (conflict rule lacam)
+                print(f"{'':>6} planner: {planner['planner_calls']} calls, "
+                      f"{planner['planner_seconds_per_call'] * 1000:.0f} ms per call (max "
+                      f"{planner['planner_max_seconds'] * 1000:.0f}), "
+                      f"{planner['planner_seconds'] / max(planner['ticks'], 1) * 1000:.1f} ms per "
+                      f"tick, fallback ticks {planner['fallback_ticks']}/{planner['ticks']}",
+                      flush=True)
 
 
 if __name__ == "__main__":

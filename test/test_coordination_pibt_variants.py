@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapf_fleet.coordination.pibt import (RULE_OPTIONS, SHIELD_RULES, PIBTShield, make_shield,
+from mapf_fleet.coordination.pibt import (PIBT_RULES, RULE_OPTIONS, SHIELD_RULES, PIBTShield, make_shield,
                                           rule_name, rule_options)
 from mapf_fleet.coordination.preferences import (DEFAULT_Q_MODE_BY_RULE, Q_MODES,
                                                  default_q_mode)
@@ -48,16 +48,17 @@ def distance_rankings(shield, positions):
 
 # --- rule names ----------------------------------------------------------------------------------
 def test_rule_names_list_every_option_set_in_suffix_order():
-    assert SHIELD_RULES == ("pibt", "pibt_anchor", "pibt_swap", "pibt_anchor_swap",
-                            "pibt_hindrance", "pibt_anchor_hindrance", "pibt_swap_hindrance",
-                            "pibt_anchor_swap_hindrance")
-    assert {rule_name(**o) for o in OPTION_SETS} == set(SHIELD_RULES)
-    for rule in SHIELD_RULES:
+    assert PIBT_RULES == ("pibt", "pibt_anchor", "pibt_swap", "pibt_anchor_swap",
+                          "pibt_hindrance", "pibt_anchor_hindrance", "pibt_swap_hindrance",
+                          "pibt_anchor_swap_hindrance")
+    assert SHIELD_RULES == (*PIBT_RULES, "lacam")  # the planning arbiter besides the PIBT rules
+    assert {rule_name(**o) for o in OPTION_SETS} == set(PIBT_RULES)
+    for rule in PIBT_RULES:
         assert rule_name(**rule_options(rule)) == rule
     assert rule_options("pibt_anchor_hindrance") == {"anchor": True, "swap": False,
                                                      "hindrance": True}
     for bad in ("pibt_swap_anchor", "pibt_hindrance_swap", "pibt_", "swap", "lacam_swap"):
-        with pytest.raises(ValueError, match=f"shield rule .*got '{bad}'"):
+        with pytest.raises(ValueError, match=f"PIBT rule .*got '{bad}'"):
             rule_options(bad)
 
 
@@ -65,7 +66,7 @@ def test_make_shield_builds_each_rule():
     grid = np.zeros((4, 4), dtype=np.uint8)
     goals = np.array([[0, 0], [3, 3]])
     assert make_shield("none", grid, goals) is None and make_shield("revert", grid, goals) is None
-    for rule in SHIELD_RULES:
+    for rule in PIBT_RULES:
         shield = make_shield(rule, grid, goals)
         assert {o: getattr(shield, o) for o in RULE_OPTIONS} == rule_options(rule)
     with pytest.raises(ValueError, match="'pibt_swapp'"):
@@ -73,8 +74,8 @@ def test_make_shield_builds_each_rule():
 
 
 def test_every_rule_has_a_default_ranking_the_base_rules():
-    assert set(DEFAULT_Q_MODE_BY_RULE) == set(SHIELD_RULES)
-    for rule in SHIELD_RULES:
+    assert set(DEFAULT_Q_MODE_BY_RULE) == set(PIBT_RULES)
+    for rule in PIBT_RULES:
         base = "pibt_anchor" if rule_options(rule)["anchor"] else "pibt"
         assert DEFAULT_Q_MODE_BY_RULE[rule] == DEFAULT_Q_MODE_BY_RULE[base] in Q_MODES
         # a checkpoint's ranking recorded for the base rule serves its variants

@@ -89,22 +89,24 @@ from .preferences import tie_breakers
 RULE_OPTIONS = ("anchor", "swap", "hindrance")
 # The shield rules every caller (evaluator `--shield`, trainer `shield`, fleet `conflict_rule`)
 # offers besides its unshielded rule: `make_shield` builds the one named. Every subset of the
-# options, the original two rules first.
-SHIELD_RULES = ("pibt", "pibt_anchor", "pibt_swap", "pibt_anchor_swap", "pibt_hindrance",
-                "pibt_anchor_hindrance", "pibt_swap_hindrance", "pibt_anchor_swap_hindrance")
+# PIBT options, the original two rules first (`PIBT_RULES`); `lacam` is the planning arbiter
+# (`coordination.plan.PlanKeeper`: a kept LaCAM plan, the anchored step as its fallback).
+PIBT_RULES = ("pibt", "pibt_anchor", "pibt_swap", "pibt_anchor_swap", "pibt_hindrance",
+              "pibt_anchor_hindrance", "pibt_swap_hindrance", "pibt_anchor_swap_hindrance")
+SHIELD_RULES = (*PIBT_RULES, "lacam")
 
 
 def rule_options(rule: str) -> dict[str, bool]:
-    """{"anchor", "swap", "hindrance": bool} of a shield rule `pibt[_anchor][_swap][_hindrance]`
-    (one of SHIELD_RULES); ValueError naming the rule otherwise."""
-    if rule not in SHIELD_RULES:
-        raise ValueError(f"shield rule must be one of {SHIELD_RULES}, got {rule!r}")
+    """{"anchor", "swap", "hindrance": bool} of a PIBT rule `pibt[_anchor][_swap][_hindrance]`
+    (one of PIBT_RULES); ValueError naming the rule otherwise."""
+    if rule not in PIBT_RULES:
+        raise ValueError(f"PIBT rule must be one of {PIBT_RULES}, got {rule!r}")
     parts = rule.split("_")[1:]
     return {option: option in parts for option in RULE_OPTIONS}
 
 
 def rule_name(anchor: bool = False, swap: bool = False, hindrance: bool = False) -> str:
-    """The shield rule with these options (the inverse of `rule_options`)."""
+    """The PIBT rule with these options (the inverse of `rule_options`)."""
     flags = {"anchor": anchor, "swap": swap, "hindrance": hindrance}
     return "_".join(["pibt", *(o for o in RULE_OPTIONS if flags[o])])
 
@@ -501,11 +503,18 @@ class PIBTShield:
         self.priorities = np.where(on_goal, self.base_priority, self.priorities + 1.0)
 
 
-def make_shield(rule: str, grid, goals) -> PIBTShield | None:
-    """The shield of a rule: None for "none" / "revert" (no shield), else `PIBTShield` with the
-    options the name carries (`rule_options`)."""
+def make_shield(rule: str, grid, goals, planning_budget: float | None = None):
+    """The shield of a rule: None for "none" / "revert" (no shield), `PIBTShield` with the options
+    a PIBT rule's name carries (`rule_options`), or for "lacam" a `coordination.plan.PlanKeeper`
+    (same interface) with `planning_budget` seconds per re-plan (default
+    `plan.DEFAULT_PLANNING_BUDGET`)."""
     if rule in ("none", "revert"):
         return None
     if rule not in SHIELD_RULES:
         raise ValueError(f"shield rule must be 'none' or one of {SHIELD_RULES}, got {rule!r}")
+    if rule == "lacam":
+        from .plan import DEFAULT_PLANNING_BUDGET, PlanKeeper
+
+        return PlanKeeper(grid, goals, planning_budget=DEFAULT_PLANNING_BUDGET
+                          if planning_budget is None else planning_budget)
     return PIBTShield(grid, goals, **rule_options(rule))

@@ -60,6 +60,9 @@ DEFAULT_Q_MODE_BY_RULE = {
     "pibt_hindrance": "q", "pibt_anchor_hindrance": "confidence",
     "pibt_swap_hindrance": "q", "pibt_anchor_swap_hindrance": "confidence",
 }
+# The planning arbiter ranks its root step and its fallback step (pibt_anchor's) by the robots'
+# rankings: a learned policy ranks as it would under its fallback rule unless it records one.
+RANKING_RULE_OF = {"lacam": "pibt_anchor"}
 # `confidence`: the Q lead of the argmax over the runner-up above which the network's choice
 # goes first (Q units: one step costs 0.075). Chosen on generated 40x40 maps (density 0.3, seed
 # 101, 50 instances, 64 agents, pibt_anchor; never the published sets), the then default
@@ -79,6 +82,8 @@ def default_q_mode(rule: str, recorded: Mapping[str, str] | None = None) -> str:
     found = recorded_ranking(rule, recorded)
     if found is not None:
         return found
+    if rule in RANKING_RULE_OF:  # a rule without rankings of its own: its fallback rule's
+        return default_q_mode(RANKING_RULE_OF[rule], recorded)
     return DEFAULT_Q_MODE_BY_RULE.get(rule, DEFAULT_Q_MODE)
 
 
@@ -90,10 +95,12 @@ def recorded_ranking(rule: str, recorded: Mapping[str, str] | None) -> str | Non
         return None
     if rule in recorded:
         return recorded[rule]
-    from .pibt import SHIELD_RULES, rule_name, rule_options  # pibt imports this module
+    from .pibt import PIBT_RULES, rule_name, rule_options  # pibt imports this module
 
-    if rule in SHIELD_RULES:
+    if rule in PIBT_RULES:
         return recorded.get(rule_name(anchor=rule_options(rule)["anchor"]))
+    if rule in RANKING_RULE_OF:  # the planning arbiter: what its fallback rule records
+        return recorded_ranking(RANKING_RULE_OF[rule], recorded)
     return None
 
 # distance classes of a move, lower is better

@@ -59,8 +59,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="coordination of decentralized policies: none (the paper's rule: "
                         "conflicting moves are reverted) and/or pibt (CS-PIBT over each agent's "
                         "ranked actions) and/or pibt_anchor (the same, the top-priority agent on "
-                        "its distance order) and/or their _swap / _hindrance variants "
-                        "(docs/coordination.md); several give one row each (default: none)")
+                        "its distance order), their _swap / _hindrance variants "
+                        "(docs/coordination.md) and/or lacam (a kept LaCAM plan over the "
+                        "rankings, --planning-budget per re-plan); several give one row each "
+                        "(default: none)")
     p.add_argument("--preferences", nargs="+", choices=list(PREFERENCE_MODES), metavar="MODE",
                    help=f"how a policy ranks its actions under the shield, one row per mode: "
                         f"{', '.join(PREFERENCE_MODES)} (default: for a checkpoint the ranking "
@@ -95,6 +97,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--batch-size", type=int, default=200, help="episodes stepped together per job")
     p.add_argument("--device", default="cpu", help="torch device of learned policies")
     p.add_argument("--planner-time-limit", type=float, help="seconds of planning per instance")
+    p.add_argument("--planning-budget", type=float, metavar="S",
+                   help="--shield lacam: seconds of planning per re-plan, one tick's budget "
+                        "(default 1)")
     p.add_argument("--json", metavar="OUT", help="write every figure (and every episode) as JSON")
     p.add_argument("--csv", metavar="OUT", help="write one row per policy and scenario")
     p.add_argument("--markdown", metavar="OUT", help="write the tables, with the extra metrics")
@@ -239,6 +244,14 @@ def main(argv: list[str] | None = None) -> int:
                     if spec.kind == "heuristic" and mode not in (None, "distance"):
                         continue  # no Q-values to rank by
                     specs.append(with_shield(spec, shield, mode))
+        if args.planning_budget is not None:
+            if not args.planning_budget > 0:
+                raise ValueError(f"--planning-budget must be a positive number of seconds, "
+                                 f"got {args.planning_budget}")
+            from dataclasses import replace
+
+            specs = [replace(s, planning_budget=args.planning_budget)
+                     if s.shield == "lacam" else s for s in specs]
         specs = unique_names(specs)
         scenarios = _scenarios(args, config)
     except (ProtocolError, FileNotFoundError, ValueError) as exc:

@@ -11,7 +11,8 @@ scenario: **average throughput** (POGEMA: goals reached by all agents / episode 
 agent, collisions (reverted moves, the paper's rule) and overridden moves (shields).
 
 Policies: checkpoints and `heuristic` under each `--shield` (`pibt_anchor` with the heuristic
-is plain PIBT), and the centralized reference `lacam`: LaCAM (pymapf) replanned from the current
+is plain PIBT; `--shield lacam` is the planning arbiter, `coordination.plan.PlanKeeper`, with
+`--planning-budget` seconds per re-plan), and the centralized reference `lacam`: LaCAM (pymapf) replanned from the current
 state whenever a goal changes, with `--planner-time-limit` per call (default 1 s); between goal
 changes the robots follow the plan; where a call leaves agents without a plan (time limit), those
 agents' moves come from plain PIBT over the same state for that tick (counted as `fallbacks`).
@@ -110,11 +111,12 @@ def lifelong_instances(kind: str, size: int, num_agents: int, count: int, seed: 
 
 
 def lifelong_runs(instances: InstanceSet, steps: int, rule: str, seed: int,
-                  series=("overridden",)) -> list[FleetRun]:
+                  series=("overridden",), planning_budget: float | None = None) -> list[FleetRun]:
     """One lifelong `FleetRun` per instance; episode k's goal generator is seeded (seed, k)."""
     return [FleetRun(instances.maps[k], instances.starts[k],
                      LifelongTasks(grid=instances.maps[k], seed=episode_seed(seed, k)),
-                     instances.goals[k], rule=rule, max_steps=steps, series=series)
+                     instances.goals[k], rule=rule, max_steps=steps, series=series,
+                     planning_budget=planning_budget)
             for k in range(len(instances))]
 
 
@@ -228,6 +230,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="seed of maps, starts and goal streams")
     p.add_argument("--planner-time-limit", type=float, default=1.0,
                    help="lacam: seconds per replanning call (default 1)")
+    p.add_argument("--planning-budget", type=float, metavar="S",
+                   help="--shield lacam: seconds per re-plan (default 1)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--json", metavar="OUT")
     p.add_argument("--csv", metavar="OUT")
@@ -275,7 +279,8 @@ def evaluate_lifelong(args) -> list[LifelongResult]:
                 # a plan's moves are conflict-free: plain PIBT passes them unchanged (the anchor
                 # would put the top agent on its distance order instead of its plan)
                 rule_of_run = "pibt" if base.is_planner else (rule if rule != "none" else "revert")
-                runs = lifelong_runs(instances, args.steps, rule_of_run, args.seed)
+                runs = lifelong_runs(instances, args.steps, rule_of_run, args.seed,
+                                     planning_budget=args.planning_budget)
                 result = LifelongResult(spec.name, label.rsplit(" ", 1)[0],
                                         instances.starts.shape[1], args.steps)
                 if not base.is_planner and rule != "none":

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from mapf_fleet.coordination.planners import PLANNER_NAMES
-from mapf_fleet.coordination.pibt import SHIELD_RULES
+from mapf_fleet.coordination.pibt import PIBT_RULES, SHIELD_RULES
 from mapf_fleet.coordination.preferences import (DEFAULT_Q_MODE, PREFERENCE_MODES, Q_MODES,
                                                  default_q_mode, recorded_ranking)
 
@@ -28,9 +28,9 @@ REFERENCE_NAMES = (HEURISTIC, *PLANNER_NAMES)
 # rankings; pibt_anchor: the same with the top-priority agent on its distance order
 # (`PIBTShield(anchor=True)`); _swap, _hindrance: the PIBT variants (coordination.pibt)
 SHIELDS = ("none", *SHIELD_RULES)
-# "+PIBT", "+PIBT-anchor", "+PIBT-anchor-swap", ...
-SHIELD_LABELS = {rule: "+PIBT" + "".join(f"-{part}" for part in rule.split("_")[1:])
-                 for rule in SHIELD_RULES}
+# "+PIBT", "+PIBT-anchor", "+PIBT-anchor-swap", ..., "+LaCAM"
+SHIELD_LABELS = {**{rule: "+PIBT" + "".join(f"-{part}" for part in rule.split("_")[1:])
+                    for rule in PIBT_RULES}, "lacam": "+LaCAM"}
 
 
 @dataclass(frozen=True)
@@ -48,6 +48,7 @@ class PolicySpec:
     preferences: str | None = None  # preference mode under the shield (None: the default)
     # a checkpoint's recorded rankings (metadata `rankings`), ((rule, mode), ...): its default
     rankings: tuple[tuple[str, str], ...] = ()
+    planning_budget: float | None = None  # shield "lacam": seconds per re-plan (None: default)
 
     @property
     def is_planner(self) -> bool:
@@ -80,7 +81,7 @@ def with_shield(spec: PolicySpec, shield: str, preferences: str | None = None) -
                          f"(its ranking is 'distance'); the Q modes are {Q_MODES}")
     # the ranking is named unless it comes from the rule's table: asked for, or the checkpoint's
     named = preferences if preferences is not None else recorded_ranking(shield, dict(spec.rankings))
-    label = SHIELD_LABELS[shield] + ("" if named is None else f"({named})")
+    label = SHIELD_LABELS.get(shield, "+" + shield) + ("" if named is None else f"({named})")
     return replace(spec, name=f"{spec.name} {label}", shield=shield, preferences=preferences)
 
 

@@ -64,7 +64,9 @@ def _make_env(instances: InstanceSet, k: int, max_steps: int, observation: str =
     return MAPFEnv(instances.instance(k), EnvConfig(max_steps=max_steps, observation=observation))
 
 
-def run_decentralized(policy, instances: InstanceSet, max_steps: int, shield: str = "none") -> list[EpisodeRecord]:
+def run_decentralized(policy, instances: InstanceSet, max_steps: int, shield: str = "none",
+                      planning_budget: float | None = None, stats: list | None = None
+                      ) -> list[EpisodeRecord]:
     """Step all episodes of `instances` together with a batch policy (reset/act[/keep]).
 
     Only live episodes are passed to `act`; when some end, `policy.keep(rows)` (if the policy
@@ -73,7 +75,9 @@ def run_decentralized(policy, instances: InstanceSet, max_steps: int, shield: st
     shield "pibt" / "pibt_anchor": each step the policy ranks its five actions per agent
     (`policy.rank`), one `PIBTShield` per episode turns the rankings into conflict-free moves,
     those are executed (and reported back with `policy.executed`), and the overridden
-    agent-steps are counted."""
+    agent-steps are counted. shield "lacam": the planning arbiter (`coordination.plan.PlanKeeper`)
+    with `planning_budget` seconds per re-plan; its counters (`PlanKeeper.stats`) are appended
+    to `stats` when given, one dict per episode."""
     bounds = lower_bounds(instances)
     observation = getattr(policy, "observation", "paper")
     envs = [_make_env(instances, k, max_steps, observation) for k in range(len(instances))]
@@ -85,7 +89,8 @@ def run_decentralized(policy, instances: InstanceSet, max_steps: int, shield: st
     if shield not in ("none", *SHIELD_RULES):
         raise ValueError(f"shield must be 'none' or one of {SHIELD_RULES}, got {shield!r}")
     shields = None if shield == "none" else [
-        make_shield(shield, instances.maps[k], instances.goals[k]) for k in range(len(envs))]
+        make_shield(shield, instances.maps[k], instances.goals[k], planning_budget=planning_budget)
+        for k in range(len(envs))]
     policy.reset(len(envs), instances.starts.shape[1])
     live = list(range(len(envs)))
     keep = getattr(policy, "keep", None)
@@ -116,6 +121,8 @@ def run_decentralized(policy, instances: InstanceSet, max_steps: int, shield: st
                                None if overridden is None else overridden[j])
         live = shrink(live)
         tick += 1
+    if stats is not None and shields is not None:
+        stats.extend(s.stats() for s in shields if hasattr(s, "stats"))
     return [t.record() for t in trackers]
 
 
@@ -180,8 +187,9 @@ def run_job(job: Job) -> tuple[list[EpisodeRecord], float, float | None, int]:
     if job.spec.is_planner:
         records, plan_time, failures = run_planner(policy, job.instances, job.scenario.max_steps)
     else:
-        records, plan_time, failures = run_decentralized(policy, job.instances, job.scenario.max_steps,
-                                                         job.spec.shield), None, 0
+        records, plan_time, failures = run_decentralized(
+            policy, job.instances, job.scenario.max_steps, job.spec.shield,
+            planning_budget=job.spec.planning_budget), None, 0
     return records, time.perf_counter() - began, plan_time, failures
 
 

@@ -11,6 +11,9 @@ Rules (`CONFLICT_RULES`):
   pibt[_anchor]_swap, pibt[_anchor][_swap]_hindrance  the same with lacam3's swap in
           corridors and/or the hindrance tie-break (`coordination.pibt.rule_options`; every
           guarantee below holds for each).
+  lacam   the planning arbiter (`coordination.plan.PlanKeeper`): a kept LaCAM plan whose root
+          step ranks each robot's moves by its ranking, re-planned when something leaves it,
+          `planning_budget` seconds per re-plan; a tick without a plan is pibt_anchor's step.
   revert  the paper's environment: `grid.env.resolve_moves` on the first choices (a conflicting
           move is reverted to "stay").
 
@@ -100,6 +103,7 @@ class TickArbiter:
     grid: np.ndarray
     goals: np.ndarray
     rule: str = DEFAULT_CONFLICT_RULE
+    planning_budget: float | None = None  # lacam: seconds per re-plan (None: the default)
     overridden_total: int = field(default=0, init=False)
     collided_total: int = field(default=0, init=False)
 
@@ -107,7 +111,8 @@ class TickArbiter:
         check_conflict_rule(self.rule)
         self.grid = np.asarray(self.grid) != 0
         self.goals = np.array(self.goals, dtype=np.int64)  # own copy: `set_goals` replaces it
-        self.shield = make_shield(self.rule, self.grid, self.goals)
+        self.shield = make_shield(self.rule, self.grid, self.goals,
+                                  planning_budget=self.planning_budget)
 
     def set_goals(self, goals) -> None:
         """New goals without rebuilding the arbiter (a fleet that takes goals at run time): the

@@ -57,7 +57,7 @@ class FleetRun:
 
     def __init__(self, grid, starts, tasks: TaskSource, goals=None, *,
                  rule: str = DEFAULT_CONFLICT_RULE, max_steps: int = 256, episode: int = 0,
-                 start_tick: int = 0, series=()):
+                 start_tick: int = 0, series=(), planning_budget: float | None = None):
         self.grid = np.asarray(grid) != 0
         self.positions = np.array(starts, dtype=np.int64).reshape(-1, 2)
         self.num_robots = len(self.positions)
@@ -86,7 +86,7 @@ class FleetRun:
         padded = np.pad(~self.grid, 1)
         self._free_neighbours = (padded[:-2, 1:-1].astype(int) + padded[2:, 1:-1]
                                  + padded[1:-1, :-2] + padded[1:-1, 2:])
-        self.arbiter = TickArbiter(self.grid, self.goals, rule)
+        self.arbiter = TickArbiter(self.grid, self.goals, rule, planning_budget)
         self.recorder = RunRecorder(episode, self.num_robots, self.max_steps, series=series,
                                     conflict_rule=rule, task_source=tasks.name)
         # goal changes of the tick boundaries since the adapter last took them (`advance`,
@@ -523,6 +523,15 @@ class FleetRun:
                           final_goals=self.goals.tolist())
         if rec.conflict_rule:
             rec.record["overridden_moves"] = rec.overridden
+        planner = getattr(self.arbiter.shield, "stats", None)
+        if planner is not None:  # the planning arbiter's counters (calls, time, fallbacks)
+            stats = planner()
+            rec.record["planner"] = stats
+            summary += (f"; planner: {stats['planner_calls']} calls, "
+                        f"{stats['planner_seconds_per_call'] * 1000:.0f} ms per call (max "
+                        f"{stats['planner_max_seconds'] * 1000:.0f}), fallback ticks "
+                        f"{stats['fallback_ticks']}/{stats['ticks']}")
+            rec.record["summary"] = summary
         return dict(episode=rec.episode, success=success, steps=rec.steps,
                     num_robots=self.num_robots, collisions=rec.collisions,
                     missed_decisions=rec.missed, missed_robots=sorted(rec.missed_robots),

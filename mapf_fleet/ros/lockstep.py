@@ -75,7 +75,8 @@ def fleet_run(params: dict, grid, starts, goals, episode: int, series, geometry=
                              cell_of=cell_of, starts=starts)
     return FleetRun(grid, starts, tasks, goals, rule=str(params["conflict_rule"]),
                     max_steps=int(params["max_steps"]), episode=episode, series=series,
-                    start_tick=start_tick)
+                    start_tick=start_tick,
+                    planning_budget=float(params.get("planning_budget", 1.0)))
 
 
 class EpisodeBinding:

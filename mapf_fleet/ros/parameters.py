@@ -111,8 +111,13 @@ _RUN = {
                            "how the tick's decisions become moves: pibt (PIBT over the robots' "
                            "ranked actions, nothing reverted), pibt_anchor (the same, the "
                            "top-priority robot on its distance order), their _swap / _hindrance "
-                           "variants (coordination.pibt.SHIELD_RULES) or revert (the paper's "
-                           "rules on the first choices)", choices=CONFLICT_RULES),
+                           "variants (coordination.pibt.SHIELD_RULES), lacam (a kept LaCAM "
+                           "plan over the robots' rankings, re-planned when something leaves it) "
+                           "or revert (the paper's rules on the first choices)",
+                           choices=CONFLICT_RULES),
+    "planning_budget": Param(1.0, "conflict_rule lacam: seconds of planning per re-plan; a tick "
+                                  "without a plan in it takes pibt_anchor's step",
+                             **_positive()),
     "max_steps": Param(256, "tick limit: a one-shot run fails when robots are not all on goal "
                             "by then; continuous runs end there (0: no limit, continuous task "
                             "sources)", lambda v: v >= 0,

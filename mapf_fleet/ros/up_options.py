@@ -149,9 +149,12 @@ def build_parser() -> argparse.ArgumentParser:
                         help="how the arbiter resolves a tick: pibt (PIBT over the robots' "
                              "ranked actions), pibt_anchor (the same, the top-priority robot on "
                              "its distance order), their _swap / _hindrance variants "
-                             "(docs/coordination.md) or revert (the paper's rules on first "
-                             "choices)"
+                             "(docs/coordination.md), lacam (a kept LaCAM plan over the robots' "
+                             "rankings) or revert (the paper's rules on first choices)"
                              + _default("conflict_rule"))
+    parser.add_argument("--planning-budget", type=float, default=None,
+                        help="--conflict-rule lacam: seconds of planning per re-plan (> 0)"
+                             + _default("planning_budget"))
     parser.add_argument("--ranking", choices=P.RANKINGS, default=None,
                         help="how policy nodes rank their actions from Q-values (default: "
                              "the policy nodes' ranking if a params file sets it, else "
@@ -209,7 +212,8 @@ SIM_OPTION_PARAMS = {"instance": "instance_file", "map": "map_file", "scen": "sc
                      "conflict_rule": "conflict_rule", "arrival_timeout": "arrival_timeout",
                      "record": "record_file", "resolution": "resolution",
                      "task_source": "task_source", "task_file": "task_file",
-                     "goal_seed": "goal_seed", "cell_size": "cell_size"}
+                     "goal_seed": "goal_seed", "cell_size": "cell_size",
+                     "planning_budget": "planning_budget"}
 POLICY_OPTION_PARAMS = {"checkpoint": "checkpoint", "comm_timeout": "comm_timeout",
                         "ranking": "ranking"}
 MAX_DOMAIN_ID = 232  # the largest ROS_DOMAIN_ID whose Fast DDS ports are valid

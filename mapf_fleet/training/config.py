@@ -206,6 +206,9 @@ class TrainConfig:
 
         if self.shield not in ("none", *SHIELD_RULES):
             raise bad("shield", f"must be 'none' or one of {', '.join(SHIELD_RULES)}")
+        if self.shield == "lacam":
+            raise bad("shield", "the planning arbiter executes its plan, not the policy's moves: "
+                                "train under 'pibt' or 'pibt_anchor'")
         if self.shield_replay not in ("executed", "preferred"):
             raise bad("shield_replay", "must be 'executed' or 'preferred'")
         from mapf_fleet.coordination.preferences import Q_MODES

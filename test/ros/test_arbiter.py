@@ -9,7 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from mapf_fleet.coordination.pibt import SHIELD_RULES, PIBTShield, rule_options
+from mapf_fleet.coordination.pibt import PIBT_RULES, SHIELD_RULES, PIBTShield, rule_options
 from mapf_fleet.grid.actions import ACTION_DELTAS
 from mapf_fleet.grid.actions import actions_between
 from mapf_fleet.grid.env import resolve_moves
@@ -42,7 +42,7 @@ def test_rule_names_and_rankings():
     assert "first preference" in ranking_problem(1, [2, 0, 1, 3, 4])
 
 
-@pytest.mark.parametrize("rule", SHIELD_RULES)
+@pytest.mark.parametrize("rule", PIBT_RULES)
 def test_pibt_rule_is_the_evaluators_shield_tick_after_tick(rule):
     """Same positions, rankings and priorities as one PIBTShield per episode (the runner's
     `--shield pibt` / `pibt_anchor`)."""

@@ -115,6 +115,9 @@ class DaggerConfig:
 
         if self.shield not in SHIELD_RULES:
             raise bad("shield", f"must be one of {SHIELD_RULES}")
+        if self.shield == "lacam":
+            raise bad("shield", "the planning arbiter executes its plan, not the policy's moves: "
+                                "roll out under a PIBT rule such as 'pibt_anchor'")
         if self.preferences not in Q_MODES:
             raise bad("preferences", f"must be one of {Q_MODES}")
         if self.loss not in LOSSES:
