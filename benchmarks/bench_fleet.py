@@ -134,7 +134,7 @@ def main():
     parser.add_argument("--task-source", choices=["instance", "lifelong"], default="instance",
                         help="instance: the one-shot episode (ends when all are on goal); "
                              "lifelong: a continuous run, a new goal on arrival, all --steps "
-                             "ticks (issue 22 item 8)")
+                             "ticks")
     parser.add_argument("--conflict-rule", default=None,
                         help="the arbiter's conflict rule (default: up's, pibt_anchor)")
     parser.add_argument("--planning-budget", type=float, default=None,

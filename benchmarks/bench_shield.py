@@ -9,7 +9,7 @@ seconds of this thread (time.thread_time; torch runs on this one thread), so oth
 the machine do not inflate the figures. Printed: median ms per joint step of inference, of the
 preferences and of the shield, and the shield's share of one inference step.
 
-Targets (issue 16): shield at most 0.3 ms per joint step at 64 agents on one core, and at most
+Targets: shield at most 0.3 ms per joint step at 64 agents on one core, and at most
 10 % of one inference step at every count.
 
     .venv/bin/python benchmarks/bench_shield.py [--agents 16 64 128 512] [--steps 64]
@@ -95,7 +95,7 @@ def main(argv=None) -> int:
         share = med["shield"] / med["inference"]
         print(f"{n:>6}  {kind:<16} {med['inference']:>10.3f} {med['preferences']:>12.3f} "
               f"{med['shield']:>8.3f} {100 * share:>16.1f}%")
-    print("targets (issue 16): shield <= 0.3 ms at 64 agents; shield <= 10% of inference at "
+    print("targets: shield <= 0.3 ms at 64 agents; shield <= 10% of inference at "
           "every count")
     return 0
 

@@ -20,15 +20,15 @@ Modes (`PREFERENCE_MODES`):
   confidence      the argmax of Q first only where it leads the runner-up by more than
                   `margin` (`CONFIDENCE_MARGIN` unless given), then the distance order; an agent
                   whose Q-values are that close ranks by the distance order alone (ties by `ties`,
-                  then Q): the network overrides plain PIBT only where it is sure (issue 25)
+                  then Q): the network overrides plain PIBT only where it is sure
   distance        the distance order, ties by action order: plain PIBT (no learning); also the
                   non-learned heuristic's ranking (it follows a closer move, else stays)
 The learned default is `DEFAULT_Q_MODE` (chosen by measurement; docs/results.md);
 `default_q_mode(rule, recorded)` is the ranking a learned policy uses under each shield rule when
 none is asked for, in the evaluator and the fleet's policy nodes alike: the ranking its checkpoint
 records for the rule (metadata `rankings`, e.g. what a DAgger round was trained under), else the
-rule's (measured: `confidence` under `pibt_anchor`, `q` under `pibt`, issue 25;
-`DEFAULT_Q_MODE_BY_RULE`).
+rule's (`DEFAULT_Q_MODE_BY_RULE`, chosen by measurement: docs/results.md, "Ranking modes under
+the anchored shield").
 """
 
 from __future__ import annotations
@@ -42,18 +42,9 @@ from mapf_fleet.grid.actions import ACTION_DELTAS, NUM_ACTIONS, STAY
 PREFERENCE_MODES = ("q", "q_demote_stay", "q_then_distance", "confidence", "distance")
 Q_MODES = ("q", "q_demote_stay", "q_then_distance", "confidence")
 DEFAULT_Q_MODE = "q"
-# The ranking each shield rule uses by default (coordination.pibt.SHIELD_RULES). Measured with
-# the then default, models/archive/dcc_4x25_cl_alpha1.0.pt, under pibt_anchor (issue 25; JSONs
-# models/eval/dagger_ranking_*.json):
-#   published 40x40/64, first 50: q 0.58 (187 steps), q_then_distance 0.76 (168),
-#     confidence 0.78 (124), plain PIBT 0.70 (135);
-#   generated dense 17-21 maps (seed 0, 50 each), 48 / 64 agents: q_then_distance 0.02 / 0.00,
-#     confidence 0.44 / 0.24 (94 / 111 steps), plain PIBT 0.44 / 0.24 (89 / 107);
-#   generated 40x40/64 (seed 101, 50; where the margin was chosen): q_then_distance 0.74 (164),
-#     confidence 0.72 (135).
-# So `confidence` under pibt_anchor; `q` under plain pibt (measured there before; confidence
-# not measured under pibt). The swap and hindrance variants (coordination.pibt) take the ranking
-# of their base rule: `confidence` where the anchor is on, else `q`.
+# The ranking each conflict rule uses by default, chosen by measurement (docs/results.md, "Ranking
+# modes under the anchored shield"): `confidence` where the anchor is on, `q` otherwise; the swap
+# and hindrance variants take their base rule's.
 DEFAULT_Q_MODE_BY_RULE = {
     "pibt": "q", "pibt_anchor": "confidence",
     "pibt_swap": "q", "pibt_anchor_swap": "confidence",
@@ -63,13 +54,9 @@ DEFAULT_Q_MODE_BY_RULE = {
 # The planning arbiter ranks its root step and its fallback step (pibt_anchor's) by the robots'
 # rankings: a learned policy ranks as it would under its fallback rule unless it records one.
 RANKING_RULE_OF = {"lacam": "pibt_anchor"}
-# `confidence`: the Q lead of the argmax over the runner-up above which the network's choice
-# goes first (Q units: one step costs 0.075). Chosen on generated 40x40 maps (density 0.3, seed
-# 101, 50 instances, 64 agents, pibt_anchor; never the published sets), the then default
-# models/archive/dcc_4x25_cl_alpha1.0.pt:
-# margin 0.1 / 0.3 / 0.6 solved 0.70 / 0.72 / 0.66 in 149 / 135 / 140 average steps, beside
-# q_then_distance 0.74 / 164, q 0.64 / 175, plain PIBT 0.70 / 134. That checkpoint's
-# Q leads (top minus runner-up, agents off their goal): median 0.72, quartile 0.28.
+# `confidence`: the Q lead of the argmax over the runner-up above which the network's choice goes
+# first (Q units: one step costs 0.075); chosen on generated maps, never the published sets
+# (docs/results.md, "Ranking modes under the anchored shield").
 CONFIDENCE_MARGIN = 0.3
 
 

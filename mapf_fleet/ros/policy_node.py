@@ -149,8 +149,8 @@ def needs_spinning(node: PolicyNode) -> bool:
 
 def host_kwargs(count: int) -> dict:
     """Node options when `count` robots share a process. Every robot keeps its parameter
-    services (issue 17 item 16: each robot's parameters can be read, and set, whatever the
-    process layout); they are spun apart from the decision path (`spin_policy_nodes`)."""
+    services (each robot's parameters can be read, and set, whatever the process layout); they
+    are spun apart from the decision path (`spin_policy_nodes`)."""
     return {}
 
 

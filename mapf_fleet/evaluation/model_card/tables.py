@@ -115,8 +115,8 @@ def _hours(value: float | None) -> str:
 
 def comparison_section(evaluation: dict, policy: str, metadata: dict, eval_path: Path,
                        others: list[tuple[Path, dict]], run: RunInfo | None, level: int = 2) -> list[str]:
-    """This checkpoint beside other checkpoints measured in the same evaluation JSON(s) (issue 8
-    item 4: the warm start beside the paper's recipe): how each was trained, the compute spent up
+    """This checkpoint beside other checkpoints measured in the same evaluation JSON(s) (e.g. a warm
+    start beside the paper's recipe): how each was trained, the compute spent up
     to it and its success rates. `others`: (checkpoint, its metadata, its RunInfo or None)."""
     entries = [(policy, metadata, compute_spent(run, metadata))]
     for path, meta, other_run in others:
@@ -168,7 +168,7 @@ def comparison_section(evaluation: dict, policy: str, metadata: dict, eval_path:
 
 def _against_heuristic(rows: list[dict], policy: str, agents: list[int]) -> list[str]:
     """Where this checkpoint's success rate is above the non-learned decentralized policy's
-    (issue 8's first target), from the measured rows only."""
+    (the first bar a learned policy must clear), from the measured rows only."""
     mine = {int(r["agents"]): r["success_rate"] for r in rows if r["policy"] == policy}
     floor = {int(r["agents"]): r["success_rate"] for r in rows if r["policy"] == "heuristic"}
     shared = [n for n in agents if n in mine and n in floor]
@@ -186,7 +186,7 @@ PLAIN_PIBT = "heuristic +PIBT"  # the evaluator's row of the heuristic's ranking
 
 def _against_plain_pibt(rows: list[dict], name: str, agents: list[int]) -> list[str]:
     """Where this checkpoint under the shield is at least plain PIBT (the non-learned ranking
-    under the same shield; issue 18's first target), in success rate and in average steps, from
+    under the same shield: the bar a learned ranking must clear), in success rate and in average steps, from
     the measured rows only."""
     mine = {int(r["agents"]): r for r in rows if r["policy"] == name}
     pibt = {int(r["agents"]): r for r in rows if r["policy"] == PLAIN_PIBT}
