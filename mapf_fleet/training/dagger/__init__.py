@@ -10,7 +10,8 @@ Round k (k = 0, 1, ...):
      policy (the init checkpoint in round 0, else round k-1's weights) under `shield` (PIBT with
      the anchor by default, the fleet's arbiter) with its Q-values ranked by `preferences`. At
      every `label_interval`-th step (backing off after states it cannot label,
-     `label_backoff_max`) the labeller labels the joint state: LaCAM (pymapf,
+     `label_backoff_max`) the labeller labels the joint state (`labeller`: "lacam" as follows,
+     or "committed": the next move of one kept plan, `labeller.py`): LaCAM (pymapf,
      `coordination.planners.ClassicalPlanner`, `label_time_limit` seconds per connected region)
      from the agents' current cells to their goals; the label of agent i is the first move of its
      plan. DAgger's mixing: with probability beta_k = `beta0` * `beta_decay`^k (per labelled
@@ -43,6 +44,10 @@ Round k (k = 0, 1, ...):
      and on plain PIBT (the distance ranking, no network). `driver.py` runs the rounds and
      resumes them; `report.py` compares finished runs.
 
+Expert ceiling (`--expert-ceiling`, `ceiling.py`): the configured labeller as the policy under
+the configured rule beside plain PIBT (success, steps, lifelong throughput, self-agreement, CPU
+seconds per label): the most a policy imitating it could reach.
+
 Observation (`observation`): the init checkpoint's unless set; "cost_to_go" on a "paper"
 checkpoint adds the normalised cost-to-go channel (`grid.env.cost_to_go_channel`), warm-started
 with that channel's first-conv weights zero (`models.checkpoint.with_observation`); the round
@@ -54,9 +59,12 @@ from .config import LOSSES, DaggerConfig, DaggerConfigError, config_from_dict, l
 from .data import LabelledData, read_shard, shard_name, window_loss, write_shard
 from .driver import (CHECKPOINT_DIR, CONFIG_FILE, CURVE_CSV, CURVE_JSON, DATA_DIR, MANIFEST,
                      STATE_JSON, STATE_PT, Dagger)
-from .labeller import LabelState, Labeller, Labels, LaCAMLabeller, make_labeller
+from .ceiling import expert_ceiling
+from .labeller import (LABELLERS, CommittedLabeller, LabelState, Labeller, Labels, LaCAMLabeller,
+                       make_labeller)
 from .report import compare_runs, plot_runs
-from .rollout import DaggerWorker, make_instance, play_episode, play_plain_pibt, window_starts
+from .rollout import (DaggerWorker, make_instance, play_episode, play_lifelong, play_plain_pibt,
+                      window_starts)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -66,8 +74,8 @@ def main(argv: list[str] | None = None) -> int:
     return cli_main(argv)
 
 
-__all__ = ["CHECKPOINT_DIR", "CONFIG_FILE", "CURVE_CSV", "CURVE_JSON", "DATA_DIR", "LOSSES",
-           "MANIFEST", "STATE_JSON", "STATE_PT", "Dagger", "DaggerConfig", "DaggerConfigError",
+__all__ = ["CHECKPOINT_DIR", "CONFIG_FILE", "CURVE_CSV", "CURVE_JSON", "DATA_DIR", "LABELLERS",
+           "LOSSES", "MANIFEST", "CommittedLabeller", "expert_ceiling", "play_lifelong", "STATE_JSON", "STATE_PT", "Dagger", "DaggerConfig", "DaggerConfigError",
            "DaggerWorker", "LaCAMLabeller", "LabelState", "LabelledData", "Labeller", "Labels",
            "compare_runs", "config_from_dict", "load_config", "main", "make_instance",
            "make_labeller", "play_episode", "play_plain_pibt", "plot_runs", "read_shard",

@@ -32,6 +32,15 @@ def main(argv: list[str] | None = None) -> int:
                         help="with --compare: also draw the runs' success per round to this PNG")
     parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                         help="override a config field (repeatable; also on a resume)")
+    parser.add_argument("--expert-ceiling", action="store_true",
+                        help="run the configured labeller as the policy under the configured "
+                             "conflict rule beside plain PIBT on the config's `ceiling` suites "
+                             "(ceiling.py) and exit; no training, no run directory")
+    parser.add_argument("--count", type=int, metavar="N",
+                        help="with --expert-ceiling: instances per row (default: the config's "
+                             "ceiling_count)")
+    parser.add_argument("--json", metavar="OUT",
+                        help="with --expert-ceiling: also write the rows to this JSON file")
     args = parser.parse_args(argv)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     if args.compare:
@@ -43,16 +52,13 @@ def main(argv: list[str] | None = None) -> int:
             print(f"mapf-fleet dagger: {exc}", file=sys.stderr)
             return 2
         return 0
+    if args.expert_ceiling:
+        return _ceiling(args)
     if not args.run_dir:
-        parser.error("--run-dir is required (or --compare RUN ...)")
+        parser.error("--run-dir is required (or --compare RUN ..., or --expert-ceiling)")
     run_dir = Path(args.run_dir)
     try:
-        overrides = {}
-        for item in args.set:
-            if "=" not in item:
-                raise DaggerConfigError(f"--set expects FIELD=VALUE, got {item!r}")
-            key, value = item.split("=", 1)
-            overrides[key.strip()] = yaml.safe_load(value)
+        overrides = _overrides(args.set)
         if (run_dir / STATE_JSON).is_file():
             data = yaml.safe_load((run_dir / CONFIG_FILE).read_text()) or {}
             source = str(run_dir / CONFIG_FILE)
@@ -67,4 +73,39 @@ def main(argv: list[str] | None = None) -> int:
         print(f"mapf-fleet dagger: {exc}", file=sys.stderr)
         return 2
     print(json.dumps(result, indent=1))
+    return 0
+
+
+def _overrides(items: list[str]) -> dict:
+    overrides = {}
+    for item in items:
+        if "=" not in item:
+            raise DaggerConfigError(f"--set expects FIELD=VALUE, got {item!r}")
+        key, value = item.split("=", 1)
+        overrides[key.strip()] = yaml.safe_load(value)
+    return overrides
+
+
+def _ceiling(args) -> int:
+    import sys
+
+    from .ceiling import expert_ceiling, markdown
+
+    try:
+        if not args.config:
+            raise DaggerConfigError("--expert-ceiling needs --config (a DAgger config YAML)")
+        if args.count is not None and args.count < 1:
+            raise DaggerConfigError(f"--count must be >= 1, got {args.count}")
+        try:
+            data = yaml.safe_load(Path(args.config).read_text()) or {}
+        except yaml.YAMLError as exc:
+            raise DaggerConfigError(f"{args.config}: invalid YAML: {exc}") from None
+        cfg = config_from_dict({**data, **_overrides(args.set)}, source=args.config)
+        result = expert_ceiling(cfg, args.count, log=lambda m: print(m, flush=True))
+    except (DaggerConfigError, OSError) as exc:
+        print(f"mapf-fleet dagger: {exc}", file=sys.stderr)
+        return 2
+    print(markdown(result))
+    if args.json:
+        Path(args.json).write_text(json.dumps({"argv": sys.argv, **result}, indent=1))
     return 0

@@ -11,6 +11,8 @@ from typing import Any
 import yaml
 
 LOSSES = ("cross_entropy", "margin")
+# the project's names (config keys) for the fields `shield` and `preferences`
+NEW_NAMES = {"conflict_rule": "shield", "ranking": "preferences"}
 
 
 class DaggerConfigError(ValueError):
@@ -30,6 +32,17 @@ def _default_tasks() -> list:
 
 def _default_late_tasks() -> list:
     return [{"kind": "random", "size": 80, "agents": [64], "weight": 1.0, "max_steps": 386}]
+
+
+def _default_ceiling() -> list:
+    # the expert-ceiling's suites: where plain PIBT and the shipped default fail (docs/results.md)
+    return [{"kind": "dense", "size": 21, "agents": [32, 48, 64], "max_steps": 128},
+            {"kind": "maze", "size": 21, "agents": [32, 48], "max_steps": 128},
+            {"kind": "random", "size": 40, "agents": [64], "max_steps": 256}]
+
+
+def _default_ceiling_lifelong() -> list:
+    return [{"kind": "dense", "size": 21, "agents": [48], "max_steps": 256}]
 
 
 def _default_heldout() -> list:
@@ -68,7 +81,13 @@ class DaggerConfig:
     label_backoff_max: int = 16
 
     # --- expert --------------------------------------------------------------------------------
-    label_time_limit: float = 0.5  # seconds of LaCAM per connected region
+    # the label scheme (labeller.LABELLERS): "lacam" = a fresh LaCAM plan's first move at every
+    # labelled state; "committed" = the next move of one kept plan, re-planned only when the
+    # state left it, a goal changed, or every `committed_replan_every` states
+    labeller: str = "lacam"
+    committed_budget: float = 1.0  # "committed": seconds of wall clock per re-plan
+    committed_replan_every: int = 0  # "committed": re-plan every k labelled states (0: never)
+    label_time_limit: float = 0.5  # "lacam": seconds of LaCAM per connected region
     max_plan_factor: float = 3.0  # a plan longer than factor x BFS lower bound + slack ...
     max_plan_slack: int = 32  # ... (or than the task's step limit) gives no labels
     planner_seed: int = 0
@@ -98,6 +117,17 @@ class DaggerConfig:
     heldout_count: int = 10  # instances per held-out setting
     heldout_seed: int = 20_251_201  # instances drawn apart from every training seed
 
+    # --- expert ceiling (`mapf-fleet dagger --expert-ceiling`, ceiling.py) ---------------------
+    # one-shot suites {kind, size, agents: [..], max_steps}: the labeller as the policy beside
+    # plain PIBT, `ceiling_count` instances each from `ceiling_seed`
+    ceiling: list = field(default_factory=_default_ceiling)
+    ceiling_lifelong: list = field(default_factory=_default_ceiling_lifelong)  # [] = none
+    ceiling_count: int = 20
+    ceiling_lifelong_count: int = 5  # lifelong runs per row (a goal on arrival: many re-plans)
+    ceiling_seed: int = 0
+    # episodes per suite whose states a second labeller (planner seed + 1) labels too
+    ceiling_agreement_episodes: int = 5
+
     # --- run -------------------------------------------------------------------------------------
     seed: int = 0
     state_interval_seconds: float = 120.0
@@ -118,6 +148,10 @@ class DaggerConfig:
         if self.shield == "lacam":
             raise bad("shield", "the planning arbiter executes its plan, not the policy's moves: "
                                 "roll out under a PIBT rule such as 'pibt_anchor'")
+        from .labeller import LABELLERS
+
+        if self.labeller not in LABELLERS:
+            raise bad("labeller", f"must be one of {LABELLERS}")
         if self.preferences not in Q_MODES:
             raise bad("preferences", f"must be one of {Q_MODES}")
         if self.loss not in LOSSES:
@@ -127,19 +161,21 @@ class DaggerConfig:
                       "checkpoint's)")
         for name in ("rounds", "episodes_per_round", "label_interval", "label_backoff_max",
                      "num_cpus", "num_workers",
-                     "seq_len", "batch_windows", "threads", "heldout_count"):
+                     "seq_len", "batch_windows", "threads", "heldout_count", "ceiling_count",
+                     "ceiling_lifelong_count"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise bad(name, "must be an integer >= 1")
         for name in ("late_tasks_from", "burn_in", "updates_per_round", "max_plan_slack", "seed",
-                     "planner_seed", "heldout_seed"):
+                     "planner_seed", "heldout_seed", "committed_replan_every", "ceiling_seed",
+                     "ceiling_agreement_episodes"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise bad(name, "must be an integer >= 0")
         for name in ("beta0", "beta_decay"):
             if not 0.0 <= float(getattr(self, name)) <= 1.0:
                 raise bad(name, "must be in [0, 1]")
-        for name in ("label_time_limit", "max_plan_factor", "lr", "grad_clip",
+        for name in ("label_time_limit", "committed_budget", "max_plan_factor", "lr", "grad_clip",
                      "state_interval_seconds"):
             if not float(getattr(self, name)) > 0:
                 raise bad(name, "must be > 0")
@@ -149,7 +185,7 @@ class DaggerConfig:
             raise bad("device", "must be 'auto', 'cpu', 'cuda' or 'cuda:N'")
         if not self.tasks:
             raise bad("tasks", "needs at least one task")
-        for name in ("tasks", "late_tasks"):
+        for name in ("tasks", "late_tasks", "ceiling", "ceiling_lifelong"):
             for i, task in enumerate(getattr(self, name)):
                 try:
                     _check_task(task, many=True)
@@ -205,6 +241,13 @@ def config_from_dict(data: dict, source: str = "<dict>") -> DaggerConfig:
     if not isinstance(data, dict):
         raise DaggerConfigError(f"{source}: top level must be a mapping")
     known = {f.name: f for f in dataclasses.fields(DaggerConfig)}
+    data = dict(data)
+    for new, old in NEW_NAMES.items():  # the project's names for two older fields
+        if new in data:
+            if old in data:
+                raise DaggerConfigError(f"{source}: give {new!r} or {old!r}, not both "
+                                        f"({new}={data[new]!r}, {old}={data[old]!r})")
+            data[old] = data.pop(new)
     values = {}
     for key, value in data.items():
         if key not in known:

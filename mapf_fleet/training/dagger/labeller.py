@@ -2,11 +2,15 @@
 
 A labeller is anything with `label(state: LabelState) -> Labels` (the `Labeller` protocol): the
 rollout hands it the joint state it visited and gets one move per agent back, -1 where it has
-none, with a status the run counts. `LaCAMLabeller` (replan from every state, take the first
-move) is the one the runs use; `make_labeller` builds the configured one, so another scheme (a
-labeller that commits to a plan across steps, say) is a second class and a config value, with the
-rollout, shards and learner unchanged. `LabelState.step` lets a labeller that keeps a plan know
-where in the episode it is (0 = a new episode)."""
+none, with a status the run counts. Schemes (`LABELLERS`, the config's `labeller`):
+- "lacam" (`LaCAMLabeller`): LaCAM (pymapf) from every labelled state, the first move of its plan;
+- "committed" (`CommittedLabeller`): the policy's states labelled from one kept plan
+  (`coordination.plan.CommittedExpert`, the project's LaCAM), re-planned only for a state off the
+  plan, a new goal, or every `committed_replan_every` states: labels that add up to one plan.
+`make_labeller` builds the configured one; the rollout, shards and learner do not depend on the
+scheme. `LabelState.step` lets a labeller that keeps a plan know where in the episode it is
+(0 = a new episode). `mapf-fleet dagger --expert-ceiling` (`ceiling.py`) measures a scheme as the
+policy itself."""
 
 from __future__ import annotations
 
@@ -89,7 +93,51 @@ class LaCAMLabeller:
         return Labels(labels, status)
 
 
-def make_labeller(cfg) -> Labeller:
-    """The labeller a DAgger config asks for."""
-    return LaCAMLabeller(cfg.label_time_limit, cfg.max_plan_factor, cfg.max_plan_slack,
-                         cfg.planner_seed)
+class CommittedLabeller:
+    """Labels from a kept plan: `coordination.plan.CommittedExpert` (one per episode, made at
+    its first state) gives every agent the kept plan's next move; it re-plans (the kept plan's
+    next moves ranked first at the root for the agents still on it) when the state is not where
+    the plan leads, when a goal changed (lifelong), or every `replan_every` states (0: never),
+    with `planning_budget` seconds of wall clock per re-plan. Agents the plan leaves out (no plan
+    found in the budget for their region) get no label ("unsolved"): the expert's own fallback
+    there is plain PIBT's step, not worth imitating."""
+
+    def __init__(self, planning_budget: float, replan_every: int = 0, seed: int = 0):
+        self.planning_budget = float(planning_budget)
+        self.replan_every = int(replan_every)
+        self.seed = int(seed)
+        self.expert = None
+        self._grid = None
+        self.replans = 0  # re-plans since construction (the ceiling reports them per episode)
+
+    def label(self, state: LabelState) -> Labels:
+        from mapf_fleet.coordination.plan import CommittedExpert
+
+        if self.expert is None or state.step == 0 or state.grid is not self._grid:
+            self.expert = CommittedExpert(state.grid, state.goals,
+                                          planning_budget=self.planning_budget,
+                                          replan_every=self.replan_every, seed=self.seed)
+            self._grid = state.grid
+        elif not np.array_equal(self.expert.goals, state.goals):
+            self.expert.set_goals(state.goals)
+        actions = np.asarray(self.expert.moves(state.positions), np.int64).copy()
+        self.replans += bool(self.expert.last.get("replanned"))
+        keeper = self.expert.keeper
+        if keeper.plan is None:
+            return Labels(np.full(len(actions), -1, np.int64), "unsolved")
+        if keeper.unplanned.any():
+            actions[keeper.unplanned] = -1
+            return Labels(actions, "unsolved")
+        return Labels(actions, "ok")
+
+
+LABELLERS = ("lacam", "committed")
+
+
+def make_labeller(cfg, seed: int | None = None) -> Labeller:
+    """The labeller a DAgger config asks for (`labeller`); `seed` replaces the planner's seed
+    (the ceiling's self-agreement labels the same states with a second seed)."""
+    seed = cfg.planner_seed if seed is None else int(seed)
+    if cfg.labeller == "committed":
+        return CommittedLabeller(cfg.committed_budget, cfg.committed_replan_every, seed)
+    return LaCAMLabeller(cfg.label_time_limit, cfg.max_plan_factor, cfg.max_plan_slack, seed)

@@ -24,10 +24,15 @@ def play_episode(model, instance, max_steps: int, shield_rule: str, preferences:
                  device, labeller: Labeller | None = None, beta: float = 0.0,
                  label_interval: int = 1, rng: np.random.Generator | None = None,
                  seq_len: int = 16, burn_in: int = 8, record: bool = True,
-                 backoff_max: int = 1) -> dict:
+                 backoff_max: int = 1, shadow: Labeller | None = None) -> dict:
     """One episode of `model` under the shield; with a labeller, the visited states are labelled
     (and the expert's ranking executed with probability `beta` at labelled steps). Returns the
-    outcome and, with `record`, the arrays of a shard (`data.py`)."""
+    outcome and, with `record`, the arrays of a shard (`data.py`).
+
+    `model` None: the policy is plain PIBT (the distance ranking, no network; nothing to
+    record), so with `beta` 1 the labeller itself is the policy wherever it labels (the expert
+    ceiling). `shadow`: a second labeller labelling the same states (another seed); the agents
+    both label count in `agree_pairs`, those labelled alike in `agree`."""
     from mapf_fleet.coordination.pibt import make_shield
     from mapf_fleet.coordination.preferences import rank_actions, tie_breakers
     from mapf_fleet.grid.env import EnvConfig, MAPFEnv
@@ -35,19 +40,24 @@ def play_episode(model, instance, max_steps: int, shield_rule: str, preferences:
     from mapf_fleet.models.policy import LearnedPolicy
 
     rng = np.random.default_rng(0) if rng is None else rng
-    cost_to_go = model.config.observation == "cost_to_go"
-    env = MAPFEnv(instance, EnvConfig(max_steps=max_steps, observation=model.config.observation))
+    if model is None and record:
+        raise ValueError("play_episode: model None (plain PIBT) records nothing: record=False")
+    observation = "paper" if model is None else model.config.observation
+    cost_to_go = observation == "cost_to_go"
+    env = MAPFEnv(instance, EnvConfig(max_steps=max_steps, observation=observation))
     obs = env.reset()
     n = instance.num_agents
     shield = make_shield(shield_rule, instance.grid, instance.goals)
-    policy = LearnedPolicy(model, device)
-    policy.reset(1, n)
+    policy = None if model is None else LearnedPolicy(model, device)
+    if policy is not None:
+        policy.reset(1, n)
     distances = bfs_distances_many(instance.grid, instance.goals) if labeller else None
     ties_agents = np.arange(n)
     rec_obs, rec_ctg, rec_pos, rec_last, rec_labels, hiddens = [], [], [], [], [], []
     stats = {"labelled_states": 0, "labels": 0, "unsolved": 0, "too_long": 0,
-             "expert_steps": 0, "label_seconds": 0.0, "disagree": 0, "disagree_off_goal": 0,
-             "off_goal_labels": 0, "label_calls": 0}
+             "expert_steps": 0, "label_seconds": 0.0, "label_cpu_seconds": 0.0, "disagree": 0,
+             "disagree_off_goal": 0, "off_goal_labels": 0, "label_calls": 0, "agree": 0,
+             "agree_pairs": 0}
     done, info = (env.on_goal().all(), {"success": bool(env.on_goal().all()), "steps": 0})
     next_label, wait = 0, label_interval
     while not done:
@@ -59,17 +69,26 @@ def play_episode(model, instance, max_steps: int, shield_rule: str, preferences:
             rec_pos.append(env.positions.astype(np.int16))
             rec_last.append(env.last_actions.astype(np.int8))
             hiddens.append(policy.hidden[0].detach().to("cpu", torch.float16).numpy())
-        policy.act(obs[None].astype(np.float32), env.positions[None])
-        q = policy.q_values[0]
         ties = tie_breakers(ties_agents, t)
-        ranking = rank_actions(obs, q, preferences, ties=ties)
+        if policy is None:
+            ranking = rank_actions(obs, mode="distance", ties=ties)
+        else:
+            policy.act(obs[None].astype(np.float32), env.positions[None])
+            ranking = rank_actions(obs, policy.q_values[0], preferences, ties=ties)
         label = np.full(n, -1, np.int8)
         if labeller is not None and t >= next_label:
-            began = time.perf_counter()
-            expert, status = labeller.label(LabelState(instance.grid, env.positions,
-                                                       instance.goals, distances, t, max_steps))
+            state = LabelState(instance.grid, env.positions, instance.goals, distances, t,
+                               max_steps)
+            began, began_cpu = time.perf_counter(), time.process_time()
+            expert, status = labeller.label(state)
             stats["label_seconds"] += time.perf_counter() - began
+            stats["label_cpu_seconds"] += time.process_time() - began_cpu
             stats["label_calls"] += 1
+            if shadow is not None:
+                other = shadow.label(state).actions
+                both = (expert >= 0) & (other >= 0)
+                stats["agree_pairs"] += int(both.sum())
+                stats["agree"] += int((both & (expert == other)).sum())
             if status != "ok":
                 stats[status] += 1
             if 2 * int((expert >= 0).sum()) >= n:  # most agents labelled (a pocket may not be)
@@ -97,7 +116,8 @@ def play_episode(model, instance, max_steps: int, shield_rule: str, preferences:
         if record:
             rec_labels.append(label)
         executed = shield.step(env.positions, ranking).actions
-        policy.set_last_actions(executed[None])
+        if policy is not None:
+            policy.set_last_actions(executed[None])
         obs, _, done, info = env.step(executed)
     out = {"success": bool(info["success"]), "steps": int(info["steps"]),
            "num_agents": n, **stats}
@@ -179,19 +199,51 @@ class DaggerWorker:
 
 def play_plain_pibt(instance, max_steps: int, shield_rule: str) -> dict:
     """The baseline: the shield over distance rankings (the heuristic checkpoint's rows)."""
-    from mapf_fleet.coordination.pibt import make_shield
+    out = play_episode(None, instance, max_steps, shield_rule, "distance", None, record=False)
+    return {"success": out["success"], "steps": out["steps"], "num_agents": out["num_agents"]}
+
+
+def play_lifelong(instance, steps: int, shield_rule: str, goal_seed: int,
+                  labeller: Labeller | None = None) -> dict:
+    """A lifelong run (`fleet.run.FleetRun` with the lifelong task source: a new goal on arrival,
+    robot i's goals from (goal_seed, i)) of `steps` ticks under the shield, ranked by plain
+    PIBT's distance ranking, or, with a labeller, its label first where it labels (the
+    labeller as the policy; its other moves in the distance order). Returns the goals reached
+    per tick (`throughput`)."""
     from mapf_fleet.coordination.preferences import rank_actions, tie_breakers
-    from mapf_fleet.grid.env import EnvConfig, MAPFEnv
+    from mapf_fleet.fleet.record import Decisions
+    from mapf_fleet.fleet.run import FleetRun
+    from mapf_fleet.fleet.tasks import LifelongTasks
+    from mapf_fleet.grid.heuristic import bfs_distances
+    from mapf_fleet.grid.observation import ObservationBuilder
 
-    env = MAPFEnv(instance, EnvConfig(max_steps=max_steps))
-    obs = env.reset()
-    shield = make_shield(shield_rule, instance.grid, instance.goals)
-    agents = np.arange(instance.num_agents)
-    done, info = bool(env.on_goal().all()), {"success": bool(env.on_goal().all()), "steps": 0}
-    while not done:
-        ranking = rank_actions(obs, mode="distance", ties=tie_breakers(agents, env.steps))
-        obs, _, done, info = env.step(shield.step(env.positions, ranking).actions)
-    return {"success": bool(info["success"]), "steps": int(info["steps"]),
-            "num_agents": instance.num_agents}
-
-
+    run = FleetRun(instance.grid, instance.starts, LifelongTasks(grid=instance.grid,
+                                                                 seed=int(goal_seed)),
+                   instance.goals, rule=shield_rule, max_steps=steps)
+    agents = np.arange(run.num_robots)
+    maps: dict = {}  # BFS distance map per goal cell (goals come back)
+    label_seconds, label_cpu, calls = 0.0, 0.0, 0
+    while not run.finished():
+        goals = np.asarray(run.goals, np.int64)
+        obs = ObservationBuilder.for_goals(run.grid, goals).observe(run.positions)
+        ties = tie_breakers(agents, run.tick)
+        ranking = rank_actions(obs, mode="distance", ties=ties)
+        if labeller is not None:
+            for g in map(tuple, goals.tolist()):
+                if g not in maps:
+                    maps[g] = bfs_distances(run.grid, g)
+            distances = np.stack([maps[g] for g in map(tuple, goals.tolist())])
+            began, began_cpu = time.perf_counter(), time.process_time()
+            expert = labeller.label(LabelState(run.grid, np.asarray(run.positions), goals,
+                                               distances, run.tick, steps)).actions
+            label_seconds += time.perf_counter() - began
+            label_cpu += time.process_time() - began_cpu
+            calls += 1
+            have = expert >= 0
+            onehot = (np.arange(5) == expert[:, None]).astype(np.float64)
+            ranked = rank_actions(obs, onehot, "q_then_distance", ties=ties)
+            ranking = np.where(have[:, None], ranked, ranking)
+        run.step(Decisions.complete(run.tick, ranking))
+    return {"throughput": run.goals_reached / steps, "goals_reached": int(run.goals_reached),
+            "steps": steps, "num_agents": run.num_robots, "label_seconds": label_seconds,
+            "label_cpu_seconds": label_cpu, "label_calls": calls}

@@ -1,0 +1,127 @@
+"""The committed labeller (labels from one kept plan) and the expert ceiling
+(`mapf-fleet dagger --expert-ceiling`): tiny maps, seconds in all."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import yaml
+
+from mapf_fleet.coordination.planners import positions_to_actions
+from mapf_fleet.grid.heuristic import bfs_distances_many
+from mapf_fleet.grid.instance import generate_instance
+from mapf_fleet.training import dagger
+from mapf_fleet.training.dagger import ceiling
+from mapf_fleet.training.dagger.labeller import CommittedLabeller
+
+
+def _state(inst, positions, step):
+    dist = bfs_distances_many(inst.grid, inst.goals)
+    return dagger.LabelState(inst.grid, positions, inst.goals, dist, step, 64)
+
+
+def test_committed_labels_follow_the_kept_plan_and_replan_only_off_it():
+    inst = generate_instance(10, 6, 0.1, 5)
+    labeller = CommittedLabeller(planning_budget=2.0)
+    labels, status = labeller.label(_state(inst, inst.starts, 0))
+    plan = labeller.expert.keeper.plan.copy()
+    assert status == "ok" and labeller.replans == 1 and len(plan) >= 3
+    assert labels.tolist() == positions_to_actions(plan[:2])[0].tolist()
+    # the rollout followed the labels: the next labels are the same plan's next moves, no re-plan
+    labels, status = labeller.label(_state(inst, plan[1], 1))
+    assert status == "ok" and labeller.replans == 1
+    assert labels.tolist() == positions_to_actions(plan[1:3])[0].tolist()
+    # one agent did not take its planned move (it stayed where it was): the state left the plan
+    moved = [i for i in range(inst.num_agents)
+             if (plan[2, i] != plan[1, i]).any()
+             and not (plan[2] == plan[1, i]).all(axis=1).any()]
+    assert moved, "the instance needs an agent whose left cell stays free"
+    off = plan[2].copy()
+    off[moved[0]] = plan[1, moved[0]]
+    labels, status = labeller.label(_state(inst, off, 2))
+    assert labeller.replans == 2 and status == "ok"
+    replanned = labeller.expert.keeper.remaining_plan()
+    assert (replanned[0] == off).all()
+    assert labels.tolist() == positions_to_actions(replanned[:2])[0].tolist()
+    # a new episode (step 0) starts a new expert
+    labeller.label(_state(inst, inst.starts, 0))
+    assert labeller.replans == 3
+
+
+def test_committed_is_selectable_in_the_config_with_the_projects_names():
+    cfg = dagger.config_from_dict({"labeller": "committed", "committed_budget": 0.5,
+                                   "committed_replan_every": 8,
+                                   "conflict_rule": "pibt_anchor_swap", "ranking": "q"})
+    assert cfg.shield == "pibt_anchor_swap" and cfg.preferences == "q"
+    labeller = dagger.make_labeller(cfg)
+    assert isinstance(labeller, CommittedLabeller)
+    assert (labeller.planning_budget, labeller.replan_every) == (0.5, 8)
+    assert dagger.make_labeller(cfg, seed=7).seed == 7
+    assert isinstance(dagger.make_labeller(dagger.config_from_dict({})), dagger.LaCAMLabeller)
+    with pytest.raises(dagger.DaggerConfigError, match="'labeller' = 'fresh'"):
+        dagger.config_from_dict({"labeller": "fresh"}, source="x.yaml")
+    with pytest.raises(dagger.DaggerConfigError, match="'conflict_rule' or 'shield'"):
+        dagger.config_from_dict({"conflict_rule": "pibt", "shield": "pibt"}, source="x.yaml")
+    with pytest.raises(dagger.DaggerConfigError, match="committed_budget"):
+        dagger.config_from_dict({"committed_budget": 0}, source="x.yaml")
+
+
+def _tiny_ceiling(tmp_path, labeller):
+    path = tmp_path / f"{labeller}.yaml"
+    path.write_text(yaml.safe_dump({
+        "conflict_rule": "pibt_anchor_swap", "labeller": labeller, "label_time_limit": 1.0,
+        "committed_budget": 1.0,
+        "ceiling": [{"kind": "random", "size": 9, "agents": [3, 5], "max_steps": 32}],
+        "ceiling_lifelong": [{"kind": "random", "size": 9, "agents": [3], "max_steps": 12}],
+        "ceiling_count": 3, "ceiling_agreement_episodes": 2}))
+    return path
+
+
+@pytest.mark.parametrize("labeller", ["committed", "lacam"])
+def test_expert_ceiling_command(tmp_path, capsys, labeller):
+    out = tmp_path / "ceiling.json"
+    rc = dagger.main(["--expert-ceiling", "--config", str(_tiny_ceiling(tmp_path, labeller)),
+                      "--count", "2", "--json", str(out)])
+    assert rc == 0
+    printed = capsys.readouterr().out
+    assert "| random 9x9 | 5 |" in printed and "lifelong" in printed
+    result = json.loads(out.read_text())
+    assert result["labeller"] == labeller and result["rule"] == "pibt_anchor_swap"
+    rows = result["one_shot"]
+    assert [(r["agents"], r["instances"]) for r in rows] == [(3, 2), (5, 2)]
+    for row in rows:
+        # a few agents on a 9x9 map: both solve every instance, and the labeller labels
+        assert row["pibt_success"] == 1.0 and row["expert_success"] == 1.0
+        assert 0.0 <= row["self_agreement"] <= 1.0 and row["agreement_labels"] > 0
+        assert row["label_cpu_s_per_state"] > 0 and row["plans_per_episode"] >= 1
+    # plain PIBT's column is the held-out baseline's rollout on the same instances
+    task = {"kind": "random", "size": 9, "max_steps": 32}
+    plain = [dagger.play_plain_pibt(inst, 32, "pibt_anchor_swap")
+             for inst in ceiling.ceiling_instances(task, 5, 2, 0)]
+    assert rows[1]["pibt_steps"] == np.mean([p["steps"] for p in plain])
+    (life,) = result["lifelong"]
+    assert life["pibt_throughput"] > 0 and life["expert_throughput"] > 0
+
+
+def test_expert_ceiling_errors_name_the_option(tmp_path, capsys):
+    assert dagger.main(["--expert-ceiling"]) == 2
+    assert "--expert-ceiling needs --config" in capsys.readouterr().err
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("labeller: fresh\n")
+    assert dagger.main(["--expert-ceiling", "--config", str(bad)]) == 2
+    assert f"{bad}: field 'labeller' = 'fresh'" in capsys.readouterr().err
+
+
+def test_the_labeller_as_the_policy_follows_its_labels():
+    """beta 1, every state labelled: the executed moves are the labels wherever the rule lets
+    them through; with no network the unlabelled ranking is plain PIBT's."""
+    inst = generate_instance(10, 4, 0.1, 2)
+    labeller = CommittedLabeller(planning_budget=2.0)
+    out = dagger.play_episode(None, inst, 40, "pibt_anchor_swap", "distance", None, labeller,
+                              beta=1.0, record=False)
+    assert out["success"] and out["expert_steps"] == out["label_calls"] == out["steps"]
+    assert labeller.replans >= 1
+    with pytest.raises(ValueError, match="record=False"):
+        dagger.play_episode(None, inst, 40, "pibt", "distance", None)
