@@ -14,7 +14,7 @@ from mapf_fleet.grid.heuristic import bfs_distances_many
 from mapf_fleet.grid.instance import generate_instance
 from mapf_fleet.training import dagger
 from mapf_fleet.training.dagger import ceiling
-from mapf_fleet.training.dagger.labeller import CommittedLabeller
+from mapf_fleet.training.dagger.labeller import CommittedLabeller, StuckLabeller
 
 
 def _state(inst, positions, step):
@@ -125,3 +125,28 @@ def test_the_labeller_as_the_policy_follows_its_labels():
     assert labeller.replans >= 1
     with pytest.raises(ValueError, match="record=False"):
         dagger.play_episode(None, inst, 40, "pibt", "distance", None)
+
+
+def test_stuck_labels_only_from_the_state_where_progress_stopped():
+    inst = generate_instance(10, 6, 0.1, 5)
+    labeller = StuckLabeller(planning_budget=2.0, window=3)
+    # progress (the summed distance falls) and then none: skipped until 3 states without a low
+    plan = CommittedLabeller(2.0)
+    plan.label(_state(inst, inst.starts, 0))
+    path = plan.expert.keeper.plan
+    assert labeller.label(_state(inst, inst.starts, 0)).status == "skipped"
+    assert labeller.label(_state(inst, path[1], 1)).status == "skipped"
+    for step in (2, 3):
+        labels, status = labeller.label(_state(inst, path[1], step))
+        assert status == "skipped" and (labels == -1).all() and labeller.active_from is None
+    labels, status = labeller.label(_state(inst, path[1], 4))
+    assert status == "ok" and (labels >= 0).all() and labeller.active_from == 4
+    # from there on, the committed expert's plan from the stuck state
+    kept = labeller.committed.expert.keeper.remaining_plan()
+    assert (kept[0] == path[1]).all()
+    assert labels.tolist() == positions_to_actions(kept[:2])[0].tolist()
+    assert labeller.label(_state(inst, kept[1], 5)).status == "ok" and labeller.replans == 1
+    # a new episode waits for progress to stop again
+    assert labeller.label(_state(inst, inst.starts, 0)).status == "skipped"
+    cfg = dagger.config_from_dict({"labeller": "stuck", "stuck_window": 5})
+    assert dagger.make_labeller(cfg).window == 5

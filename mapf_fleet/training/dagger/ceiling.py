@@ -14,8 +14,8 @@ every instance twice through the rollout of DAgger (`rollout.play_episode`, no n
   after states it cannot label, `label_backoff_max`), the label executed first and the distance
   order after it (DAgger's mixing with beta = 1); agents without a label keep plain PIBT's
   ranking.
-It reports success, average steps (the step limit for a failure), the labeller's CPU seconds per
-labelled state and per agent label, the fraction of calls that left agents unlabelled, plans per
+It reports success, average steps (the step limit for a failure), the labeller's CPU seconds
+(all its calls) per labelled state and per agent label, the fraction of calls that left agents unlabelled, plans per
 episode, and its self-agreement: on the first `ceiling_agreement_episodes` episodes a second
 labeller (planner seed + 1) labels the same states, and the agreement is the fraction of agents
 both label whose labels match. For each lifelong suite (`ceiling_lifelong`) it reports goals
@@ -75,6 +75,7 @@ def one_shot_row(cfg: DaggerConfig, task: dict, agents: int, count: int, log=Non
         agree, pairs = agree + out["agree"], pairs + out["agree_pairs"]
         expert.append(out)
     calls = sum(o["label_calls"] for o in expert)
+    labelled = sum(o["labelled_states"] for o in expert)
     labels = sum(o["labels"] for o in expert)
     cpu = sum(o["label_cpu_seconds"] for o in expert)
     row = {
@@ -85,7 +86,8 @@ def one_shot_row(cfg: DaggerConfig, task: dict, agents: int, count: int, log=Non
         "pibt_steps": statistics.mean(p["steps"] for p in plain),
         "expert_success": sum(o["success"] for o in expert) / count,
         "expert_steps": statistics.mean(o["steps"] for o in expert),
-        "label_cpu_s_per_state": cpu / max(calls, 1),
+        "labelled_states": labelled,
+        "label_cpu_s_per_state": cpu / max(labelled, 1),
         "label_cpu_s_per_label": cpu / max(labels, 1),
         "label_wall_s_per_state": sum(o["label_seconds"] for o in expert) / max(calls, 1),
         "unlabelled_call_rate": sum(o["unsolved"] + o["too_long"] for o in expert)

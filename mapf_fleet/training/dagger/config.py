@@ -83,10 +83,14 @@ class DaggerConfig:
     # --- expert --------------------------------------------------------------------------------
     # the label scheme (labeller.LABELLERS): "lacam" = a fresh LaCAM plan's first move at every
     # labelled state; "committed" = the next move of one kept plan, re-planned only when the
-    # state left it, a goal changed, or every `committed_replan_every` states
+    # state left it, a goal changed, or every `committed_replan_every` states; "stuck" = the
+    # committed expert from the state where the rollout stopped progressing
     labeller: str = "lacam"
     committed_budget: float = 1.0  # "committed": seconds of wall clock per re-plan
     committed_replan_every: int = 0  # "committed": re-plan every k labelled states (0: never)
+    # "stuck": the committed expert's labels from the first state after `stuck_window` labelled
+    # states without a new low of the agents' summed distance to their goals
+    stuck_window: int = 8
     label_time_limit: float = 0.5  # "lacam": seconds of LaCAM per connected region
     max_plan_factor: float = 3.0  # a plan longer than factor x BFS lower bound + slack ...
     max_plan_slack: int = 32  # ... (or than the task's step limit) gives no labels
@@ -161,7 +165,7 @@ class DaggerConfig:
                       "checkpoint's)")
         for name in ("rounds", "episodes_per_round", "label_interval", "label_backoff_max",
                      "num_cpus", "num_workers",
-                     "seq_len", "batch_windows", "threads", "heldout_count", "ceiling_count",
+                     "seq_len", "batch_windows", "threads", "heldout_count", "ceiling_count", "stuck_window",
                      "ceiling_lifelong_count"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:

@@ -6,7 +6,9 @@ none, with a status the run counts. Schemes (`LABELLERS`, the config's `labeller
 - "lacam" (`LaCAMLabeller`): LaCAM (pymapf) from every labelled state, the first move of its plan;
 - "committed" (`CommittedLabeller`): the policy's states labelled from one kept plan
   (`coordination.plan.CommittedExpert`, the project's LaCAM), re-planned only for a state off the
-  plan, a new goal, or every `committed_replan_every` states: labels that add up to one plan.
+  plan, a new goal, or every `committed_replan_every` states: labels that add up to one plan;
+- "stuck" (`StuckLabeller`): no labels while the rollout progresses; from the state where it
+  stopped progressing (`stuck_window`), the committed expert's whole trajectory.
 `make_labeller` builds the configured one; the rollout, shards and learner do not depend on the
 scheme. `LabelState.step` lets a labeller that keeps a plan know where in the episode it is
 (0 = a new episode). `mapf-fleet dagger --expert-ceiling` (`ceiling.py`) measures a scheme as the
@@ -19,7 +21,7 @@ from typing import NamedTuple, Protocol
 
 import numpy as np
 
-LABEL_STATUSES = ("ok", "unsolved", "too_long")
+LABEL_STATUSES = ("ok", "unsolved", "too_long", "skipped")
 
 
 @dataclass(frozen=True)
@@ -36,7 +38,8 @@ class LabelState:
 
 class Labels(NamedTuple):
     """`actions` (N,) int64, -1 = no label for that agent; `status` one of LABEL_STATUSES:
-    "ok" (every agent labelled), "unsolved" or "too_long" (some agents got none, and why)."""
+    "ok" (every agent labelled), "unsolved" or "too_long" (some agents got none, and why),
+    "skipped" (the scheme labels no agent at this state by design: no back-off)."""
 
     actions: np.ndarray
     status: str
@@ -131,7 +134,45 @@ class CommittedLabeller:
         return Labels(actions, "ok")
 
 
-LABELLERS = ("lacam", "committed")
+class StuckLabeller:
+    """Whole expert trajectories from the state where the rollout got stuck: no labels
+    ("skipped") while the rollout makes progress; once the sum over agents of the BFS distance
+    to their goals has not reached a new low for `window` labelled states, a committed expert
+    (`CommittedLabeller`) plans from that state and labels every later state of the episode from
+    its kept plan (re-planning as it does). The labels concentrate where the policy fails; as
+    the policy (the ceiling), it is plain PIBT until stuck, then the expert."""
+
+    def __init__(self, planning_budget: float, replan_every: int = 0, seed: int = 0,
+                 window: int = 8):
+        if int(window) < 1:
+            raise ValueError(f"stuck window must be >= 1 state, got {window!r}")
+        self.committed = CommittedLabeller(planning_budget, replan_every, seed)
+        self.window = int(window)
+        self.seed = int(seed)
+        self._best, self._since, self.active_from = None, 0, None
+
+    @property
+    def replans(self) -> int:
+        return self.committed.replans
+
+    def label(self, state: LabelState) -> Labels:
+        if state.step == 0 or self._best is None:
+            self._best, self._since, self.active_from = None, 0, None
+        if self.active_from is None:
+            pos = np.asarray(state.positions, np.int64)
+            total = int(state.distances[np.arange(len(pos)), pos[:, 0], pos[:, 1]].sum())
+            if self._best is None or total < self._best:
+                self._best, self._since = total, 0
+            else:
+                self._since += 1
+            if self._since < self.window:
+                return Labels(np.full(len(pos), -1, np.int64), "skipped")
+            self.active_from = state.step
+            self.committed.expert = None  # a fresh plan from the stuck state
+        return self.committed.label(state)
+
+
+LABELLERS = ("lacam", "committed", "stuck")
 
 
 def make_labeller(cfg, seed: int | None = None) -> Labeller:
@@ -140,4 +181,7 @@ def make_labeller(cfg, seed: int | None = None) -> Labeller:
     seed = cfg.planner_seed if seed is None else int(seed)
     if cfg.labeller == "committed":
         return CommittedLabeller(cfg.committed_budget, cfg.committed_replan_every, seed)
+    if cfg.labeller == "stuck":
+        return StuckLabeller(cfg.committed_budget, cfg.committed_replan_every, seed,
+                             cfg.stuck_window)
     return LaCAMLabeller(cfg.label_time_limit, cfg.max_plan_factor, cfg.max_plan_slack, seed)

@@ -54,7 +54,7 @@ def play_episode(model, instance, max_steps: int, shield_rule: str, preferences:
     distances = bfs_distances_many(instance.grid, instance.goals) if labeller else None
     ties_agents = np.arange(n)
     rec_obs, rec_ctg, rec_pos, rec_last, rec_labels, hiddens = [], [], [], [], [], []
-    stats = {"labelled_states": 0, "labels": 0, "unsolved": 0, "too_long": 0,
+    stats = {"labelled_states": 0, "labels": 0, "unsolved": 0, "too_long": 0, "skipped": 0,
              "expert_steps": 0, "label_seconds": 0.0, "label_cpu_seconds": 0.0, "disagree": 0,
              "disagree_off_goal": 0, "off_goal_labels": 0, "label_calls": 0, "agree": 0,
              "agree_pairs": 0}
@@ -91,7 +91,8 @@ def play_episode(model, instance, max_steps: int, shield_rule: str, preferences:
                 stats["agree"] += int((both & (expert == other)).sum())
             if status != "ok":
                 stats[status] += 1
-            if 2 * int((expert >= 0).sum()) >= n:  # most agents labelled (a pocket may not be)
+            if status == "skipped" or 2 * int((expert >= 0).sum()) >= n:
+                # most agents labelled (a pocket may not be), or none by design
                 wait = label_interval
             else:  # back off (config: label_backoff_max)
                 wait = min(max(wait, label_interval) * 2, max(backoff_max, label_interval))
