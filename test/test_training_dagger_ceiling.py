@@ -14,7 +14,8 @@ from mapf_fleet.grid.heuristic import bfs_distances_many
 from mapf_fleet.grid.instance import generate_instance
 from mapf_fleet.training import dagger
 from mapf_fleet.training.dagger import ceiling
-from mapf_fleet.training.dagger.labeller import CommittedLabeller, StuckLabeller
+from mapf_fleet.training.dagger.labeller import (CommittedLabeller, KeptPyMAPFLabeller,
+                                                  StuckLabeller)
 
 
 def _state(inst, positions, step):
@@ -150,3 +151,22 @@ def test_stuck_labels_only_from_the_state_where_progress_stopped():
     assert labeller.label(_state(inst, inst.starts, 0)).status == "skipped"
     cfg = dagger.config_from_dict({"labeller": "stuck", "stuck_window": 5})
     assert dagger.make_labeller(cfg).window == 5
+
+
+def test_kept_pymapf_plan_labels_its_next_moves_and_replans_off_it():
+    inst = generate_instance(10, 6, 0.1, 5)
+    cfg = dagger.config_from_dict({"labeller": "committed", "committed_planner": "pymapf",
+                                   "committed_budget": 2.0})
+    labeller = dagger.make_labeller(cfg)
+    assert isinstance(labeller, KeptPyMAPFLabeller)
+    labels, status = labeller.label(_state(inst, inst.starts, 0))
+    plan = labeller.plan.copy()
+    assert status == "ok" and labeller.replans == 1
+    assert labels.tolist() == positions_to_actions(plan[:2])[0].tolist()
+    labels, _ = labeller.label(_state(inst, plan[1], 1))
+    assert labeller.replans == 1 and labels.tolist() == positions_to_actions(plan[1:3])[0].tolist()
+    # the same state again (the rule refused the step): off the plan, planned afresh
+    labeller.label(_state(inst, plan[1], 2))
+    assert labeller.replans == 2 and (labeller.plan[0] == plan[1]).all()
+    with pytest.raises(dagger.DaggerConfigError, match="committed_planner"):
+        dagger.config_from_dict({"committed_planner": "cbs"})

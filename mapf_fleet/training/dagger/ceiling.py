@@ -142,10 +142,11 @@ def expert_ceiling(cfg: DaggerConfig, count: int | None = None, log=None) -> dic
 
 
 def labeller_config(cfg: DaggerConfig) -> dict:
-    if cfg.labeller == "committed":
-        return {"committed_budget": cfg.committed_budget,
-                "committed_replan_every": cfg.committed_replan_every,
-                "planner_seed": cfg.planner_seed}
+    if cfg.labeller in ("committed", "stuck"):
+        out = {"committed_planner": cfg.committed_planner, "committed_budget": cfg.committed_budget,
+               "committed_replan_every": cfg.committed_replan_every,
+               "planner_seed": cfg.planner_seed}
+        return {**out, "stuck_window": cfg.stuck_window} if cfg.labeller == "stuck" else out
     return {"label_time_limit": cfg.label_time_limit, "max_plan_factor": cfg.max_plan_factor,
             "max_plan_slack": cfg.max_plan_slack, "planner_seed": cfg.planner_seed}
 

@@ -11,6 +11,7 @@ from typing import Any
 import yaml
 
 LOSSES = ("cross_entropy", "margin")
+COMMITTED_PLANNERS = ("lacam", "pymapf")
 # the project's names (config keys) for the fields `shield` and `preferences`
 NEW_NAMES = {"conflict_rule": "shield", "ranking": "preferences"}
 
@@ -88,6 +89,10 @@ class DaggerConfig:
     labeller: str = "lacam"
     committed_budget: float = 1.0  # "committed": seconds of wall clock per re-plan
     committed_replan_every: int = 0  # "committed": re-plan every k labelled states (0: never)
+    # "committed": whose LaCAM keeps the plan: "lacam" = the project's (coordination.lacam, via
+    # coordination.plan.CommittedExpert); "pymapf" = the per-step labeller's (no periodic
+    # re-plan; `committed_budget` seconds per region)
+    committed_planner: str = "lacam"
     # "stuck": the committed expert's labels from the first state after `stuck_window` labelled
     # states without a new low of the agents' summed distance to their goals
     stuck_window: int = 8
@@ -156,6 +161,8 @@ class DaggerConfig:
 
         if self.labeller not in LABELLERS:
             raise bad("labeller", f"must be one of {LABELLERS}")
+        if self.committed_planner not in COMMITTED_PLANNERS:
+            raise bad("committed_planner", f"must be one of {COMMITTED_PLANNERS}")
         if self.preferences not in Q_MODES:
             raise bad("preferences", f"must be one of {Q_MODES}")
         if self.loss not in LOSSES:

@@ -6,7 +6,8 @@ none, with a status the run counts. Schemes (`LABELLERS`, the config's `labeller
 - "lacam" (`LaCAMLabeller`): LaCAM (pymapf) from every labelled state, the first move of its plan;
 - "committed" (`CommittedLabeller`): the policy's states labelled from one kept plan
   (`coordination.plan.CommittedExpert`, the project's LaCAM), re-planned only for a state off the
-  plan, a new goal, or every `committed_replan_every` states: labels that add up to one plan;
+  plan, a new goal, or every `committed_replan_every` states: labels that add up to one plan
+  (`committed_planner: pymapf`: `KeptPyMAPFLabeller`, the same over pymapf's LaCAM);
 - "stuck" (`StuckLabeller`): no labels while the rollout progresses; from the state where it
   stopped progressing (`stuck_window`), the committed expert's whole trajectory.
 `make_labeller` builds the configured one; the rollout, shards and learner do not depend on the
@@ -134,6 +135,44 @@ class CommittedLabeller:
         return Labels(actions, "ok")
 
 
+class KeptPyMAPFLabeller:
+    """The committed scheme over pymapf's LaCAM (`coordination.planners.ClassicalPlanner`, the
+    per-step labeller's planner): one plan kept while the visited states follow it (each state
+    is the configuration the last labels lead to), re-planned from the state otherwise; its next moves are the labels. No plan in the budget
+    (`time_limit` seconds per connected region): no labels ("unsolved")."""
+
+    def __init__(self, time_limit: float, seed: int = 0):
+        from mapf_fleet.coordination.planners import ClassicalPlanner
+
+        self.planner = ClassicalPlanner("lacam", time_limit, seed)
+        self.seed = int(seed)
+        self.plan, self.index, self._grid, self._goals = None, 0, None, None
+        self.replans = 0
+
+    def label(self, state: LabelState) -> Labels:
+        from mapf_fleet.coordination.planners import positions_to_actions
+
+        positions = np.asarray(state.positions, np.int64)
+        if (state.step == 0 or state.grid is not self._grid
+                or not np.array_equal(self._goals, state.goals)):
+            self.plan = None
+            self._grid, self._goals = state.grid, np.asarray(state.goals).copy()
+        if self.plan is not None:
+            at = min(self.index + 1, len(self.plan) - 1)
+            if np.array_equal(self.plan[at], positions):
+                self.index = at
+            else:  # off the plan (also a state that did not advance: the rule refused it)
+                self.plan = None
+        if self.plan is None:
+            result = self.planner.plan(state.grid, positions, state.goals)
+            self.replans += 1
+            if not result.complete:
+                return Labels(np.full(len(positions), -1, np.int64), "unsolved")
+            self.plan, self.index = np.asarray(result.positions), 0
+        nxt = self.plan[min(self.index + 1, len(self.plan) - 1)]
+        return Labels(positions_to_actions(np.stack([positions, nxt]))[0], "ok")
+
+
 class StuckLabeller:
     """Whole expert trajectories from the state where the rollout got stuck: no labels
     ("skipped") while the rollout makes progress; once the sum over agents of the BFS distance
@@ -179,6 +218,8 @@ def make_labeller(cfg, seed: int | None = None) -> Labeller:
     """The labeller a DAgger config asks for (`labeller`); `seed` replaces the planner's seed
     (the ceiling's self-agreement labels the same states with a second seed)."""
     seed = cfg.planner_seed if seed is None else int(seed)
+    if cfg.labeller == "committed" and cfg.committed_planner == "pymapf":
+        return KeptPyMAPFLabeller(cfg.committed_budget, seed)
     if cfg.labeller == "committed":
         return CommittedLabeller(cfg.committed_budget, cfg.committed_replan_every, seed)
     if cfg.labeller == "stuck":
