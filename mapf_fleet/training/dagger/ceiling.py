@@ -15,10 +15,11 @@ every instance twice through the rollout of DAgger (`rollout.play_episode`, no n
   order after it (DAgger's mixing with beta = 1); agents without a label keep plain PIBT's
   ranking.
 It reports success, average steps (the step limit for a failure), the labeller's CPU seconds
-(all its calls) per labelled state and per agent label, the fraction of calls that left agents unlabelled, plans per
-episode, and its self-agreement: on the first `ceiling_agreement_episodes` episodes a second
-labeller (planner seed + 1) labels the same states, and the agreement is the fraction of agents
-both label whose labels match. For each lifelong suite (`ceiling_lifelong`) it reports goals
+(all its calls) per labelled state and per agent label, the fraction of labels the rule executed
+unchanged, the fraction of calls that left agents unlabelled, plans per episode, and its
+self-agreement: on the first `ceiling_agreement_episodes` episodes a second labeller (planner
+seed + 1) labels the same states, and the agreement is the fraction of agents both label whose
+labels match. For each lifelong suite (`ceiling_lifelong`) it reports goals
 reached per tick over `max_steps` ticks on the first `ceiling_lifelong_count` instances
 (`rollout.play_lifelong`, the fleet's lifelong source, goals seeded per episode).
 
@@ -87,6 +88,8 @@ def one_shot_row(cfg: DaggerConfig, task: dict, agents: int, count: int, log=Non
         "expert_success": sum(o["success"] for o in expert) / count,
         "expert_steps": statistics.mean(o["steps"] for o in expert),
         "labelled_states": labelled,
+        # the labels the conflict rule executed unchanged (the rest it overrode)
+        "labels_executed_rate": sum(o["labels_executed"] for o in expert) / max(labels, 1),
         "label_cpu_s_per_state": cpu / max(labelled, 1),
         "label_cpu_s_per_label": cpu / max(labels, 1),
         "label_wall_s_per_state": sum(o["label_seconds"] for o in expert) / max(calls, 1),
@@ -157,14 +160,14 @@ def markdown(result: dict) -> str:
              f"`{result['rule']}`, {result['count']} instances per row "
              f"({result['lifelong_count']} per lifelong row)", "",
              "| suite | agents | plain PIBT success | labeller success | plain PIBT steps | "
-             "labeller steps | self-agreement | CPU s / state | CPU s / label | "
-             "unlabelled calls | plans / episode |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "labeller steps | labels executed | self-agreement | CPU s / state | "
+             "CPU s / label | unlabelled calls | plans / episode |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in result["one_shot"]:
         agreement = "-" if r["self_agreement"] is None else f"{r['self_agreement']:.2f}"
         lines.append(f"| {r['suite']} | {r['agents']} | {r['pibt_success']:.2f} | "
                      f"{r['expert_success']:.2f} | {r['pibt_steps']:.1f} | "
-                     f"{r['expert_steps']:.1f} | {agreement} | "
+                     f"{r['expert_steps']:.1f} | {r['labels_executed_rate']:.3f} | {agreement} | "
                      f"{r['label_cpu_s_per_state']:.4f} | {r['label_cpu_s_per_label']:.5f} | "
                      f"{r['unlabelled_call_rate']:.2f} | {r['plans_per_episode']:.1f} |")
     if result["lifelong"]:

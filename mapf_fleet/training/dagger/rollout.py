@@ -31,7 +31,7 @@ def play_episode(model, instance, max_steps: int, shield_rule: str, preferences:
 
     `model` None: the policy is plain PIBT (the distance ranking, no network; nothing to
     record), so with `beta` 1 the labeller itself is the policy wherever it labels (the expert
-    ceiling). `shadow`: a second labeller labelling the same states (another seed); the agents
+    ceiling; `labels_executed` counts the labels the rule let through unchanged). `shadow`: a second labeller labelling the same states (another seed); the agents
     both label count in `agree_pairs`, those labelled alike in `agree`."""
     from mapf_fleet.coordination.pibt import make_shield
     from mapf_fleet.coordination.preferences import rank_actions, tie_breakers
@@ -57,7 +57,7 @@ def play_episode(model, instance, max_steps: int, shield_rule: str, preferences:
     stats = {"labelled_states": 0, "labels": 0, "unsolved": 0, "too_long": 0, "skipped": 0,
              "expert_steps": 0, "label_seconds": 0.0, "label_cpu_seconds": 0.0, "disagree": 0,
              "disagree_off_goal": 0, "off_goal_labels": 0, "label_calls": 0, "agree": 0,
-             "agree_pairs": 0}
+             "agree_pairs": 0, "labels_executed": 0}
     done, info = (env.on_goal().all(), {"success": bool(env.on_goal().all()), "steps": 0})
     next_label, wait = 0, label_interval
     while not done:
@@ -117,6 +117,8 @@ def play_episode(model, instance, max_steps: int, shield_rule: str, preferences:
         if record:
             rec_labels.append(label)
         executed = shield.step(env.positions, ranking).actions
+        labelled = label >= 0
+        stats["labels_executed"] += int((labelled & (executed == label)).sum())
         if policy is not None:
             policy.set_last_actions(executed[None])
         obs, _, done, info = env.step(executed)
