@@ -170,3 +170,30 @@ def test_kept_pymapf_plan_labels_its_next_moves_and_replans_off_it():
     assert labeller.replans == 2 and (labeller.plan[0] == plan[1]).all()
     with pytest.raises(dagger.DaggerConfigError, match="committed_planner"):
         dagger.config_from_dict({"committed_planner": "cbs"})
+
+
+def test_a_dagger_round_with_the_committed_labeller(tmp_path):
+    """`labeller: committed` runs a round end to end: its labels land in the shards and train."""
+    import torch
+
+    from mapf_fleet.models.checkpoint import build_model, save_checkpoint
+    from mapf_fleet.models.config import ModelConfig
+
+    torch.manual_seed(0)
+    init = tmp_path / "small.pt"
+    save_checkpoint(init, build_model(ModelConfig.preset("dcc", "small")),
+                    {"alpha": 0.0, "curriculum": {}, "learner_steps": 0, "training_config": {}})
+    cfg = dagger.config_from_dict({
+        "init_checkpoint": str(init), "labeller": "committed", "committed_budget": 1.0,
+        "conflict_rule": "pibt_anchor_swap", "rounds": 1, "episodes_per_round": 2,
+        "use_ray": False, "late_tasks": [], "heldout_count": 2, "updates_per_round": 2,
+        "batch_windows": 2, "seq_len": 6, "burn_in": 3, "device": "cpu",
+        "tasks": [{"kind": "random", "size": 9, "agents": [4], "weight": 1.0, "max_steps": 24}],
+        "heldout": [{"kind": "random", "size": 9, "agents": 3, "max_steps": 24}]})
+    run = tmp_path / "run"
+    dagger.Dagger(cfg, run, log=lambda m: None).run()
+    manifest = json.loads((run / "data" / "manifest.json").read_text())
+    assert sum(m["labels"] for m in manifest["shards"].values()) > 0
+    arrays, _ = dagger.read_shard(run / "data" / "r000_e000.npz")
+    assert (arrays["labels"] >= 0).any()
+    assert (run / "checkpoints" / "round_000.pt").is_file()
