@@ -138,7 +138,11 @@ def expert_ceiling(cfg: DaggerConfig, count: int | None = None, log=None) -> dic
                 for task in cfg.ceiling for n in task["agents"]]
     lifelong = [lifelong_row(cfg, task, n, lifelong_count, log)
                 for task in cfg.ceiling_lifelong for n in task["agents"]]
+    import os
+
     return {"labeller": cfg.labeller, "rule": cfg.shield, "count": count,
+            # the planners' budgets are wall clock: the machine's load says how much CPU they got
+            "loadavg_at_end": list(os.getloadavg()),
             "lifelong_count": lifelong_count,
             "labeller_config": labeller_config(cfg), "one_shot": one_shot,
             "lifelong": lifelong}
