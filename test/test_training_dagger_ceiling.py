@@ -197,3 +197,13 @@ def test_a_dagger_round_with_the_committed_labeller(tmp_path):
     arrays, _ = dagger.read_shard(run / "data" / "r000_e000.npz")
     assert (arrays["labels"] >= 0).any()
     assert (run / "checkpoints" / "round_000.pt").is_file()
+
+
+def test_the_shipped_ceiling_configs_load():
+    from pathlib import Path
+
+    configs = Path(__file__).resolve().parents[1] / "config" / "training"
+    cfg = dagger.load_config(configs / "dagger_committed.yaml")
+    assert (cfg.labeller, cfg.shield) == ("committed", "pibt_anchor_swap")
+    dense = dagger.load_config(configs / "experiments" / "dagger_ceiling_dense_pymapf.yaml")
+    assert (dense.labeller, dense.committed_planner) == ("committed", "pymapf")
