@@ -11,7 +11,8 @@ Round k (k = 0, 1, ...):
      the anchor by default, the fleet's arbiter) with its Q-values ranked by `preferences`. At
      every `label_interval`-th step (backing off after states it cannot label,
      `label_backoff_max`) the labeller labels the joint state (`labeller`: "lacam" as follows,
-     or "committed": the next move of one kept plan, `labeller.py`): LaCAM (pymapf,
+     "committed": the next move of one kept plan, or "stuck": that plan's moves from the state
+     where the rollout stopped progressing, `labeller.py`): LaCAM (pymapf,
      `coordination.planners.ClassicalPlanner`, `label_time_limit` seconds per connected region)
      from the agents' current cells to their goals; the label of agent i is the first move of its
      plan. DAgger's mixing: with probability beta_k = `beta0` * `beta_decay`^k (per labelled
