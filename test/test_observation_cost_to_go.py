@@ -189,7 +189,7 @@ def test_the_evaluator_runs_a_cost_to_go_checkpoint(tmp_path):
     for name, path in paths.items():
         policy = build_policy(PolicySpec("checkpoint", name, path=str(path)))
         assert policy.observation == ("cost_to_go" if name == "ctg" else "paper")
-        records[name] = run_decentralized(policy, instances, 24, shield="pibt_anchor")
+        records[name] = run_decentralized(policy, instances, 24, conflict_rule="pibt_anchor")
     assert records["ctg"] == records["paper"]
 
 

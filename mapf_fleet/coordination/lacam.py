@@ -12,7 +12,7 @@ What is ours:
   the root** (the robots' submitted rankings: a learned policy's, or distance order for plain
   PIBT), and by **distance to the goal deeper in the search** (ties by a seeded random key, as
   PIBT's tie-breakers: with a fixed order PIBT livelocks). LaGAT (AAAI 2026) puts learned
-  preferences into LaCAM's generator the same way.
+  rankings into LaCAM's generator the same way.
 - The root may hold **fixed** agents (they stay on the first step: a real robot still driving)
   and **reserved** cells (kept free on the first step): the plan starts with a step the arbiter
   may command.
@@ -39,7 +39,7 @@ import numpy as np
 from mapf_fleet.grid.actions import ACTION_DELTAS
 
 # (importing pibt also raises the recursion limit: a push chain recurses once per agent)
-from .pibt import validate_preferences
+from .pibt import validate_rankings
 
 # distance maps kept per planner (one per goal cell)
 MAX_DISTANCE_MAPS = 4096
@@ -159,7 +159,7 @@ class LaCAM:
         n = len(starts)
         pieces, nodes, reasons = [], 0, []
         unsolved = np.zeros(n, dtype=bool)
-        rankings = None if rankings is None else validate_preferences(rankings, n)
+        rankings = None if rankings is None else validate_rankings(rankings, n)
         fixed = None if fixed is None else np.asarray(fixed, dtype=bool)
         for label in labels[np.argsort(counts, kind="stable")]:
             idx = np.flatnonzero(region == label)
@@ -221,7 +221,7 @@ class LaCAM:
             raise ValueError(f"priorities must have length {n}, got {len(prio)}")
         root_candidates = None
         if rankings is not None:
-            ranks = validate_preferences(rankings, n)
+            ranks = validate_rankings(rankings, n)
             table = self._targets[np.asarray(start)[:, None], ranks].tolist()
             root_candidates = [[c for c in row if c >= 0] for row in table]
         held = [False] * n if fixed is None else [bool(x) for x in np.asarray(fixed, dtype=bool)]

@@ -272,7 +272,7 @@ class FleetStateAggregator(Node):
             self.ticker.stop()
         missing = sorted(set(decisions.missing) | set(silent))
         plan = plan_robot_commands(self.run.arbiter, self.positions.copy(), self.waypoints,
-                                   decisions.preferences, missing)
+                                   decisions.rankings, missing)
         if plan.problems:
             self.get_logger().error(f"tick {decisions.tick}: unsafe commands "
                                     f"({'; '.join(plan.problems)}): every robot stays")

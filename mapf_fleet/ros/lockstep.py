@@ -144,12 +144,12 @@ class FleetTicker:
                 return None  # stale tick or another run
             if msg.robot_id >= self.num_robots or msg.action > 4:
                 return f"ignored bad move {msg.robot_id}/{msg.action}"
-            preferences = list(getattr(msg, "preferences", ()))
-            problem = ranking_problem(msg.action, preferences)
+            ranking = list(getattr(msg, "preferences", ()))  # the field keeps its wire name
+            problem = ranking_problem(msg.action, ranking)
             if problem:
                 return f"ignored bad move of robot {msg.robot_id}: {problem}"
             robot = int(msg.robot_id)
-            self._prefs[robot] = ([int(a) for a in preferences] if preferences
+            self._prefs[robot] = ([int(a) for a in ranking] if ranking
                                   else single_choice_ranking(msg.action))
             self._comm[robot] = ([int(j) for j in msg.requested], int(msg.messages_received))
             self.cond.notify_all()
@@ -197,9 +197,9 @@ class FleetTicker:
             tick = self.tick
         n = self.num_robots
         stay_first = list(range(5))
-        preferences = np.array([prefs.get(i, stay_first) for i in range(n)],
-                               dtype=np.int64).reshape(n, 5)
-        return Decisions(tick=tick, actions=preferences[:, 0].copy(), preferences=preferences,
+        rankings = np.array([prefs.get(i, stay_first) for i in range(n)],
+                            dtype=np.int64).reshape(n, 5)
+        return Decisions(tick=tick, actions=rankings[:, 0].copy(), rankings=rankings,
                          missing=sorted(set(range(n)) - set(prefs)),
                          requested=[comm.get(i, ([], 0))[0] for i in range(n)],
                          messages=[comm.get(i, ([], 0))[1] for i in range(n)])

@@ -160,7 +160,7 @@ def build_parser() -> argparse.ArgumentParser:
                              "the policy nodes' ranking if a params file sets it, else "
                              "the ranking the checkpoint records for the conflict rule "
                              "(metadata rankings, e.g. a DAgger round's), else the rule's, "
-                             "coordination.preferences.default_q_mode: confidence under "
+                             "coordination.ranking.default_ranking: confidence under "
                              "pibt_anchor, q under pibt and revert)")
     parser.add_argument("--preference-mode", dest="preference_mode", choices=P.RANKINGS,
                         default=None, help="deprecated spelling of --ranking")

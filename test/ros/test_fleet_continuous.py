@@ -33,7 +33,7 @@ def _lifelong_rollout(checkpoint, instance, steps, seed):
     torch.set_num_threads(1)
     run = FleetRun(instance.grid, instance.starts, LifelongTasks(grid=instance.grid, seed=seed),
                    instance.goals, rule="pibt_anchor", max_steps=steps)
-    rollout(CheckpointBatchPolicy(checkpoint, preference_mode="q"), [run], shielded=True)
+    rollout(CheckpointBatchPolicy(checkpoint, ranking="q"), [run], shielded=True)
     return run
 
 
