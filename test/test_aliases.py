@@ -100,7 +100,7 @@ def test_renamed_keys_quiet_reads_old_checkpoints_silently(capsys):
 def test_the_ros_parameter_alias_is_the_shared_table():
     pytest.importorskip("yaml")
     from mapf_fleet.aliases import PARAMETERS
-    from mapf_fleet.ros.parameters import ALIASES, POLICY
+    from mapf_fleet.fleet.parameters import ALIASES, POLICY
 
     assert ALIASES is PARAMETERS
     assert all(new in POLICY for new in PARAMETERS.values())

@@ -39,9 +39,9 @@ import time
 
 import numpy as np
 
+from mapf_fleet.fleet.lockstep import EpisodeBinding
 from mapf_fleet.models.exchange import TIMING_EVERY, PolicyExchange
 from mapf_fleet.ros import common
-from mapf_fleet.ros.lockstep import EpisodeBinding
 
 BATCH_KINDS = ("request", "reply")  # DccBatch.kind
 

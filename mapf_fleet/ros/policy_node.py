@@ -29,9 +29,10 @@ from rclpy.node import Node
 
 from mapf_fleet.coordination.ranking import default_ranking
 from mapf_fleet.entry import one_line_errors
-from mapf_fleet.ros import common, parameters
+from mapf_fleet.fleet import parameters
+from mapf_fleet.ros import common
 
-PARAMETERS = parameters.POLICY  # name -> Param (ros.parameters: the one table)
+PARAMETERS = parameters.POLICY  # name -> Param (fleet.parameters: the one table)
 
 
 def load_policy_model(path: str):

@@ -18,7 +18,7 @@ from mapf_fleet.fleet.arbiter import (CONFLICT_RULES, TickArbiter, break_rotatio
                                     check_conflict_rule,
                                     plan_robot_commands, ranking_problem, ready_to_send,
                                     single_choice_ranking, unsafe_commands)
-from mapf_fleet.ros.lockstep import FleetTicker
+from mapf_fleet.fleet.lockstep import FleetTicker
 
 
 def _random_preferences(rng, n):
@@ -230,7 +230,7 @@ def test_real_robots_with_random_delays_never_share_a_cell(rule):
 
 
 def test_fleet_up_defaults_to_the_anchored_pibt_arbiter_with_swap():
-    from mapf_fleet.ros import parameters
+    from mapf_fleet.fleet import parameters
     from mapf_fleet.ros.launcher import build_parser
 
     assert build_parser().parse_args([]).conflict_rule is None  # not given: the table's

@@ -1,9 +1,8 @@
-"""`mapf-fleet up` as a new user meets it (issue 23 section 2): every option has help and its
-default stated (defect 8), --resolution / --origin for real robots, a .scen's own robot count
-(defect 8), --log-dir and the logs of a failed run kept (defect 10), `mapf-fleet param`
-(defect 9), --single-process with 128 robots ready without waiting out the start-up timeout
-(defect 3), and the policy nodes' default ranking following the checkpoint's recorded
-ranking, else the conflict rule. The bad values refused up front (defect 5) are in test_cli_errors.py."""
+"""`mapf-fleet up` as a new user meets it: every option has help and its default stated,
+--resolution / --origin for real robots, a .scen's own robot count, --log-dir and the logs of a
+failed run kept, `mapf-fleet param`, --single-process with 128 robots ready without waiting out
+the start-up timeout, and the policy nodes' default ranking following the checkpoint's recorded
+ranking, else the conflict rule. The bad values refused up front are in test_cli_errors.py."""
 
 from __future__ import annotations
 
@@ -79,7 +78,7 @@ def _policy_nodes(plan, checkpoint, tmp_path, robots=(0,)):
     """Policy nodes started from the merged params file `up` writes for `plan`."""
     import rclpy
 
-    from mapf_fleet.ros import parameters as P
+    from mapf_fleet.fleet import parameters as P
     from mapf_fleet.ros.policy_node import PolicyNode
 
     plan.params_path = str(tmp_path / "merged.yaml")
@@ -208,7 +207,7 @@ def test_log_dir_keeps_the_policy_logs_and_a_failed_run_keeps_them_too(tmp_path,
 @pytest.mark.ros
 @pytest.mark.slow
 def test_single_process_128_robots_are_ready_without_the_startup_timeout(ros_env, checkpoints):
-    """Before issue 23 the one executor spun every robot's node: the heartbeats of 128 robots
+    """The one executor once spun every robot's node: the heartbeats of 128 robots
     were not taken in time and `up` waited out the whole start-up timeout."""
     done = _up(ros_env, "--single-process", "--checkpoint", checkpoints["dcc"],
                "--num-robots", "128", "--size", "40", "--max-steps", "1",
