@@ -1,4 +1,4 @@
-"""The "cost_to_go" observation (issue 25 item 2): the paper's six channels plus the normalised
+"""The "cost_to_go" observation: the paper's six channels plus the normalised
 cost-to-go, built by every environment a model runs in, a network warm-started from a "paper"
 checkpoint that acts exactly as it, its checkpoints, and the refusal of unknown values."""
 

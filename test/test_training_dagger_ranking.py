@@ -1,5 +1,5 @@
-"""Issue 25 item 3 (evaluator side): the `confidence` ranking, the default ranking per shield
-rule, and the evaluator's `--kinds dense` scenarios."""
+"""The evaluator's side of DAgger's rankings: the `confidence` ranking, the default ranking
+per conflict rule, and the evaluator's `--kinds dense` scenarios."""
 
 from __future__ import annotations
 

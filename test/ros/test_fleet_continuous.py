@@ -1,4 +1,4 @@
-"""A fleet that runs continuously (issue 22): a lifelong fleet over ROS equals the evaluator's
+"""A fleet that runs continuously: a lifelong fleet over ROS equals the evaluator's
 lifelong rollout on the same core; goals at run time from a plain rclpy `goal_pose` publisher,
 the `navigate_to_pose` action (feedback, result, preempt, cancel, rejection with the reason) and
 the task service, in the simulator and with stand-in robots (real-robot mode)."""
