@@ -13,7 +13,8 @@ from typing import Any, Mapping
 # command-line options of `mapf-fleet evaluate` (and `--lifelong`): old -> new
 OPTIONS = {"--shield": "--conflict-rule", "--preferences": "--ranking"}
 # keys of the trainer's and DAgger's configurations: old -> new
-CONFIG_KEYS = {"shield": "conflict_rule", "shield_preferences": "ranking", "preferences": "ranking"}
+CONFIG_KEYS = {"shield": "conflict_rule", "shield_preferences": "ranking", "preferences": "ranking",
+               "shield_replay": "replay_action"}
 # ROS parameters of the policy nodes (params files, `-p`): old -> new
 PARAMETERS = {"preference_mode": "ranking"}
 # values of a conflict rule: old -> new

@@ -70,10 +70,13 @@ def test_evaluate_main_accepts_the_old_options(tmp_path, capsys):
 def test_trainer_config_reads_the_old_keys(tmp_path, capsys):
     from mapf_fleet.training.config import TrainConfigError, config_from_dict, load_config
 
-    old = config_from_dict({"shield": "pibt_anchor", "shield_preferences": "q_then_distance"})
-    assert (old.conflict_rule, old.ranking) == ("pibt_anchor", "q_then_distance")
+    old = config_from_dict({"shield": "pibt_anchor", "shield_preferences": "q_then_distance",
+                            "shield_replay": "preferred"})
+    assert (old.conflict_rule, old.ranking, old.replay_action) == ("pibt_anchor",
+                                                                   "q_then_distance", "preferred")
     assert _warnings(capsys) == ["<dict>: key 'shield' is deprecated, use 'conflict_rule'",
-                                 "<dict>: key 'shield_preferences' is deprecated, use 'ranking'"]
+                                 "<dict>: key 'shield_preferences' is deprecated, use 'ranking'",
+                                 "<dict>: key 'shield_replay' is deprecated, use 'replay_action'"]
     path = tmp_path / "old.yaml"
     path.write_text("preset: dcc\nshield: none\n")
     assert load_config(path).conflict_rule == "revert"
@@ -126,6 +129,7 @@ def test_checkpoints_written_before_the_rename_load_and_read(path, capsys):
         cfg = config_from_dict(recorded, source=str(path), quiet=True)
         assert cfg.conflict_rule == {"none": "revert"}.get(recorded["shield"], recorded["shield"])
         assert cfg.ranking == recorded["shield_preferences"]
+        assert cfg.replay_action == recorded.get("shield_replay", "executed")
         diff, _, _ = training_config_diff(recorded)
         assert "conflict_rule" in dict((k, v) for k, v, _ in diff) or cfg.conflict_rule == "revert"
     record = dagger_record(meta)

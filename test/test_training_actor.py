@@ -135,15 +135,15 @@ def test_shielded_actor_records_the_executed_actions(algo):
 
 
 @pytest.mark.parametrize("algo", ["dhc", "dcc"])
-def test_shield_replay_preferred_trains_first_choices_and_feeds_executed_last_actions(algo):
-    """shield_replay: preferred: the replay's action is each agent's own first choice (greedy,
+def test_replay_action_preferred_trains_first_choices_and_feeds_executed_last_actions(algo):
+    """replay_action: preferred: the replay's action is each agent's own first choice (greedy,
     agent 0 possibly exploring), the executed one moved it, and the sequences' last-action
     input is the executed action. Overridden first choices exist (random weights, 10 agents)."""
     from mapf_fleet.grid.actions import ACTION_DELTAS
     from mapf_fleet.training.episodes import episode_to_sequences
 
     torch.manual_seed(0)
-    cfg = _cfg(algo=algo, conflict_rule="pibt", shield_replay="preferred", final_agents=10)
+    cfg = _cfg(algo=algo, conflict_rule="pibt", replay_action="preferred", final_agents=10)
     worker = EpisodeWorker(cfg, actor_index=0, seed=5)
     worker.keep_records = True
     worker.set_task(Task(num_agents=10, map_size=10, alpha=0.0))
@@ -164,8 +164,8 @@ def test_shield_replay_preferred_trains_first_choices_and_feeds_executed_last_ac
         np.testing.assert_array_equal(seq["actions"][:min(rec.length, cfg.seq_len)],
                                       rec.actions[:cfg.seq_len])
     assert overridden > 0
-    with pytest.raises(Exception, match="shield_replay"):
-        _cfg(shield_replay="both")
+    with pytest.raises(Exception, match="replay_action"):
+        _cfg(replay_action="both")
 
 
 def test_conflict_rule_config_is_validated():

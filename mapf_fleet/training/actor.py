@@ -207,7 +207,7 @@ class EpisodeWorker:
         sequences, stats = [], []
         agent_steps, t0 = 0, time.perf_counter()
         # behind the shield, training first choices: the executed actions are recorded beside
-        record_executed = cfg.conflict_rule != "revert" and cfg.shield_replay == "preferred"
+        record_executed = cfg.conflict_rule != "revert" and cfg.replay_action == "preferred"
         for _ in range(num_steps):
             envs = self.envs
             actions, q, new_hidden = self._forward(envs)

@@ -64,7 +64,7 @@ class TrainConfig:
     # reward and next observation of what the shield made of it: the shield is part of the
     # environment, as it is at deployment, and Q(s, a) learns what asking for `a` under PIBT
     # returns. DCC's last-action input stays the executed action in both.
-    shield_replay: str = "executed"
+    replay_action: str = "executed"
     actor_update_interval: int = 400  # learner updates between weight broadcasts
     gate_actor_fraction: float = 0.5  # success gate uses the lowest-epsilon fraction of explorers
 
@@ -212,8 +212,8 @@ class TrainConfig:
         if self.conflict_rule == "lacam":
             raise bad("conflict_rule", "the planning arbiter executes its plan, not the "
                                        "policy's moves: train under 'pibt' or 'pibt_anchor'")
-        if self.shield_replay not in ("executed", "preferred"):
-            raise bad("shield_replay", "must be 'executed' or 'preferred'")
+        if self.replay_action not in ("executed", "preferred"):
+            raise bad("replay_action", "must be 'executed' or 'preferred'")
         from mapf_fleet.coordination.ranking import Q_RANKINGS
 
         if self.ranking not in Q_RANKINGS:
