@@ -36,10 +36,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mapf_fleet.grid.actions import ACTION_DELTAS
-
 # (importing pibt also raises the recursion limit: a push chain recurses once per agent)
-from .pibt import validate_rankings
+from .pibt import move_targets, validate_rankings
 
 # distance maps kept per planner (one per goal cell)
 MAX_DISTANCE_MAPS = 4096
@@ -92,14 +90,8 @@ class LaCAM:
         self.grid = grid != 0
         self.height, self.width = self.grid.shape
         self.seed = int(seed)
-        h, w = self.height, self.width
-        rows, cols = np.divmod(np.arange(h * w), w)
-        tr = rows[:, None] + ACTION_DELTAS[:, 0]
-        tc = cols[:, None] + ACTION_DELTAS[:, 1]
-        inside = (tr >= 0) & (tr < h) & (tc >= 0) & (tc < w)
-        flat = np.where(inside, tr * w + tc, 0)
         # _targets[cell, action]: the flat cell an action leads to, -1 off the map / obstacle
-        self._targets = np.where(inside & ~self.grid.ravel()[flat], flat, -1)
+        self._targets = move_targets(self.grid)
         # per cell: its free neighbours then itself (the candidates deeper in the search)
         self._moves = [[c for c in row[1:] if c >= 0] + [int(row[0])]
                        for row in self._targets.tolist()]

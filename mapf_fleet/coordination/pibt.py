@@ -100,6 +100,18 @@ REVERT = "revert"
 CONFLICT_RULES = (*COORDINATED_RULES, REVERT)
 
 
+def move_targets(blocked: np.ndarray) -> np.ndarray:
+    """(H*W, 5) int64: the flat cell each action leads to from each flat cell of the (H, W)
+    bool map `blocked` (True = obstacle), -1 where it leaves the map or enters an obstacle."""
+    h, w = blocked.shape
+    rows, cols = np.divmod(np.arange(h * w), w)
+    tr = rows[:, None] + ACTION_DELTAS[:, 0]
+    tc = cols[:, None] + ACTION_DELTAS[:, 1]
+    inside = (tr >= 0) & (tr < h) & (tc >= 0) & (tc < w)
+    flat = np.where(inside, tr * w + tc, 0)
+    return np.where(inside & ~blocked.ravel()[flat], flat, -1)
+
+
 def rule_options(rule: str) -> dict[str, bool]:
     """{"anchor", "swap", "hindrance": bool} of a PIBT rule `pibt[_anchor][_swap][_hindrance]`
     (one of PIBT_RULES); ValueError naming the rule otherwise."""
@@ -173,14 +185,8 @@ class PIBTShield:
         self._goal_flat = (self.goals[:, 0] * grid.shape[1] + self.goals[:, 1]).tolist()
         self.num_agents = len(goals)
         self._blocked = self.grid.ravel().tolist()
-        # _targets[cell, action]: the flat cell an action leads to, -1 off the map / obstacle
-        h, w = self.height, self.width
-        rows, cols = np.divmod(np.arange(h * w), w)
-        tr = rows[:, None] + ACTION_DELTAS[:, 0]
-        tc = cols[:, None] + ACTION_DELTAS[:, 1]
-        inside = (tr >= 0) & (tr < h) & (tc >= 0) & (tc < w)
-        flat = np.where(inside, tr * w + tc, 0)
-        self._targets = np.where(inside & ~self.grid.ravel()[flat], flat, -1)
+        w = self.width
+        self._targets = move_targets(self.grid)
         # executed action from the flat displacement (next - current + w)
         self._action_of_delta = np.zeros(2 * w + 1, dtype=np.int64)
         for a in range(1, NUM_ACTIONS):
