@@ -1,4 +1,4 @@
-"""A fleet that runs continuously (issue 22): a lifelong fleet over ROS equals the evaluator's
+"""A fleet that runs continuously: a lifelong fleet over ROS equals the evaluator's
 lifelong rollout on the same core; goals at run time from a plain rclpy `goal_pose` publisher,
 the `navigate_to_pose` action (feedback, result, preempt, cancel, rejection with the reason) and
 the task service, in the simulator and with stand-in robots (real-robot mode)."""
@@ -45,7 +45,7 @@ def _lifelong_rollout(checkpoint, instance, steps, seed):
     torch.set_num_threads(1)
     run = FleetRun(instance.grid, instance.starts, LifelongTasks(grid=instance.grid, seed=seed),
                    instance.goals, rule=RULE, max_steps=steps)
-    rollout(CheckpointBatchPolicy(checkpoint, preference_mode="q"), [run], shielded=True)
+    rollout(CheckpointBatchPolicy(checkpoint, ranking="q"), [run], shielded=True)
     return run
 
 

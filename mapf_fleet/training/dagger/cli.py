@@ -8,6 +8,8 @@ from pathlib import Path
 
 import yaml
 
+from mapf_fleet.aliases import renamed_keys
+
 from . import __doc__ as OVERVIEW
 from .config import DaggerConfigError, config_from_dict
 from .driver import CONFIG_FILE, STATE_JSON, Dagger
@@ -61,9 +63,10 @@ def main(argv: list[str] | None = None) -> int:
             source = args.config
         else:
             raise DaggerConfigError(f"{run_dir}: no run to resume; give --config")
-        cfg = config_from_dict({**data, **overrides}, source=source)
+        cfg = config_from_dict({**renamed_keys(data, source), **renamed_keys(overrides, "--set")},
+                               source=source)
         result = Dagger(cfg, run_dir, log=lambda m: print(m, flush=True)).run()
-    except (DaggerConfigError, FileNotFoundError, OSError) as exc:
+    except (DaggerConfigError, FileNotFoundError, OSError, ValueError) as exc:
         print(f"mapf-fleet dagger: {exc}", file=sys.stderr)
         return 2
     print(json.dumps(result, indent=1))

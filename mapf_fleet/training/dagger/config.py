@@ -10,6 +10,8 @@ from typing import Any
 
 import yaml
 
+from mapf_fleet.aliases import renamed_keys
+
 LOSSES = ("cross_entropy", "margin")
 
 
@@ -42,10 +44,10 @@ class DaggerConfig:
     # --- policy ------------------------------------------------------------------------------
     # the checkpoint DAgger starts from (its network is kept: DCC or DHC as the paper built it)
     init_checkpoint: str = "models/default.pt"
-    shield: str = "pibt_anchor"  # the arbiter the rollouts run under (coordination.pibt)
-    # how the policy's Q-values become the ranking the shield reads (coordination.preferences);
+    conflict_rule: str = "pibt_anchor"  # the arbiter the rollouts run under (coordination.pibt)
+    # how the policy's Q-values become the ranking the rule reads (coordination.ranking);
     # q_then_distance: the best ranking under pibt_anchor (docs/results.md)
-    preferences: str = "q_then_distance"
+    ranking: str = "q_then_distance"
     # what the network reads (grid.env.OBSERVATIONS): None = the init checkpoint's; "cost_to_go"
     # from a "paper" checkpoint warm-starts it with the extra channel's weights zero
     # (models.checkpoint.with_observation), so round 0 plays exactly as the init checkpoint
@@ -106,20 +108,20 @@ class DaggerConfig:
         self.validate()
 
     def validate(self, source: str = "DaggerConfig") -> None:
-        from mapf_fleet.coordination.pibt import SHIELD_RULES
-        from mapf_fleet.coordination.preferences import Q_MODES
+        from mapf_fleet.coordination.pibt import COORDINATED_RULES
+        from mapf_fleet.coordination.ranking import Q_RANKINGS
         from mapf_fleet.grid.env import OBSERVATIONS
 
         def bad(name: str, why: str) -> DaggerConfigError:
             return DaggerConfigError(f"{source}: field {name!r} = {getattr(self, name)!r}: {why}")
 
-        if self.shield not in SHIELD_RULES:
-            raise bad("shield", f"must be one of {SHIELD_RULES}")
-        if self.shield == "lacam":
-            raise bad("shield", "the planning arbiter executes its plan, not the policy's moves: "
-                                "roll out under a PIBT rule such as 'pibt_anchor'")
-        if self.preferences not in Q_MODES:
-            raise bad("preferences", f"must be one of {Q_MODES}")
+        if self.conflict_rule not in COORDINATED_RULES:
+            raise bad("conflict_rule", f"must be one of {COORDINATED_RULES}")
+        if self.conflict_rule == "lacam":
+            raise bad("conflict_rule", "the planning arbiter executes its plan, not the policy's "
+                                       "moves: roll out under a PIBT rule such as 'pibt_anchor'")
+        if self.ranking not in Q_RANKINGS:
+            raise bad("ranking", f"must be one of {Q_RANKINGS}")
         if self.loss not in LOSSES:
             raise bad("loss", f"must be one of {LOSSES}")
         if self.observation is not None and self.observation not in OBSERVATIONS:
@@ -201,9 +203,15 @@ def _check_task(task: Any, many: bool) -> None:
         raise ValueError(f"weight {weight!r} must be a number >= 0")
 
 
-def config_from_dict(data: dict, source: str = "<dict>") -> DaggerConfig:
+def config_from_dict(data: dict, source: str = "<dict>", quiet: bool = False) -> DaggerConfig:
+    """Build a config from a mapping; the deprecated keys (`shield`, `preferences`) are read as
+    their new names (`mapf_fleet.aliases`), with a warning unless `quiet`."""
     if not isinstance(data, dict):
         raise DaggerConfigError(f"{source}: top level must be a mapping")
+    try:
+        data = renamed_keys(data, source, quiet)
+    except ValueError as exc:
+        raise DaggerConfigError(str(exc)) from None
     known = {f.name: f for f in dataclasses.fields(DaggerConfig)}
     values = {}
     for key, value in data.items():

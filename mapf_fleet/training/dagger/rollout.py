@@ -20,16 +20,16 @@ def window_starts(length: int, seq_len: int, burn_in: int) -> np.ndarray:
     return np.maximum(0, np.arange(0, length, seq_len) - burn_in).astype(np.int64)
 
 
-def play_episode(model, instance, max_steps: int, shield_rule: str, preferences: str,
+def play_episode(model, instance, max_steps: int, conflict_rule: str, ranking: str,
                  device, labeller: Labeller | None = None, beta: float = 0.0,
                  label_interval: int = 1, rng: np.random.Generator | None = None,
                  seq_len: int = 16, burn_in: int = 8, record: bool = True,
                  backoff_max: int = 1) -> dict:
-    """One episode of `model` under the shield; with a labeller, the visited states are labelled
-    (and the expert's ranking executed with probability `beta` at labelled steps). Returns the
+    """One episode of `model` under `conflict_rule` (its Q-values ranked by `ranking`); with a
+    labeller, the visited states are labelled (and the expert's ranking executed with probability `beta` at labelled steps). Returns the
     outcome and, with `record`, the arrays of a shard (`data.py`)."""
     from mapf_fleet.coordination.pibt import make_shield
-    from mapf_fleet.coordination.preferences import rank_actions, tie_breakers
+    from mapf_fleet.coordination.ranking import rank_actions, tie_breakers
     from mapf_fleet.grid.env import EnvConfig, MAPFEnv
     from mapf_fleet.grid.heuristic import bfs_distances_many
     from mapf_fleet.models.policy import LearnedPolicy
@@ -39,7 +39,7 @@ def play_episode(model, instance, max_steps: int, shield_rule: str, preferences:
     env = MAPFEnv(instance, EnvConfig(max_steps=max_steps, observation=model.config.observation))
     obs = env.reset()
     n = instance.num_agents
-    shield = make_shield(shield_rule, instance.grid, instance.goals)
+    shield = make_shield(conflict_rule, instance.grid, instance.goals)
     policy = LearnedPolicy(model, device)
     policy.reset(1, n)
     distances = bfs_distances_many(instance.grid, instance.goals) if labeller else None
@@ -62,7 +62,7 @@ def play_episode(model, instance, max_steps: int, shield_rule: str, preferences:
         policy.act(obs[None].astype(np.float32), env.positions[None])
         q = policy.q_values[0]
         ties = tie_breakers(ties_agents, t)
-        ranking = rank_actions(obs, q, preferences, ties=ties)
+        rankings = rank_actions(obs, q, ranking, ties=ties)
         label = np.full(n, -1, np.int8)
         if labeller is not None and t >= next_label:
             began = time.perf_counter()
@@ -83,7 +83,7 @@ def play_episode(model, instance, max_steps: int, shield_rule: str, preferences:
                 stats["labelled_states"] += 1
                 stats["labels"] += int(have.sum())
                 off_goal = ~env.on_goal() & have
-                differ = (ranking[:, 0] != expert) & have
+                differ = (rankings[:, 0] != expert) & have
                 stats["disagree"] += int(differ.sum())
                 stats["disagree_off_goal"] += int((differ & off_goal).sum())
                 stats["off_goal_labels"] += int(off_goal.sum())
@@ -92,11 +92,11 @@ def play_episode(model, instance, max_steps: int, shield_rule: str, preferences:
                     # keep the policy's ranking
                     onehot = (np.arange(5) == expert[:, None]).astype(np.float64)
                     ranked = rank_actions(obs, onehot, "q_then_distance", ties=ties)
-                    ranking = np.where(have[:, None], ranked, ranking)
+                    rankings = np.where(have[:, None], ranked, rankings)
                     stats["expert_steps"] += 1
         if record:
             rec_labels.append(label)
-        executed = shield.step(env.positions, ranking).actions
+        executed = shield.step(env.positions, rankings).actions
         policy.set_last_actions(executed[None])
         obs, _, done, info = env.step(executed)
     out = {"success": bool(info["success"]), "steps": int(info["steps"]),
@@ -156,8 +156,8 @@ class DaggerWorker:
     def collect(self, job: dict) -> dict:
         cfg = self.cfg
         instance = make_instance(job["task"], job["seed_words"])
-        out = play_episode(self.model, instance, job["task"]["max_steps"], cfg.shield,
-                           cfg.preferences, self.device, self.labeller, job["beta"],
+        out = play_episode(self.model, instance, job["task"]["max_steps"], cfg.conflict_rule,
+                           cfg.ranking, self.device, self.labeller, job["beta"],
                            cfg.label_interval, np.random.default_rng(job["seed_words"] + [1]),
                            cfg.seq_len, cfg.burn_in, record=True,
                            backoff_max=cfg.label_backoff_max)
@@ -169,23 +169,23 @@ class DaggerWorker:
         cfg = self.cfg
         instance = make_instance(job["task"], job["seed_words"])
         if job.get("heuristic"):
-            out = play_plain_pibt(instance, job["task"]["max_steps"], cfg.shield)
+            out = play_plain_pibt(instance, job["task"]["max_steps"], cfg.conflict_rule)
         else:
-            out = play_episode(self.model, instance, job["task"]["max_steps"], cfg.shield,
-                               cfg.preferences, self.device, record=False)
+            out = play_episode(self.model, instance, job["task"]["max_steps"], cfg.conflict_rule,
+                               cfg.ranking, self.device, record=False)
         return {**out, "job": job, "pid": os.getpid(),
                 "process_cpu_seconds": time.process_time()}
 
 
-def play_plain_pibt(instance, max_steps: int, shield_rule: str) -> dict:
+def play_plain_pibt(instance, max_steps: int, conflict_rule: str) -> dict:
     """The baseline: the shield over distance rankings (the heuristic checkpoint's rows)."""
     from mapf_fleet.coordination.pibt import make_shield
-    from mapf_fleet.coordination.preferences import rank_actions, tie_breakers
+    from mapf_fleet.coordination.ranking import rank_actions, tie_breakers
     from mapf_fleet.grid.env import EnvConfig, MAPFEnv
 
     env = MAPFEnv(instance, EnvConfig(max_steps=max_steps))
     obs = env.reset()
-    shield = make_shield(shield_rule, instance.grid, instance.goals)
+    shield = make_shield(conflict_rule, instance.grid, instance.goals)
     agents = np.arange(instance.num_agents)
     done, info = bool(env.on_goal().all()), {"success": bool(env.on_goal().all()), "steps": 0}
     while not done:
