@@ -75,7 +75,7 @@ def time_per_robot(net, obs, positions, repeats: int) -> tuple[float, float]:
         decision = fleet.tick(0, i, positions, last, obs=obs)
         cpu.append(time.process_time() - start)
         wall.append(time.perf_counter() - start_wall)
-        last = decision.preferences[:, 0]
+        last = decision.rankings[:, 0]
     return statistics.median(cpu[1:]) * 1e3 / n, statistics.median(wall[1:]) * 1e3 / n
 
 

@@ -1,4 +1,4 @@
-"""Per-step cost of each PIBT conflict rule (`coordination.pibt.SHIELD_RULES`: plain, anchor,
+"""Per-step cost of each PIBT conflict rule (`coordination.pibt.COORDINATED_RULES`: plain, anchor,
 swap, hindrance and their combinations) at a few fleet sizes.
 
 For each fleet size N (default 64 and 256) one crowded instance (the published 40x40 DHC test set
@@ -26,8 +26,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from mapf_fleet.coordination.pibt import SHIELD_RULES, make_shield  # noqa: E402
-from mapf_fleet.coordination.preferences import tie_breakers  # noqa: E402
+from mapf_fleet.coordination.pibt import COORDINATED_RULES, make_shield  # noqa: E402
+from mapf_fleet.coordination.ranking import tie_breakers  # noqa: E402
 from mapf_fleet.grid.instance import generate_instance, load_dhc_testset  # noqa: E402
 
 TESTSETS = ROOT.parent / "shared" / "data" / "dhc_testsets"
@@ -70,7 +70,7 @@ def main(argv=None) -> int:
     parser.add_argument("--agents", nargs="+", type=int, default=[64, 256])
     parser.add_argument("--steps", type=int, default=100)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--rules", nargs="+", default=list(SHIELD_RULES), choices=SHIELD_RULES)
+    parser.add_argument("--rules", nargs="+", default=list(COORDINATED_RULES), choices=COORDINATED_RULES)
     args = parser.parse_args(argv)
     print(f"{args.steps} joint steps per rule, plain PIBT's rankings, CPU ms of "
           f"PIBTShield.step per joint step, one thread")

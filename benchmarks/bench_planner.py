@@ -12,7 +12,7 @@ robots; `--instances` per cell, generated from `--seed`):
 - **lifelong under the keeper** (`--lifelong`): the lifelong task source (a new goal on arrival)
   for `--steps` ticks: the same counters and the goals reached per tick.
 - **rankings A/B** (`--ab C ...`, e.g. `heuristic models/default.pt`): the evaluator's rollout
-  (`run_decentralized`, `--shield lacam`) on the generated dense maps (`--kinds dense`, seed 0,
+  (`run_decentralized`, `--conflict-rule lacam`) on the generated dense maps (`--kinds dense`, seed 0,
   `--instances` each of `--agents`), the planner's root step ranked by each policy's rankings:
   success, average steps, planner seconds per tick, fallback rate.
 - **committed expert as the policy** (`--expert-under RULE ...`, e.g. `pibt pibt_anchor`): on
@@ -88,18 +88,18 @@ def keeper_run(inst, tick_budget: float, steps: int, lifelong: bool, seed: int) 
 
 def rankings_ab(policies, agents, count, tick_budget) -> list[dict]:
     from mapf_fleet.evaluation.cli import dense_scenarios
-    from mapf_fleet.evaluation.policies import build_policy, parse_policy, with_shield
+    from mapf_fleet.evaluation.policies import build_policy, parse_policy, with_conflict_rule
     from mapf_fleet.evaluation.runner import run_decentralized
 
     rows = []
     for scenario, instances in dense_scenarios(count, 0, agents=agents):
         for name in policies:
-            spec = with_shield(parse_policy(name), "lacam")
+            spec = with_conflict_rule(parse_policy(name), "lacam")
             stats: list = []
             records = run_decentralized(build_policy(spec), instances, scenario.max_steps,
                                         "lacam", planning_budget=tick_budget, stats=stats)
             ticks = sum(s["ticks"] for s in stats)
-            row = {"policy": spec.name, "ranking": spec.preference_mode,
+            row = {"policy": spec.name, "ranking": spec.resolved_ranking,
                    "map": scenario.map_name, "agents": scenario.num_agents,
                    "success": sum(r.success for r in records) / len(records),
                    "average_steps": statistics.mean(r.steps for r in records),

@@ -1,4 +1,4 @@
-"""The PIBT shield: safety properties for any preferences, PIBT's behaviour, determinism."""
+"""The PIBT shield: safety properties for any rankings, PIBT's behaviour, determinism."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapf_fleet.coordination.pibt import PIBTShield, validate_preferences
-from mapf_fleet.coordination.preferences import distance_classes, rank_actions
+from mapf_fleet.coordination.pibt import PIBTShield, validate_rankings
+from mapf_fleet.coordination.ranking import distance_classes, rank_actions
 from mapf_fleet.grid.actions import ACTION_DELTAS, DOWN, LEFT, RIGHT, STAY, UP
 from mapf_fleet.grid.env import MAPFEnv, resolve_moves
 from mapf_fleet.grid.instance import Instance, generate_instance
@@ -157,17 +157,17 @@ def test_deterministic_for_the_same_inputs():
 
 def test_bad_input_is_named():
     shield = PIBTShield(np.zeros((3, 3)), [[0, 0], [2, 2]])
-    with pytest.raises(ValueError, match="agent 1: preferences"):
+    with pytest.raises(ValueError, match="agent 1: ranking"):
         shield.step([[0, 0], [1, 1]], [[0, 1, 2, 3, 4], [0, 0, 1, 2, 3]])
     with pytest.raises(ValueError, match="outside the 3x3 map"):
         shield.step([[0, 0], [3, 1]], [[0, 1, 2, 3, 4]] * 2)
     with pytest.raises(ValueError, match=r"agents \[0, 1\] share"):
         shield.step([[1, 1], [1, 1]], [[0, 1, 2, 3, 4]] * 2)
     with pytest.raises(ValueError, match="shape"):
-        validate_preferences(np.zeros((2, 4), dtype=int), 2)
+        validate_rankings(np.zeros((2, 4), dtype=int), 2)
 
 
-# --- preferences ------------------------------------------------------------------------------
+# --- rankings ---------------------------------------------------------------------------------
 
 def test_distance_order_follows_the_heuristic_bits():
     """On an open map the distance ranking is: closer moves, stay, away, blocked."""
@@ -180,7 +180,7 @@ def test_distance_order_follows_the_heuristic_bits():
     assert rank_actions(obs, mode="distance")[0].tolist() == [UP, RIGHT, STAY, DOWN, LEFT]
 
 
-def test_q_modes():
+def test_q_rankings():
     grid = np.zeros((5, 5), dtype=np.uint8)
     inst = Instance(grid, np.array([[2, 2]]), np.array([[0, 2]]))  # goal straight up
     obs = MAPFEnv(inst).reset()
@@ -195,7 +195,7 @@ def test_q_modes():
     assert rank_actions(on_goal, q, "q_demote_stay")[0].tolist() == [STAY, LEFT, UP, DOWN, RIGHT]
     with pytest.raises(ValueError, match="needs Q-values"):
         rank_actions(obs, None, "q")
-    with pytest.raises(ValueError, match="preference mode"):
+    with pytest.raises(ValueError, match="ranking must be one of"):
         rank_actions(obs, q, "bogus")
 
 
@@ -211,10 +211,10 @@ def _run(inst, choose):
 
 
 def test_plain_pibt_solves_crowded_instances():
-    """Distance preferences with per-tick tie-breakers under the shield (plain PIBT) solve
+    """Distance rankings with per-tick tie-breakers under the shield (plain PIBT) solve
     crowded random instances that the heuristic under the revert rule does not, and the
     tie-breakers matter (a fixed action order livelocks)."""
-    from mapf_fleet.coordination.preferences import tie_breakers
+    from mapf_fleet.coordination.ranking import tie_breakers
     from mapf_fleet.grid.policies import heuristic_policy
 
     instances = [generate_instance(16, 32, 0.2, seed) for seed in range(10)]
@@ -265,7 +265,7 @@ def test_anchored_ranking_is_plain_pibts_distance_ranking():
     from mapf_fleet.evaluation.runner import run_decentralized
 
     instances = InstanceSet.from_instances([generate_instance(12, 20, 0.2, s) for s in range(4)], "t")
-    plain = run_decentralized(HeuristicBatchPolicy(), instances, 64, shield="pibt")
-    anchor = run_decentralized(HeuristicBatchPolicy(), instances, 64, shield="pibt_anchor")
+    plain = run_decentralized(HeuristicBatchPolicy(), instances, 64, conflict_rule="pibt")
+    anchor = run_decentralized(HeuristicBatchPolicy(), instances, 64, conflict_rule="pibt_anchor")
     assert [r.steps for r in plain] == [r.steps for r in anchor]
     assert [r.sum_of_costs for r in plain] == [r.sum_of_costs for r in anchor]

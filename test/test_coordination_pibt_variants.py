@@ -9,10 +9,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapf_fleet.coordination.pibt import (PIBT_RULES, RULE_OPTIONS, SHIELD_RULES, PIBTShield, make_shield,
-                                          rule_name, rule_options)
-from mapf_fleet.coordination.preferences import (DEFAULT_Q_MODE_BY_RULE, Q_MODES,
-                                                 default_q_mode)
+from mapf_fleet.coordination.pibt import (CONFLICT_RULES, COORDINATED_RULES, PIBT_RULES,
+                                          RULE_OPTIONS, PIBTShield, make_shield, rule_name,
+                                          rule_options)
+from mapf_fleet.coordination.ranking import (DEFAULT_RANKING_BY_RULE, Q_RANKINGS,
+                                             default_ranking)
 from mapf_fleet.grid.actions import ACTION_DELTAS
 from mapf_fleet.grid.env import resolve_moves
 from mapf_fleet.grid.instance import generate_instance
@@ -51,12 +52,12 @@ def test_rule_names_list_every_option_set_in_suffix_order():
     assert PIBT_RULES == ("pibt", "pibt_anchor", "pibt_swap", "pibt_anchor_swap",
                           "pibt_hindrance", "pibt_anchor_hindrance", "pibt_swap_hindrance",
                           "pibt_anchor_swap_hindrance")
-    assert SHIELD_RULES == (*PIBT_RULES, "lacam")  # the planning arbiter besides the PIBT rules
+    assert COORDINATED_RULES == (*PIBT_RULES, "lacam")  # the planning arbiter besides the PIBT rules
     assert {rule_name(**o) for o in OPTION_SETS} == set(PIBT_RULES)
     for rule in PIBT_RULES:
         assert rule_name(**rule_options(rule)) == rule
     assert rule_options("pibt_anchor_hindrance") == {"anchor": True, "swap": False,
-                                                     "hindrance": True}
+                                                 "hindrance": True}
     for bad in ("pibt_swap_anchor", "pibt_hindrance_swap", "pibt_", "swap", "lacam_swap"):
         with pytest.raises(ValueError, match=f"PIBT rule .*got '{bad}'"):
             rule_options(bad)
@@ -65,7 +66,7 @@ def test_rule_names_list_every_option_set_in_suffix_order():
 def test_make_shield_builds_each_rule():
     grid = np.zeros((4, 4), dtype=np.uint8)
     goals = np.array([[0, 0], [3, 3]])
-    assert make_shield("none", grid, goals) is None and make_shield("revert", grid, goals) is None
+    assert make_shield("revert", grid, goals) is None
     for rule in PIBT_RULES:
         shield = make_shield(rule, grid, goals)
         assert {o: getattr(shield, o) for o in RULE_OPTIONS} == rule_options(rule)
@@ -74,15 +75,15 @@ def test_make_shield_builds_each_rule():
 
 
 def test_every_rule_has_a_default_ranking_the_base_rules():
-    assert set(DEFAULT_Q_MODE_BY_RULE) == set(PIBT_RULES)
+    assert set(DEFAULT_RANKING_BY_RULE) == set(PIBT_RULES)
     for rule in PIBT_RULES:
         base = "pibt_anchor" if rule_options(rule)["anchor"] else "pibt"
-        assert DEFAULT_Q_MODE_BY_RULE[rule] == DEFAULT_Q_MODE_BY_RULE[base] in Q_MODES
+        assert DEFAULT_RANKING_BY_RULE[rule] == DEFAULT_RANKING_BY_RULE[base] in Q_RANKINGS
         # a checkpoint's ranking recorded for the base rule serves its variants
-        assert default_q_mode(rule, {base: "q_demote_stay"}) == "q_demote_stay"
+        assert default_ranking(rule, {base: "q_demote_stay"}) == "q_demote_stay"
         # ... unless one is recorded for the variant itself
-        assert default_q_mode(rule, {base: "q_demote_stay", rule: "q"}) == "q"
-    assert default_q_mode("pibt_swap", {"pibt_anchor": "q_demote_stay"}) == "q"
+        assert default_ranking(rule, {base: "q_demote_stay", rule: "q"}) == "q"
+    assert default_ranking("pibt_swap", {"pibt_anchor": "q_demote_stay"}) == "q"
 
 
 # --- safety, every combination -------------------------------------------------------------------
@@ -300,19 +301,19 @@ def test_hindrance_only_reorders_moves_at_equal_distance(tick):
         assert [dist[c] for c in out] == [dist[c] for c in ranked]
 
 
-# --- the callers read SHIELD_RULES ---------------------------------------------------------------
+# --- the callers read CONFLICT_RULES -------------------------------------------------------------
 def test_evaluator_and_lifelong_accept_every_rule():
     from mapf_fleet.evaluation.cli import build_parser as evaluate_parser
     from mapf_fleet.evaluation.lifelong import build_parser as lifelong_parser
-    from mapf_fleet.evaluation.policies import SHIELD_LABELS, parse_policy, with_shield
+    from mapf_fleet.evaluation.policies import RULE_LABELS, parse_policy, with_conflict_rule
 
-    args = evaluate_parser().parse_args(["--shield", *SHIELD_RULES])
-    assert args.shield == list(SHIELD_RULES)
-    args = lifelong_parser().parse_args(["--lifelong", "--shield", *SHIELD_RULES])
-    assert args.shield == list(SHIELD_RULES)
-    assert len(set(SHIELD_LABELS.values())) == len(SHIELD_RULES)
-    assert SHIELD_LABELS["pibt_anchor_swap_hindrance"] == "+PIBT-anchor-swap-hindrance"
-    assert with_shield(parse_policy("heuristic"), "pibt_swap").preference_mode == "distance"
+    args = evaluate_parser().parse_args(["--conflict-rule", *CONFLICT_RULES])
+    assert args.conflict_rule == list(CONFLICT_RULES)
+    args = lifelong_parser().parse_args(["--lifelong", "--conflict-rule", *CONFLICT_RULES])
+    assert args.conflict_rule == list(CONFLICT_RULES)
+    assert len(set(RULE_LABELS.values())) == len(COORDINATED_RULES)
+    assert RULE_LABELS["pibt_anchor_swap_hindrance"] == "+PIBT-anchor-swap-hindrance"
+    assert with_conflict_rule(parse_policy("heuristic"), "pibt_swap").resolved_ranking == "distance"
 
 
 def test_runner_and_lifelong_rollout_run_each_variant():
@@ -326,7 +327,7 @@ def test_runner_and_lifelong_rollout_run_each_variant():
                             np.stack([i.goals for i in insts]), "generated")
     lifelong = lifelong_instances("maze", 15, 8, 1, seed=2)
     for rule in ("pibt_swap", "pibt_anchor_hindrance", "pibt_anchor_swap_hindrance"):
-        records = run_decentralized(HeuristicBatchPolicy(), instances, 48, shield=rule)
+        records = run_decentralized(HeuristicBatchPolicy(), instances, 48, conflict_rule=rule)
         assert all(r.collisions == 0 for r in records)
         runs = lifelong_runs(lifelong, 30, rule, seed=2)
         rollout(HeuristicBatchPolicy(), runs, shielded=True)
@@ -341,9 +342,9 @@ def test_trainer_configs_and_checkpoint_rankings_accept_the_variants(tmp_path):
     def fail(field, expected, found):
         raise AssertionError(f"{field}: expected {expected}, found {found!r}")
 
-    _check_rankings({rule: "q" for rule in SHIELD_RULES}, fail)
+    _check_rankings({rule: "q" for rule in COORDINATED_RULES}, fail)
     with pytest.raises(AssertionError, match="pibt_sideways"):
         _check_rankings({"pibt_sideways": "q"}, fail)
     for rule in ("pibt_swap", "pibt_anchor_swap_hindrance"):
-        assert TrainConfig(shield=rule).shield == rule  # validated on construction
-        assert DaggerConfig(shield=rule).shield == rule
+        assert TrainConfig(conflict_rule=rule).conflict_rule == rule  # validated on construction
+        assert DaggerConfig(conflict_rule=rule).conflict_rule == rule

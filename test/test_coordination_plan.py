@@ -201,7 +201,7 @@ def test_evaluator_runs_the_lacam_shield():
 def test_evaluate_cli_refuses_a_bad_planning_budget(capsys):
     from mapf_fleet.evaluation.cli import main
 
-    assert main(["--checkpoint", "heuristic", "--no-references", "--shield", "lacam",
+    assert main(["--checkpoint", "heuristic", "--no-references", "--conflict-rule", "lacam",
                  "--planning-budget", "0", "--kinds", "dense", "--instances", "1"]) == 2
     err = capsys.readouterr().err
     assert "--planning-budget must be a positive number of seconds, got 0" in err
@@ -223,10 +223,10 @@ def test_trainers_refuse_lacam():
     from mapf_fleet.training.config import TrainConfig, TrainConfigError
     from mapf_fleet.training.dagger import DaggerConfig, DaggerConfigError
 
-    with pytest.raises(DaggerConfigError, match="shield.*planning arbiter"):
-        DaggerConfig(shield="lacam")
-    with pytest.raises(TrainConfigError, match="shield.*planning arbiter"):
-        TrainConfig(shield="lacam")
+    with pytest.raises(DaggerConfigError, match="conflict_rule.*planning arbiter"):
+        DaggerConfig(conflict_rule="lacam")
+    with pytest.raises(TrainConfigError, match="conflict_rule.*planning arbiter"):
+        TrainConfig(conflict_rule="lacam")
 
 
 def test_committed_expert_labels_from_one_plan():

@@ -134,7 +134,7 @@ def test_structured_families_one_table_per_kind(tmp_path, capsys):
     """--kinds: generated maze / rooms / warehouse maps (seeded, validated), one table per kind
     and side, the protocol's step limit of that side; the same seed gives the same instances."""
     path = tmp_path / "families.json"
-    args = ["evaluate", "--checkpoint", "heuristic", "--no-references", "--shield", "pibt",
+    args = ["evaluate", "--checkpoint", "heuristic", "--no-references", "--conflict-rule", "pibt",
             "--kinds", "maze", "rooms", "warehouse", "--sizes", "24", "--agents", "6",
             "--instances", "2", "--quiet", "--json", str(path)]
     assert mapf_fleet(args) == 0

@@ -478,7 +478,7 @@ def test_append_adds_the_shielded_rows_to_an_existing_card(tmp_path):
     plain, shielded = tmp_path / "plain.json", tmp_path / "shielded.json"
     common = ["--sizes", "40", "--agents", "4", "--instances", "2", "--quiet"]
     assert evaluate_main(["--checkpoint", str(checkpoint), "--no-references", "--json", str(plain), *common]) == 0
-    assert evaluate_main(["--checkpoint", str(checkpoint), "heuristic", "--no-references", "--shield", "pibt",
+    assert evaluate_main(["--checkpoint", str(checkpoint), "heuristic", "--no-references", "--conflict-rule", "pibt",
                           "--json", str(shielded), *common]) == 0
     card = tmp_path / "rand.md"
     assert card_main(["--checkpoint", str(checkpoint), "--eval", str(plain), "--out", str(card)]) == 0
@@ -490,7 +490,7 @@ def test_append_adds_the_shielded_rows_to_an_existing_card(tmp_path):
     head, tail = before.split("\n## How it was trained and what it cost\n")
     assert after.startswith(head.rstrip("\n")) and after.endswith("## How it was trained and what it cost\n" + tail)
     added = after[len(head.rstrip("\n")):-len("## How it was trained and what it cost\n" + tail)]
-    assert "### Under the coordination layer" in added and "--shield pibt" in added
+    assert "### Under the coordination layer" in added and "--conflict-rule pibt" in added
     assert after.index("## Results") < after.index("### Under the coordination layer") \
         < after.index("## How it was trained")
     assert "**rand +PIBT** (this checkpoint under the PIBT shield)" in added

@@ -1,4 +1,4 @@
-"""The evaluator under the coordination layer (`--shield pibt`)."""
+"""The evaluator under the coordination layer (`--conflict-rule pibt`)."""
 
 from __future__ import annotations
 
@@ -55,7 +55,7 @@ class RecordingPolicy(CheckpointBatchPolicy):
 def test_shielded_episodes_have_no_collision_and_dcc_sees_the_executed_action(dcc_checkpoint):
     instances = _instances(10, 12, 3)
     policy = RecordingPolicy(dcc_checkpoint, "cpu", "q")
-    records = run_decentralized(policy, instances, 24, shield="pibt")
+    records = run_decentralized(policy, instances, 24, conflict_rule="pibt")
     assert sum(r.collisions for r in records) == 0
     assert sum(r.overrides for r in records) > 0  # random weights: the shield had work to do
     # while no episode has ended, the last-action input at step t+1 is what ran at step t
@@ -73,7 +73,7 @@ def test_shielded_episodes_have_no_collision_and_dcc_sees_the_executed_action(dc
 def test_evaluate_cli_shield_rows(tmp_path, dcc_checkpoint):
     out = tmp_path / "eval.json"
     code = evaluate_main(["--checkpoint", dcc_checkpoint, "heuristic", "--no-references",
-                          "--shield", "none", "pibt", "--sizes", "40", "--agents", "8",
+                          "--conflict-rule", "revert", "pibt", "--sizes", "40", "--agents", "8",
                           "--instances", "4", "--max-steps", "40", "--quiet", "--json", str(out)])
     assert code == 0
     rows = {r["policy"]: r for r in json.loads(out.read_text())["results"]}
@@ -83,13 +83,13 @@ def test_evaluate_cli_shield_rows(tmp_path, dcc_checkpoint):
         assert all(e["collisions"] == 0 for e in rows[name]["episodes"])
     assert rows["heuristic"]["overrides"] == 0
     meta = {p["name"]: p for p in json.loads(out.read_text())["metadata"]["policies"]}
-    assert meta["dcc +PIBT"]["shield"] == "pibt" and meta["dcc +PIBT"]["preferences"] == "q"
-    assert meta["heuristic +PIBT"]["preferences"] == "distance"
+    assert meta["dcc +PIBT"]["conflict_rule"] == "pibt" and meta["dcc +PIBT"]["ranking"] == "q"
+    assert meta["heuristic +PIBT"]["ranking"] == "distance"
 
 
-def test_evaluate_cli_preference_modes(tmp_path, dcc_checkpoint, capsys):
-    code = evaluate_main(["--checkpoint", dcc_checkpoint, "--no-references", "--shield", "pibt",
-                          "--preferences", "q", "q_demote_stay", "--sizes", "40", "--agents", "4",
+def test_evaluate_cli_rankings(tmp_path, dcc_checkpoint, capsys):
+    code = evaluate_main(["--checkpoint", dcc_checkpoint, "--no-references", "--conflict-rule", "pibt",
+                          "--ranking", "q", "q_demote_stay", "--sizes", "40", "--agents", "4",
                           "--instances", "2", "--max-steps", "10", "--quiet"])
     assert code == 0
     text = capsys.readouterr().out

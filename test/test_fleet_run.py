@@ -24,7 +24,7 @@ def stay_decisions(run: FleetRun) -> Decisions:
 
 
 def distance_decisions(run: FleetRun) -> Decisions:
-    from mapf_fleet.coordination.preferences import rank_actions, tie_breakers
+    from mapf_fleet.coordination.ranking import rank_actions, tie_breakers
     from mapf_fleet.evaluation.lifelong import observe_runs
 
     prefs = rank_actions(observe_runs([run]), mode="distance",
@@ -41,7 +41,7 @@ def test_instance_run_equals_the_batched_evaluator_under_the_anchor():
 
     made = [generate_instance(12, 10, 0.2, np.random.default_rng(s)) for s in range(3)]
     instances = InstanceSet.from_instances(made, "test")
-    records = run_decentralized(HeuristicBatchPolicy(), instances, 64, shield="pibt_anchor")
+    records = run_decentralized(HeuristicBatchPolicy(), instances, 64, conflict_rule="pibt_anchor")
     for k, inst in enumerate(made):
         run = FleetRun(inst.grid, inst.starts, InstanceTasks(), inst.goals, rule="pibt_anchor",
                        max_steps=64)
@@ -327,7 +327,7 @@ def test_the_readmes_32_robot_example_is_solved_by_the_fleet_core():
     import shlex
     from pathlib import Path
 
-    from mapf_fleet.coordination.preferences import default_q_mode
+    from mapf_fleet.coordination.ranking import default_ranking
     from mapf_fleet.evaluation.lifelong import rollout
     from mapf_fleet.evaluation.policies import CheckpointBatchPolicy
     from mapf_fleet.models.checkpoint import load_checkpoint
@@ -343,6 +343,6 @@ def test_the_readmes_32_robot_example_is_solved_by_the_fleet_core():
     inst = generate_instance(size, args.num_robots, density, seed)
     run = FleetRun(inst.grid, inst.starts, InstanceTasks(), inst.goals, rule="pibt_anchor",
                    max_steps=256)
-    ranking = default_q_mode("pibt_anchor", metadata.get("rankings"))
-    rollout(CheckpointBatchPolicy(checkpoint, preference_mode=ranking), [run], shielded=True)
+    ranking = default_ranking("pibt_anchor", metadata.get("rankings"))
+    rollout(CheckpointBatchPolicy(checkpoint, ranking=ranking), [run], shielded=True)
     assert run.on_goal().all(), f"{int(run.on_goal().sum())}/{run.num_robots} on goal"

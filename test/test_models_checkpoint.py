@@ -63,7 +63,7 @@ def test_rankings_round_trip_and_old_files_have_none(tmp_path, model):
      r"ckpt.pt: field metadata.rankings.pibt_anchor: expected one of .*found 'sideways'"),
     ({"pibt_anchor": "distance"},  # a learned policy ranks by its Q-values
      r"ckpt.pt: field metadata.rankings.pibt_anchor: expected one of .*found 'distance'"),
-    ({"revert": "q"}, r"ckpt.pt: field metadata.rankings: expected shield rules .*found 'revert'"),
+    ({"revert": "q"}, r"ckpt.pt: field metadata.rankings: expected conflict rules .*found 'revert'"),
     (["pibt_anchor", "q"], r"ckpt.pt: field metadata.rankings: expected a dict"),
 ])
 def test_bad_rankings_are_refused_naming_file_field_and_value(tmp_path, model, rankings,

@@ -62,7 +62,7 @@ def _batched(model, obs, positions, hidden, last_actions):
 def _assert_same(got, out, n, where, b=0):
     """The exchange's decisions equal episode b of the batched step: actions, Q-values, and who
     talked to whom (DCC: the decision-causal mask; DHC: the partners)."""
-    np.testing.assert_array_equal(got.preferences[:, 0], out.actions[b, :n].numpy(),
+    np.testing.assert_array_equal(got.rankings[:, 0], out.actions[b, :n].numpy(),
                                   err_msg=where)
     np.testing.assert_allclose(got.q, out.q[b, :n].numpy(), atol=TOL, rtol=0, err_msg=where)
     comm = out.comm_mask[b, :n, :n].numpy()
@@ -220,7 +220,7 @@ def test_a_reply_left_out_still_decides():
     for tick in range(30):
         got = fleet.tick(3, tick, env.positions, env.last_actions, instance.grid,
                          instance.goals)
-        actions = got.preferences[:, 0]
+        actions = got.rankings[:, 0]
         assert ((0 <= actions) & (actions < 5)).all()
         if dropped:
             senders = {s for s, _ in dropped}

@@ -1,4 +1,4 @@
-"""The "cost_to_go" observation (issue 25 item 2): the paper's six channels plus the normalised
+"""The "cost_to_go" observation: the paper's six channels plus the normalised
 cost-to-go, built by every environment a model runs in, a network warm-started from a "paper"
 checkpoint that acts exactly as it, its checkpoints, and the refusal of unknown values."""
 
@@ -189,7 +189,7 @@ def test_the_evaluator_runs_a_cost_to_go_checkpoint(tmp_path):
     for name, path in paths.items():
         policy = build_policy(PolicySpec("checkpoint", name, path=str(path)))
         assert policy.observation == ("cost_to_go" if name == "ctg" else "paper")
-        records[name] = run_decentralized(policy, instances, 24, shield="pibt_anchor")
+        records[name] = run_decentralized(policy, instances, 24, conflict_rule="pibt_anchor")
     assert records["ctg"] == records["paper"]
 
 

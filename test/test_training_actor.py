@@ -110,14 +110,14 @@ def test_step_limit_grows_with_the_curriculum_map():
 
 @pytest.mark.parametrize("algo", ["dhc", "dcc"])
 def test_shielded_actor_records_the_executed_actions(algo):
-    """shield: pibt (and pibt_anchor): every recorded step is the action that moved the agent (the
+    """conflict_rule: pibt (and pibt_anchor): every recorded step is the action that moved the agent (the
     learner trains on what was executed), and no move collides; without the shield random
     weights collide."""
     from mapf_fleet.grid.actions import ACTION_DELTAS
 
-    def play(shield):
+    def play(rule):
         torch.manual_seed(0)
-        worker = EpisodeWorker(_cfg(algo=algo, shield=shield, final_agents=10), actor_index=0, seed=5)
+        worker = EpisodeWorker(_cfg(algo=algo, conflict_rule=rule, final_agents=10), actor_index=0, seed=5)
         worker.keep_records = True
         worker.set_task(Task(num_agents=10, map_size=10, alpha=0.0))
         worker.run(36)
@@ -130,20 +130,20 @@ def test_shielded_actor_records_the_executed_actions(algo):
         # the collision penalty (-0.5) never appears in the individual rewards
         collisions += int((rec.individual_rewards <= -0.5).sum())
     assert collisions == 0
-    unshielded = play("none")
+    unshielded = play("revert")
     assert sum(int((r.individual_rewards <= -0.5).sum()) for r in unshielded) > 0
 
 
 @pytest.mark.parametrize("algo", ["dhc", "dcc"])
-def test_shield_replay_preferred_trains_first_choices_and_feeds_executed_last_actions(algo):
-    """shield_replay: preferred: the replay's action is each agent's own first choice (greedy,
+def test_replay_action_preferred_trains_first_choices_and_feeds_executed_last_actions(algo):
+    """replay_action: preferred: the replay's action is each agent's own first choice (greedy,
     agent 0 possibly exploring), the executed one moved it, and the sequences' last-action
     input is the executed action. Overridden first choices exist (random weights, 10 agents)."""
     from mapf_fleet.grid.actions import ACTION_DELTAS
     from mapf_fleet.training.episodes import episode_to_sequences
 
     torch.manual_seed(0)
-    cfg = _cfg(algo=algo, shield="pibt", shield_replay="preferred", final_agents=10)
+    cfg = _cfg(algo=algo, conflict_rule="pibt", replay_action="preferred", final_agents=10)
     worker = EpisodeWorker(cfg, actor_index=0, seed=5)
     worker.keep_records = True
     worker.set_task(Task(num_agents=10, map_size=10, alpha=0.0))
@@ -164,17 +164,17 @@ def test_shield_replay_preferred_trains_first_choices_and_feeds_executed_last_ac
         np.testing.assert_array_equal(seq["actions"][:min(rec.length, cfg.seq_len)],
                                       rec.actions[:cfg.seq_len])
     assert overridden > 0
-    with pytest.raises(Exception, match="shield_replay"):
-        _cfg(shield_replay="both")
+    with pytest.raises(Exception, match="replay_action"):
+        _cfg(replay_action="both")
 
 
-def test_shield_config_is_validated():
+def test_conflict_rule_config_is_validated():
     from mapf_fleet.training.config import TrainConfigError
 
-    with pytest.raises(TrainConfigError, match="shield"):
-        _cfg(shield="cbs")
-    with pytest.raises(TrainConfigError, match="shield_preferences"):
-        _cfg(shield_preferences="distance")
+    with pytest.raises(TrainConfigError, match="conflict_rule"):
+        _cfg(conflict_rule="cbs")
+    with pytest.raises(TrainConfigError, match="ranking"):
+        _cfg(ranking="distance")
 
 
 def test_init_checkpoint_starts_the_run_from_its_weights(tmp_path):

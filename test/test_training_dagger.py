@@ -125,7 +125,7 @@ def test_run_writes_shards_and_resume_skips_them(small_checkpoint, tmp_path):
     _, meta = load_checkpoint(run / "checkpoints" / "round_000.pt")
     assert meta["extra"]["dagger"]["round"] == 0 and meta["extra"]["dagger"]["labels"] > 0
     # the ranking it was trained behind, its default there in the evaluator and the fleet
-    assert meta["rankings"] == {cfg.shield: cfg.preferences} == {"pibt_anchor": "q_then_distance"}
+    assert meta["rankings"] == {cfg.conflict_rule: cfg.ranking} == {"pibt_anchor": "q_then_distance"}
     curve = json.loads((run / "curve.json").read_text())
     assert [(r["round"], r["policy"]) for r in curve] == [(-1, "plain_pibt"), (-1, "init"),
                                                           (0, "dagger")]
@@ -216,13 +216,13 @@ def test_config_errors_name_the_field(tmp_path):
     with pytest.raises(dagger.DaggerConfigError, match="tasks.*kind 'forest'"):
         dagger.config_from_dict({"tasks": [{"kind": "forest", "size": 20, "agents": [4],
                                             "weight": 1, "max_steps": 64}]})
-    with pytest.raises(dagger.DaggerConfigError, match="shield"):
-        dagger.config_from_dict({"shield": "none"})
+    with pytest.raises(dagger.DaggerConfigError, match="conflict_rule"):
+        dagger.config_from_dict({"conflict_rule": "revert"})
     with pytest.raises(dagger.DaggerConfigError, match="'observation' = 'foo'"):
         dagger.config_from_dict({"observation": "foo"})
     for name in ("dagger_dcc.yaml", "dagger_dhc.yaml"):  # the shipped configs load
         cfg = dagger.load_config(Path(__file__).parents[1] / "config" / "training" / name)
-        assert cfg.shield == "pibt_anchor"
+        assert cfg.conflict_rule == "pibt_anchor"
 
 
 def test_cli_registered(tmp_path):

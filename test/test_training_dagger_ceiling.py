@@ -51,11 +51,11 @@ def test_committed_labels_follow_the_kept_plan_and_replan_only_off_it():
     assert labeller.replans == 3
 
 
-def test_committed_is_selectable_in_the_config_with_the_projects_names():
+def test_committed_is_selectable_in_the_config():
     cfg = dagger.config_from_dict({"labeller": "committed", "committed_budget": 0.5,
                                    "committed_replan_every": 8,
                                    "conflict_rule": "pibt_anchor_swap", "ranking": "q"})
-    assert cfg.shield == "pibt_anchor_swap" and cfg.preferences == "q"
+    assert cfg.conflict_rule == "pibt_anchor_swap" and cfg.ranking == "q"
     labeller = dagger.make_labeller(cfg)
     assert isinstance(labeller, CommittedLabeller)
     assert (labeller.planning_budget, labeller.replan_every) == (0.5, 8)
@@ -63,8 +63,6 @@ def test_committed_is_selectable_in_the_config_with_the_projects_names():
     assert isinstance(dagger.make_labeller(dagger.config_from_dict({})), dagger.LaCAMLabeller)
     with pytest.raises(dagger.DaggerConfigError, match="'labeller' = 'fresh'"):
         dagger.config_from_dict({"labeller": "fresh"}, source="x.yaml")
-    with pytest.raises(dagger.DaggerConfigError, match="'conflict_rule' or 'shield'"):
-        dagger.config_from_dict({"conflict_rule": "pibt", "shield": "pibt"}, source="x.yaml")
     with pytest.raises(dagger.DaggerConfigError, match="committed_budget"):
         dagger.config_from_dict({"committed_budget": 0}, source="x.yaml")
 
@@ -204,6 +202,6 @@ def test_the_shipped_ceiling_configs_load():
 
     configs = Path(__file__).resolve().parents[1] / "config" / "training"
     cfg = dagger.load_config(configs / "dagger_committed.yaml")
-    assert (cfg.labeller, cfg.shield) == ("committed", "pibt_anchor_swap")
+    assert (cfg.labeller, cfg.conflict_rule) == ("committed", "pibt_anchor_swap")
     dense = dagger.load_config(configs / "experiments" / "dagger_ceiling_dense_pymapf.yaml")
     assert (dense.labeller, dense.committed_planner) == ("committed", "pymapf")

@@ -1,13 +1,13 @@
-"""Issue 25 item 3 (evaluator side): the `confidence` ranking, the default ranking per shield
-rule, and the evaluator's `--kinds dense` scenarios."""
+"""The evaluator's side of DAgger's rankings: the `confidence` ranking, the default ranking
+per conflict rule, and the evaluator's `--kinds dense` scenarios."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from mapf_fleet.coordination.preferences import (DEFAULT_Q_MODE_BY_RULE, default_q_mode,
-                                                 rank_actions)
+from mapf_fleet.coordination.ranking import (DEFAULT_RANKING_BY_RULE, default_ranking,
+                                             rank_actions)
 from mapf_fleet.grid.actions import DOWN, LEFT, RIGHT, STAY, UP
 from mapf_fleet.grid.env import MAPFEnv
 from mapf_fleet.grid.instance import Instance
@@ -29,19 +29,19 @@ def test_confidence_puts_the_argmax_first_only_when_it_leads():
     assert ranked[:, 0].tolist() == [STAY, UP]
 
 
-def test_default_ranking_follows_the_shield_rule():
-    from mapf_fleet.evaluation.policies import parse_policy, with_shield
+def test_default_ranking_follows_the_conflict_rule():
+    from mapf_fleet.evaluation.policies import parse_policy, with_conflict_rule
 
-    assert default_q_mode("pibt_anchor") == "confidence" and default_q_mode("pibt") == "q"
+    assert default_ranking("pibt_anchor") == "confidence" and default_ranking("pibt") == "q"
     spec = parse_policy("heuristic")
-    assert with_shield(spec, "pibt_anchor").preference_mode == "distance"
+    assert with_conflict_rule(spec, "pibt_anchor").resolved_ranking == "distance"
     from mapf_fleet.evaluation.policies import PolicySpec
 
     learned = PolicySpec("checkpoint", "x", path="x.pt")
-    for rule, mode in DEFAULT_Q_MODE_BY_RULE.items():
-        assert with_shield(learned, rule).preference_mode == mode
-    # an explicit --preferences wins
-    assert with_shield(learned, "pibt_anchor", "q").preference_mode == "q"
+    for rule, mode in DEFAULT_RANKING_BY_RULE.items():
+        assert with_conflict_rule(learned, rule).resolved_ranking == mode
+    # an explicit --ranking wins
+    assert with_conflict_rule(learned, "pibt_anchor", "q").resolved_ranking == "q"
 
 
 def _checkpoint(path, **metadata):
@@ -55,26 +55,26 @@ def _checkpoint(path, **metadata):
         "alpha": 0.0, "curriculum": {}, "learner_steps": 0, "training_config": {}, **metadata}))
 
 
-def test_a_checkpoints_recorded_ranking_is_its_default_and_preferences_beat_it(tmp_path):
-    """Precedence: --preferences > the checkpoint's `rankings` for the rule > the rule's."""
-    from mapf_fleet.evaluation.policies import build_policy, parse_policy, with_shield
+def test_a_checkpoints_recorded_ranking_is_its_default_and_an_asked_ranking_beats_it(tmp_path):
+    """Precedence: --ranking > the checkpoint's `rankings` for the rule > the rule's."""
+    from mapf_fleet.evaluation.policies import build_policy, parse_policy, with_conflict_rule
 
-    assert default_q_mode("pibt_anchor", {"pibt_anchor": "q_then_distance"}) == "q_then_distance"
-    assert default_q_mode("pibt", {"pibt_anchor": "q_then_distance"}) == default_q_mode("pibt")
+    assert default_ranking("pibt_anchor", {"pibt_anchor": "q_then_distance"}) == "q_then_distance"
+    assert default_ranking("pibt", {"pibt_anchor": "q_then_distance"}) == default_ranking("pibt")
     spec = parse_policy(_checkpoint(tmp_path / "round_007.pt",
                                     rankings={"pibt_anchor": "q_then_distance"}))
-    anchored = with_shield(spec, "pibt_anchor")
-    assert anchored.preference_mode == "q_then_distance"
+    anchored = with_conflict_rule(spec, "pibt_anchor")
+    assert anchored.resolved_ranking == "q_then_distance"
     assert anchored.name == "round_007 +PIBT-anchor(q_then_distance)"  # which ranking ran
-    assert build_policy(anchored).preference_mode == "q_then_distance"
-    plain = with_shield(spec, "pibt")  # no ranking recorded for this rule: the rule's
-    assert (plain.preference_mode, plain.name) == (default_q_mode("pibt"), "round_007 +PIBT")
-    asked = with_shield(spec, "pibt_anchor", "confidence")
-    assert (asked.preference_mode, asked.name) == ("confidence",
-                                                   "round_007 +PIBT-anchor(confidence)")
+    assert build_policy(anchored).ranking == "q_then_distance"
+    plain = with_conflict_rule(spec, "pibt")  # no ranking recorded for this rule: the rule's
+    assert (plain.resolved_ranking, plain.name) == (default_ranking("pibt"), "round_007 +PIBT")
+    asked = with_conflict_rule(spec, "pibt_anchor", "confidence")
+    assert (asked.resolved_ranking, asked.name) == ("confidence",
+                                               "round_007 +PIBT-anchor(confidence)")
     # a checkpoint without rankings keeps the rule's default, unnamed as before
-    old = with_shield(parse_policy(_checkpoint(tmp_path / "old.pt")), "pibt_anchor")
-    assert (old.preference_mode, old.name) == (default_q_mode("pibt_anchor"), "old +PIBT-anchor")
+    old = with_conflict_rule(parse_policy(_checkpoint(tmp_path / "old.pt")), "pibt_anchor")
+    assert (old.resolved_ranking, old.name) == (default_ranking("pibt_anchor"), "old +PIBT-anchor")
 
 
 def test_evaluate_dense_scenarios():

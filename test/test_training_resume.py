@@ -232,16 +232,16 @@ def test_resume_with_another_stage_2_scheme_restarts_stage_2(tmp_path):
     assert forked.alpha.check_budget(89) is None
 
 
-@pytest.mark.parametrize("shield, rankings", [("none", None),
+@pytest.mark.parametrize("rule, rankings", [("revert", None),
                                               ("pibt_anchor", {"pibt_anchor": "q_then_distance"})])
-def test_checkpoints_of_a_shielded_run_record_their_ranking(tmp_path, shield, rankings):
+def test_checkpoints_of_a_shielded_run_record_their_ranking(tmp_path, rule, rankings):
     """A run trained behind the shield records {rule: ranking} as DAgger's checkpoints do (the
     evaluator and the policy nodes rank with it under that rule unless told otherwise); an
     unshielded run records none."""
     from mapf_fleet.models.checkpoint import load_checkpoint
 
     cfg = load_config(CONFIGS / "tiny.yaml").replace(
-        use_ray=False, demo_source="none", shield=shield, shield_preferences="q_then_distance")
+        use_ray=False, demo_source="none", conflict_rule=rule, ranking="q_then_distance")
     trainer = Trainer(cfg, tmp_path / "run")
     _, meta = load_checkpoint(trainer.save_checkpoint("x.pt"))
     assert meta.get("rankings") == rankings

@@ -12,7 +12,7 @@ What is ours:
   the root** (the robots' submitted rankings: a learned policy's, or distance order for plain
   PIBT), and by **distance to the goal deeper in the search** (ties by a seeded random key, as
   PIBT's tie-breakers: with a fixed order PIBT livelocks). LaGAT (AAAI 2026) puts learned
-  preferences into LaCAM's generator the same way.
+  rankings into LaCAM's generator the same way.
 - The root may hold **fixed** agents (they stay on the first step: a real robot still driving)
   and **reserved** cells (kept free on the first step): the plan starts with a step the arbiter
   may command.
@@ -36,10 +36,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mapf_fleet.grid.actions import ACTION_DELTAS
-
 # (importing pibt also raises the recursion limit: a push chain recurses once per agent)
-from .pibt import validate_preferences
+from .pibt import move_targets, validate_rankings
 
 # distance maps kept per planner (one per goal cell)
 MAX_DISTANCE_MAPS = 4096
@@ -92,14 +90,8 @@ class LaCAM:
         self.grid = grid != 0
         self.height, self.width = self.grid.shape
         self.seed = int(seed)
-        h, w = self.height, self.width
-        rows, cols = np.divmod(np.arange(h * w), w)
-        tr = rows[:, None] + ACTION_DELTAS[:, 0]
-        tc = cols[:, None] + ACTION_DELTAS[:, 1]
-        inside = (tr >= 0) & (tr < h) & (tc >= 0) & (tc < w)
-        flat = np.where(inside, tr * w + tc, 0)
         # _targets[cell, action]: the flat cell an action leads to, -1 off the map / obstacle
-        self._targets = np.where(inside & ~self.grid.ravel()[flat], flat, -1)
+        self._targets = move_targets(self.grid)
         # per cell: its free neighbours then itself (the candidates deeper in the search)
         self._moves = [[c for c in row[1:] if c >= 0] + [int(row[0])]
                        for row in self._targets.tolist()]
@@ -159,7 +151,7 @@ class LaCAM:
         n = len(starts)
         pieces, nodes, reasons = [], 0, []
         unsolved = np.zeros(n, dtype=bool)
-        rankings = None if rankings is None else validate_preferences(rankings, n)
+        rankings = None if rankings is None else validate_rankings(rankings, n)
         fixed = None if fixed is None else np.asarray(fixed, dtype=bool)
         for label in labels[np.argsort(counts, kind="stable")]:
             idx = np.flatnonzero(region == label)
@@ -221,7 +213,7 @@ class LaCAM:
             raise ValueError(f"priorities must have length {n}, got {len(prio)}")
         root_candidates = None
         if rankings is not None:
-            ranks = validate_preferences(rankings, n)
+            ranks = validate_rankings(rankings, n)
             table = self._targets[np.asarray(start)[:, None], ranks].tolist()
             root_candidates = [[c for c in row if c >= 0] for row in table]
         held = [False] * n if fixed is None else [bool(x) for x in np.asarray(fixed, dtype=bool)]

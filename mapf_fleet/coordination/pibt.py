@@ -1,14 +1,14 @@
-"""PIBT over per-agent preference orders: the collision shield under every decentralized policy.
+"""PIBT over per-agent rankings: the collision shield under every decentralized policy.
 
 Priority Inheritance with Backtracking (Okumura et al., AIJ 2022) plans one step at a time. Agents
-are taken in decreasing priority; each takes the first cell of its preference order that is
+are taken in decreasing priority; each takes the first cell of its ranking that is
 free for the next step; when that cell holds an agent that has not decided yet, the occupant
 inherits the priority and must move first (recursively); when it cannot, the whole sub-chain is
 undone and the next candidate is tried (backtracking). With the five actions ranked by a learned
 policy's Q-values this is CS-PIBT (Veerapaneni et al., ICAPS 2024); with actions ranked by the
 distance to the goal it is plain PIBT.
 
-Guarantees of `PIBTShield.step`, for any preference orders (property-tested): no two agents in
+Guarantees of `PIBTShield.step`, for any rankings (property-tested): no two agents in
 one cell, no two agents trading cells (swap), no agent on an obstacle or off the map, every
 agent moves at most one cell. Agents marked `fixed` stay where they are and are never pushed;
 `reserved` cells are kept free (a real robot still driving into a cell occupies it).
@@ -18,7 +18,7 @@ distinct tie-breaker below 1; after each step its priority rises by 1 while it i
 and falls back to i / (N + 1) on its goal. Everything is deterministic for the same inputs.
 
 Anchor (`anchor=True`, off by default): the agent of highest priority ranks its moves by the
-distance to its goal (BFS on the map; ties by `preferences.tie_breakers`, as plain PIBT's
+distance to its goal (BFS on the map; ties by `ranking.tie_breakers`, as plain PIBT's
 rankings), whatever it asked for. PIBT's reachability argument (the top agent takes a shortest-path
 step, its priority only rises until it arrives, so every agent in turn reaches its goal) needs
 the top agent's ranking to be a distance order; a learned ranking (CS-PIBT) can stall it, which is
@@ -65,7 +65,7 @@ it is and is never pushed nor pulled; reserved cells stay free. (A pull only mov
 agent into the cell the puller leaves, a cell no one else has taken, and the puller never moves
 into the pulled agent's cell in the same tick.)
 
-Rule names (`SHIELD_RULES`, parsed by `rule_options`): `pibt[_anchor][_swap][_hindrance]`, the
+Rule names (`PIBT_RULES`, parsed by `rule_options`): `pibt[_anchor][_swap][_hindrance]`, the
 options in that order.
 
 numpy only (no torch, no rclpy): the evaluator, the trainer's actors, the simulator and the
@@ -83,17 +83,33 @@ import numpy as np
 
 from mapf_fleet.grid.actions import ACTION_DELTAS, NUM_ACTIONS
 
-from .preferences import tie_breakers
+from .ranking import tie_breakers
 
 # The options a rule name may add to "pibt", in the order they appear in it
 RULE_OPTIONS = ("anchor", "swap", "hindrance")
-# The shield rules every caller (evaluator `--shield`, trainer `shield`, fleet `conflict_rule`)
-# offers besides its unshielded rule: `make_shield` builds the one named. Every subset of the
-# PIBT options, the original two rules first (`PIBT_RULES`); `lacam` is the planning arbiter
+# The conflict rules (`conflict_rule` in the trainer's and DAgger's configs, the evaluator's
+# `--conflict-rule`, the fleet's parameter): `revert` is the paper's environment (conflicting
+# moves are reverted, no coordination layer); the others are the coordination layer's
+# (`COORDINATED_RULES`), `make_shield` builds the one named: every subset of the PIBT options,
+# the original two rules first (`PIBT_RULES`), and `lacam`, the planning arbiter
 # (`coordination.plan.PlanKeeper`: a kept LaCAM plan, the anchored step as its fallback).
 PIBT_RULES = ("pibt", "pibt_anchor", "pibt_swap", "pibt_anchor_swap", "pibt_hindrance",
               "pibt_anchor_hindrance", "pibt_swap_hindrance", "pibt_anchor_swap_hindrance")
-SHIELD_RULES = (*PIBT_RULES, "lacam")
+COORDINATED_RULES = (*PIBT_RULES, "lacam")
+REVERT = "revert"
+CONFLICT_RULES = (*COORDINATED_RULES, REVERT)
+
+
+def move_targets(blocked: np.ndarray) -> np.ndarray:
+    """(H*W, 5) int64: the flat cell each action leads to from each flat cell of the (H, W)
+    bool map `blocked` (True = obstacle), -1 where it leaves the map or enters an obstacle."""
+    h, w = blocked.shape
+    rows, cols = np.divmod(np.arange(h * w), w)
+    tr = rows[:, None] + ACTION_DELTAS[:, 0]
+    tc = cols[:, None] + ACTION_DELTAS[:, 1]
+    inside = (tr >= 0) & (tr < h) & (tc >= 0) & (tc < w)
+    flat = np.where(inside, tr * w + tc, 0)
+    return np.where(inside & ~blocked.ravel()[flat], flat, -1)
 
 
 def rule_options(rule: str) -> dict[str, bool]:
@@ -129,19 +145,19 @@ class ShieldStep:
     overridden: np.ndarray
 
 
-def validate_preferences(preferences, num_agents: int) -> np.ndarray:
+def validate_rankings(rankings, num_agents: int) -> np.ndarray:
     """(N, 5) int64 where each row is a ranking (permutation) of the actions 0..4."""
-    prefs = np.asarray(preferences)
+    prefs = np.asarray(rankings)
     if prefs.shape != (num_agents, NUM_ACTIONS):
-        raise ValueError(f"preferences must have shape ({num_agents}, {NUM_ACTIONS}), "
+        raise ValueError(f"rankings must have shape ({num_agents}, {NUM_ACTIONS}), "
                          f"got {prefs.shape}")
     if prefs.size and not np.issubdtype(prefs.dtype, np.integer):
-        raise ValueError(f"preferences must be integer actions, got dtype {prefs.dtype}")
+        raise ValueError(f"rankings must be integer actions, got dtype {prefs.dtype}")
     prefs = prefs.astype(np.int64, copy=False)
     bad = (np.sort(prefs, axis=1) != np.arange(NUM_ACTIONS)).any(axis=1)
     if bad.any():
         i = int(np.flatnonzero(bad)[0])
-        raise ValueError(f"agent {i}: preferences {prefs[i].tolist()} are not a ranking of the "
+        raise ValueError(f"agent {i}: ranking {prefs[i].tolist()} is not a ranking of the "
                          f"actions 0..{NUM_ACTIONS - 1}")
     return prefs
 
@@ -169,14 +185,8 @@ class PIBTShield:
         self._goal_flat = (self.goals[:, 0] * grid.shape[1] + self.goals[:, 1]).tolist()
         self.num_agents = len(goals)
         self._blocked = self.grid.ravel().tolist()
-        # _targets[cell, action]: the flat cell an action leads to, -1 off the map / obstacle
-        h, w = self.height, self.width
-        rows, cols = np.divmod(np.arange(h * w), w)
-        tr = rows[:, None] + ACTION_DELTAS[:, 0]
-        tc = cols[:, None] + ACTION_DELTAS[:, 1]
-        inside = (tr >= 0) & (tr < h) & (tc >= 0) & (tc < w)
-        flat = np.where(inside, tr * w + tc, 0)
-        self._targets = np.where(inside & ~self.grid.ravel()[flat], flat, -1)
+        w = self.width
+        self._targets = move_targets(self.grid)
         # executed action from the flat displacement (next - current + w)
         self._action_of_delta = np.zeros(2 * w + 1, dtype=np.int64)
         for a in range(1, NUM_ACTIONS):
@@ -225,7 +235,7 @@ class PIBTShield:
         found = self._distance_maps.get(goal)
         if found is None:
             # scipy's graph search, imported here: the plain shield (and `up`'s launcher, which
-            # reads SHIELD_RULES) never needs it
+            # reads COORDINATED_RULES) never needs it
             from mapf_fleet.grid.heuristic import bfs_distances
 
             found = self._distance_maps[goal] = bfs_distances(self.grid, goal).ravel()
@@ -283,19 +293,19 @@ class PIBTShield:
         return [[cell for cell in row if cell >= 0]
                 for row in self._targets[current[:, None], prefs].tolist()]
 
-    def step(self, positions, preferences, fixed=None, reserved=()) -> ShieldStep:
-        """One tick: the next cells of every agent under PIBT with these preference orders.
+    def step(self, positions, rankings, fixed=None, reserved=()) -> ShieldStep:
+        """One tick: the next cells of every agent under PIBT with these rankings.
 
         positions: (N, 2) current cells (distinct free cells of the map).
-        preferences: (N, 5) each row the actions 0..4 ranked, best first.
-        fixed: optional (N,) bool: these agents stay and cannot be pushed (their preferences are
+        rankings: (N, 5) each row the actions 0..4 ranked, best first.
+        fixed: optional (N,) bool: these agents stay and cannot be pushed (their rankings are
             ignored; e.g. a robot whose decision is missing, or one still driving).
         reserved: cells (row, col) no agent may enter (a moving robot's second cell); an agent
             standing on a reserved cell is held there like a fixed one.
         """
         positions = self._check_positions(positions)
         n = self.num_agents
-        prefs = validate_preferences(preferences, n)
+        prefs = validate_rankings(rankings, n)
         fixed = np.zeros(n, dtype=bool) if fixed is None else np.asarray(fixed, dtype=bool)
         if fixed.shape != (n,):
             raise ValueError(f"fixed must have shape ({n},), got {fixed.shape}")
@@ -504,14 +514,14 @@ class PIBTShield:
 
 
 def make_shield(rule: str, grid, goals, planning_budget: float | None = None):
-    """The shield of a rule: None for "none" / "revert" (no shield), `PIBTShield` with the options
+    """The coordination layer of a conflict rule: None for "revert", `PIBTShield` with the options
     a PIBT rule's name carries (`rule_options`), or for "lacam" a `coordination.plan.PlanKeeper`
     (same interface) with `planning_budget` seconds per re-plan (default
     `plan.DEFAULT_PLANNING_BUDGET`)."""
-    if rule in ("none", "revert"):
+    if rule == REVERT:
         return None
-    if rule not in SHIELD_RULES:
-        raise ValueError(f"shield rule must be 'none' or one of {SHIELD_RULES}, got {rule!r}")
+    if rule not in COORDINATED_RULES:
+        raise ValueError(f"conflict rule must be one of {CONFLICT_RULES}, got {rule!r}")
     if rule == "lacam":
         from .plan import DEFAULT_PLANNING_BUDGET, PlanKeeper
 

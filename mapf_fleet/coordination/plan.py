@@ -44,7 +44,7 @@ import numpy as np
 from mapf_fleet.grid.actions import NUM_ACTIONS
 
 from .lacam import LaCAM
-from .pibt import PIBTShield, ShieldStep, validate_preferences
+from .pibt import PIBTShield, ShieldStep, validate_rankings
 
 # The planning arbiter's default per-tick planning budget (seconds of wall clock)
 DEFAULT_PLANNING_BUDGET = 1.0
@@ -286,13 +286,13 @@ class PlanKeeper:
         self._retry_at = self.counters["ticks"] + self._retry_interval
         self._retry_interval = min(2 * self._retry_interval, self.max_retry_interval)
 
-    def step(self, positions, preferences, fixed=None, reserved=()) -> ShieldStep:
+    def step(self, positions, rankings, fixed=None, reserved=()) -> ShieldStep:
         """One tick (arguments as `PIBTShield.step`): the kept plan's next step, a re-planned
-        one, or the anchored PIBT step over `preferences` for the agents without a plan."""
+        one, or the anchored PIBT step over `rankings` for the agents without a plan."""
         began = time.perf_counter()
         positions = self.fallback._check_positions(positions)
         n = self.num_agents
-        prefs = validate_preferences(preferences, n)
+        prefs = validate_rankings(rankings, n)
         fixed = np.zeros(n, dtype=bool) if fixed is None else np.asarray(fixed, dtype=bool).copy()
         if fixed.shape != (n,):
             raise ValueError(f"fixed must have shape ({n},), got {fixed.shape}")

@@ -27,9 +27,11 @@ from pathlib import Path
 from mapf_fleet.grid.maps import DENSE
 from mapf_fleet.version import code_version
 
-from mapf_fleet.coordination.preferences import DEFAULT_Q_MODE_BY_RULE, PREFERENCE_MODES
+from mapf_fleet.aliases import renamed_options
+from mapf_fleet.coordination.pibt import CONFLICT_RULES, REVERT
+from mapf_fleet.coordination.ranking import DEFAULT_RANKING_BY_RULE, RANKINGS
 
-from .policies import REFERENCE_NAMES, SHIELDS, parse_policy, unique_names, with_shield
+from .policies import REFERENCE_NAMES, parse_policy, unique_names, with_conflict_rule
 from .protocol import (
     DEFAULT_CACHE,
     DEFAULT_CONFIG,
@@ -55,21 +57,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--checkpoint", nargs="*", default=[], metavar="C",
                    help=f"checkpoint files, or the pseudo-checkpoints {', '.join(REFERENCE_NAMES)}")
     p.add_argument("--no-references", action="store_true", help="do not add the protocol's references")
-    p.add_argument("--shield", nargs="+", default=["none"], choices=list(SHIELDS),
-                   help="coordination of decentralized policies: none (the paper's rule: "
+    p.add_argument("--conflict-rule", nargs="+", default=[REVERT], choices=list(CONFLICT_RULES),
+                   metavar="RULE",
+                   help="coordination of decentralized policies: revert (the paper's rule: "
                         "conflicting moves are reverted) and/or pibt (CS-PIBT over each agent's "
                         "ranked actions) and/or pibt_anchor (the same, the top-priority agent on "
                         "its distance order), their _swap / _hindrance variants "
                         "(docs/coordination.md) and/or lacam (a kept LaCAM plan over the "
                         "rankings, --planning-budget per re-plan); several give one row each "
-                        "(default: none)")
-    p.add_argument("--preferences", nargs="+", choices=list(PREFERENCE_MODES), metavar="MODE",
-                   help=f"how a policy ranks its actions under the shield, one row per mode: "
-                        f"{', '.join(PREFERENCE_MODES)} (default: for a checkpoint the ranking "
+                        "(default: revert; deprecated: --shield, none)")
+    p.add_argument("--ranking", nargs="+", choices=list(RANKINGS), metavar="RANKING",
+                   help=f"how a policy ranks its actions under the conflict rule, one row each: "
+                        f"{', '.join(RANKINGS)} (default: for a checkpoint the ranking "
                         f"it records for the rule (metadata rankings, e.g. a DAgger round's), "
                         f"else the rule's: "
-                        + ", ".join(f"{m} under {r}" for r, m in DEFAULT_Q_MODE_BY_RULE.items())
-                        + "; distance for the heuristic)")
+                        + ", ".join(f"{m} under {r}" for r, m in DEFAULT_RANKING_BY_RULE.items())
+                        + "; distance for the heuristic; deprecated: --preferences)")
     p.add_argument("--config", default=str(DEFAULT_CONFIG), help="protocol YAML (default %(default)s)")
     p.add_argument("--sizes", nargs="+", type=int, help="map sizes to run (default: all of the protocol)")
     p.add_argument("--agents", nargs="+", type=int, help="agent counts to run (with --map: exactly one)")
@@ -98,7 +101,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="cpu", help="torch device of learned policies")
     p.add_argument("--planner-time-limit", type=float, help="seconds of planning per instance")
     p.add_argument("--planning-budget", type=float, metavar="S",
-                   help="--shield lacam: seconds of planning per re-plan, one tick's budget "
+                   help="--conflict-rule lacam: seconds of planning per re-plan, one tick's budget "
                         "(default 1)")
     p.add_argument("--json", metavar="OUT", help="write every figure (and every episode) as JSON")
     p.add_argument("--csv", metavar="OUT", help="write one row per policy and scenario")
@@ -203,8 +206,9 @@ def _metadata(args, config: ProtocolConfig, specs, wall_time: float) -> dict:
         "density": config.density,
         "seed": config.seed if args.seed is None else args.seed,
         "policies": [{"name": s.name, "kind": s.kind, "path": s.path, "algorithm": s.algorithm,
-                      "shield": s.shield,
-                      "preferences": s.preference_mode if s.shield != "none" and not s.is_planner else None,
+                      "conflict_rule": s.conflict_rule,
+                      "ranking": (s.resolved_ranking if s.conflict_rule != REVERT
+                                  and not s.is_planner else None),
                       "sha256": _sha256(s.path) if s.path else None} for s in specs],
         "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "code_version": code_version(),
@@ -216,7 +220,7 @@ def _metadata(args, config: ProtocolConfig, specs, wall_time: float) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
+    argv = renamed_options(list(sys.argv[1:] if argv is None else argv), "mapf-fleet evaluate")
     if "--lifelong" in argv:  # lifelong MAPF throughput on the fleet core: its own options
         from .lifelong import main as lifelong_main
 
@@ -236,14 +240,14 @@ def main(argv: list[str] | None = None) -> int:
                              planner_seed=config.planner_seed) for n in names]
         specs = []
         for spec in base:
-            for shield in dict.fromkeys(args.shield):
-                if spec.is_planner and shield != args.shield[0]:
+            for rule in dict.fromkeys(args.conflict_rule):
+                if spec.is_planner and rule != args.conflict_rule[0]:
                     continue  # a centralized plan is conflict-free: one row
-                modes = [None] if shield == "none" or not args.preferences else args.preferences
-                for mode in modes:
-                    if spec.kind == "heuristic" and mode not in (None, "distance"):
+                rankings = [None] if rule == REVERT or not args.ranking else args.ranking
+                for ranking in rankings:
+                    if spec.kind == "heuristic" and ranking not in (None, "distance"):
                         continue  # no Q-values to rank by
-                    specs.append(with_shield(spec, shield, mode))
+                    specs.append(with_conflict_rule(spec, rule, ranking))
         if args.planning_budget is not None:
             if not args.planning_budget > 0:
                 raise ValueError(f"--planning-budget must be a positive number of seconds, "
@@ -251,7 +255,7 @@ def main(argv: list[str] | None = None) -> int:
             from dataclasses import replace
 
             specs = [replace(s, planning_budget=args.planning_budget)
-                     if s.shield == "lacam" else s for s in specs]
+                     if s.conflict_rule == "lacam" else s for s in specs]
         specs = unique_names(specs)
         scenarios = _scenarios(args, config)
     except (ProtocolError, FileNotFoundError, ValueError) as exc:
@@ -270,8 +274,9 @@ def main(argv: list[str] | None = None) -> int:
     results = evaluate(specs, scenarios, workers=args.workers, batch_size=args.batch_size, progress=progress)
     wall_time = time.perf_counter() - began
 
-    shielded = any(s.shield != "none" for s in specs)
-    print(markdown_report(results, extra=("agent_success_rate",) + (("collisions", "overrides") if shielded else ())))
+    coordinated = any(s.conflict_rule != REVERT for s in specs)
+    print(markdown_report(results, extra=("agent_success_rate",)
+                          + (("collisions", "overrides") if coordinated else ())))
     planners = [r for r in results if r.plan_time is not None]
     if planners:
         from mapf_fleet.coordination.planners import library_version

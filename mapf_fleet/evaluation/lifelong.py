@@ -1,7 +1,7 @@
 """`mapf-fleet evaluate --lifelong`: lifelong MAPF throughput, POGEMA's protocol, on the fleet core.
 
     mapf-fleet evaluate --lifelong --steps 256 --checkpoint models/default.pt heuristic \\
-        --shield pibt_anchor --kinds dense --sizes 21 --agents 32 64 --instances 16
+        --conflict-rule pibt_anchor --kinds dense --sizes 21 --agents 32 64 --instances 16
 
 Every episode is a `fleet.run.FleetRun` with the lifelong task source (`fleet.tasks`): the same
 core the simulator node and the real-robot aggregator run, so a fleet run over ROS and this
@@ -10,8 +10,8 @@ generator, so every policy of one command gets the same goal sequence per robot.
 scenario: **average throughput** (POGEMA: goals reached by all agents / episode steps), goals per
 agent, collisions (reverted moves, the paper's rule) and overridden moves (shields).
 
-Policies: checkpoints and `heuristic` under each `--shield` (`pibt_anchor` with the heuristic
-is plain PIBT; `--shield lacam` is the planning arbiter, `coordination.plan.PlanKeeper`, with
+Policies: checkpoints and `heuristic` under each `--conflict-rule` (`pibt_anchor` with the heuristic
+is plain PIBT; `--conflict-rule lacam` is the planning arbiter, `coordination.plan.PlanKeeper`, with
 `--planning-budget` seconds per re-plan), and the centralized reference `lacam`: LaCAM (pymapf) replanned from the current
 state whenever a goal changes, with `--planner-time-limit` per call (default 1 s); between goal
 changes the robots follow the plan; where a call leaves agents without a plan (time limit), those
@@ -36,14 +36,14 @@ from pathlib import Path
 
 import numpy as np
 
-from mapf_fleet.coordination.pibt import SHIELD_RULES
-from mapf_fleet.coordination.preferences import rank_actions, tie_breakers
+from mapf_fleet.coordination.pibt import CONFLICT_RULES, REVERT
+from mapf_fleet.coordination.ranking import rank_actions, tie_breakers
 from mapf_fleet.fleet.arbiter import DEFAULT_CONFLICT_RULE, single_choice_ranking
 from mapf_fleet.fleet.record import Decisions
 from mapf_fleet.fleet.run import FleetRun
 from mapf_fleet.fleet.tasks import LifelongTasks
 
-from .policies import parse_policy, unique_names, with_shield
+from .policies import parse_policy, unique_names, with_conflict_rule
 from .protocol import InstanceSet
 
 # Published lifelong throughputs (goals per step), not measured here: pogema-benchmark's raw data
@@ -74,7 +74,7 @@ class LifelongResult:
     collisions: list = field(default_factory=list)
     overridden: list = field(default_factory=list)
     fallbacks: int = 0  # lacam: agent-ticks whose move came from PIBT (no plan in time)
-    preferences: str | None = None  # the ranking mode under a shield (None: planners, none)
+    ranking: str | None = None  # the ranking under a coordinated rule (None: planners, revert)
     seconds: float = 0.0
 
     @property
@@ -86,7 +86,7 @@ class LifelongResult:
         return float(np.std(np.asarray(self.goals) / self.steps)) if self.goals else 0.0
 
     def row(self) -> dict:
-        return {"policy": self.policy, "preferences": self.preferences,
+        return {"policy": self.policy, "ranking": self.ranking,
                 "scenario": self.scenario, "agents": self.num_agents,
                 "steps": self.steps, "episodes": len(self.goals),
                 "throughput": round(self.throughput, 4),
@@ -210,13 +210,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="lifelong MAPF: a new goal on arrival, throughput over --steps")
     p.add_argument("--checkpoint", nargs="+", default=["heuristic"], metavar="C",
                    help="checkpoint files, `heuristic` and/or `lacam` (default: heuristic)")
-    p.add_argument("--shield", nargs="+", default=[DEFAULT_CONFLICT_RULE],
-                   choices=["none", *SHIELD_RULES],
-                   help="conflict rule(s) for decentralized policies, one row each "
-                        f"(default: {DEFAULT_CONFLICT_RULE}, the fleet's default; none = the "
-                        "paper's rule)")
-    p.add_argument("--preferences", default=None, metavar="MODE",
-                   help="ranking mode of checkpoints under a shield (default: the evaluator's)")
+    p.add_argument("--conflict-rule", nargs="+", default=[DEFAULT_CONFLICT_RULE],
+                   choices=list(CONFLICT_RULES), metavar="RULE",
+                   help="conflict rule(s) for decentralized policies, one row each: "
+                        f"{', '.join(CONFLICT_RULES)} (default: {DEFAULT_CONFLICT_RULE}, the "
+                        "fleet's default; revert = the paper's rule; deprecated: --shield)")
+    p.add_argument("--ranking", default=None, metavar="RANKING",
+                   help="ranking of checkpoints under the conflict rule (default: the "
+                        "evaluator's; deprecated: --preferences)")
     p.add_argument("--kinds", nargs="+", default=["dense"], choices=list(KINDS),
                    help="map kinds (default: dense, the small random maps of 17-21 cells)")
     p.add_argument("--map", nargs="+", default=[], metavar="MAP",
@@ -231,7 +232,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--planner-time-limit", type=float, default=1.0,
                    help="lacam: seconds per replanning call (default 1)")
     p.add_argument("--planning-budget", type=float, metavar="S",
-                   help="--shield lacam: seconds per re-plan (default 1)")
+                   help="--conflict-rule lacam: seconds per re-plan (default 1)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--json", metavar="OUT")
     p.add_argument("--csv", metavar="OUT")
@@ -269,26 +270,27 @@ def evaluate_lifelong(args) -> list[LifelongResult]:
     for name in dict.fromkeys(args.checkpoint):
         base = parse_policy(name, device=args.device,
                             planner_time_limit=args.planner_time_limit)
-        rules = [args.shield[0]] if base.is_planner else list(dict.fromkeys(args.shield))
+        rules = ([args.conflict_rule[0]] if base.is_planner
+                 else list(dict.fromkeys(args.conflict_rule)))
         for rule in rules:
-            spec = base if base.is_planner else with_shield(base, rule, args.preferences)
+            spec = base if base.is_planner else with_conflict_rule(base, rule, args.ranking)
             spec = unique_names([spec])[0]
             policy = None if base.is_planner else build_policy(spec)
             for label, instances in scenarios(args):
                 began = time.perf_counter()
                 # a plan's moves are conflict-free: plain PIBT passes them unchanged (the anchor
                 # would put the top agent on its distance order instead of its plan)
-                rule_of_run = "pibt" if base.is_planner else (rule if rule != "none" else "revert")
+                rule_of_run = "pibt" if base.is_planner else rule
                 runs = lifelong_runs(instances, args.steps, rule_of_run, args.seed,
                                      planning_budget=args.planning_budget)
                 result = LifelongResult(spec.name, label.rsplit(" ", 1)[0],
                                         instances.starts.shape[1], args.steps)
-                if not base.is_planner and rule != "none":
-                    result.preferences = spec.preference_mode
+                if not base.is_planner and rule != REVERT:
+                    result.ranking = spec.resolved_ranking
                 if base.is_planner:
                     result.fallbacks = lacam_rollout(runs, args.planner_time_limit)
                 else:
-                    rollout(policy, runs, shielded=rule != "none")
+                    rollout(policy, runs, shielded=rule != REVERT)
                 result.goals = [run.goals_reached for run in runs]
                 result.collisions = [run.recorder.collisions for run in runs]
                 result.overridden = [run.recorder.overridden for run in runs]
@@ -308,7 +310,7 @@ def markdown(results: list[LifelongResult]) -> str:
              "|---|---|---|---:|---:|---:|---:|---:|---:|---:|"]
     for r in results:
         row = r.row()
-        lines.append(f"| {row['policy']} | {row['preferences'] or '-'} | {row['scenario']} "
+        lines.append(f"| {row['policy']} | {row['ranking'] or '-'} | {row['scenario']} "
                      f"| {row['agents']} | {row['steps']} "
                      f"| {row['episodes']} | {row['throughput']:.3f} ± {row['throughput_std']:.3f}"
                      f" | {row['goals_per_agent']:.2f} | {row['collisions']:.1f} | "

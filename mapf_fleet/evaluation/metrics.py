@@ -22,7 +22,7 @@ agents, the conflict rules of `mapf_fleet.grid.env` applied):
   one of their four neighbouring cells at the end. They measure the failure mode the paper names
   (deadlocks: agents waiting on each other, or on an agent parked on its goal, until the limit)
   apart from agents that wander or lose their way.
-- **overrides** (under a shield, `--shield pibt`): per episode, the agent-steps whose executed
+- **overrides** (under a shield, `--conflict-rule pibt`): per episode, the agent-steps whose executed
   action was not the agent's first choice (the coordination layer moved or held it). 0 without a
   shield, where reverted moves count as collisions instead.
 """

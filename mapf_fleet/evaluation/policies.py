@@ -4,9 +4,10 @@ Decentralized policies (learned, heuristic) implement the batched interface the 
 `reset(num_envs, num_agents)` then `act(obs (B,N,C,9,9), positions (B,N,2)) -> actions (B,N)`,
 the observations built as the policy's `observation` says ("paper", C = 6, or "cost_to_go",
 C = 7: a checkpoint's `model_config.observation`);
-under a shield (`PolicySpec.shield == "pibt"`) the runner calls `rank(obs, positions, tick) ->
-preferences (B,N,5)` instead, arbitrates them with `coordination.pibt.PIBTShield`, and tells the
-policy what was executed with `executed(actions (B,N))` (DCC's last-action input).
+under a coordinated conflict rule (`PolicySpec.conflict_rule == "pibt"`, ...) the runner calls
+`rank(obs, positions, tick) -> rankings (B,N,5)` instead, arbitrates them with
+`coordination.pibt.make_shield`'s layer, and tells the policy what was executed with
+`executed(actions (B,N))` (DCC's last-action input).
 Centralized planners are `planners.ClassicalPlanner` objects, replayed by the runner.
 """
 
@@ -18,19 +19,18 @@ from pathlib import Path
 import numpy as np
 
 from mapf_fleet.coordination.planners import PLANNER_NAMES
-from mapf_fleet.coordination.pibt import PIBT_RULES, SHIELD_RULES
-from mapf_fleet.coordination.preferences import (DEFAULT_Q_MODE, PREFERENCE_MODES, Q_MODES,
-                                                 default_q_mode, recorded_ranking)
+from mapf_fleet.coordination.pibt import CONFLICT_RULES, PIBT_RULES, REVERT
+from mapf_fleet.coordination.ranking import (DEFAULT_RANKING, Q_RANKINGS, RANKINGS, default_ranking,
+                                             recorded_ranking)
 
 HEURISTIC = "heuristic"
 REFERENCE_NAMES = (HEURISTIC, *PLANNER_NAMES)
-# none: the paper's environment (conflicting moves are reverted); pibt: CS-PIBT over the
+# revert: the paper's environment (conflicting moves are reverted); pibt: CS-PIBT over the
 # rankings; pibt_anchor: the same with the top-priority agent on its distance order
 # (`PIBTShield(anchor=True)`); _swap, _hindrance: the PIBT variants (coordination.pibt)
-SHIELDS = ("none", *SHIELD_RULES)
 # "+PIBT", "+PIBT-anchor", "+PIBT-anchor-swap", ..., "+LaCAM"
-SHIELD_LABELS = {**{rule: "+PIBT" + "".join(f"-{part}" for part in rule.split("_")[1:])
-                    for rule in PIBT_RULES}, "lacam": "+LaCAM"}
+RULE_LABELS = {**{rule: "+PIBT" + "".join(f"-{part}" for part in rule.split("_")[1:])
+                  for rule in PIBT_RULES}, "lacam": "+LaCAM"}
 
 
 @dataclass(frozen=True)
@@ -44,45 +44,45 @@ class PolicySpec:
     planner_time_limit: float = 10.0
     planner_seed: int = 0
     device: str = "cpu"
-    shield: str = "none"  # one of SHIELDS (decentralized policies only)
-    preferences: str | None = None  # preference mode under the shield (None: the default)
-    # a checkpoint's recorded rankings (metadata `rankings`), ((rule, mode), ...): its default
+    conflict_rule: str = REVERT  # one of CONFLICT_RULES (decentralized policies only)
+    ranking: str | None = None  # the ranking asked for under the rule (None: the default)
+    # a checkpoint's recorded rankings (metadata `rankings`), ((rule, ranking), ...): its default
     rankings: tuple[tuple[str, str], ...] = ()
-    planning_budget: float | None = None  # shield "lacam": seconds per re-plan (None: default)
+    planning_budget: float | None = None  # rule "lacam": seconds per re-plan (None: default)
 
     @property
     def is_planner(self) -> bool:
         return self.kind == "planner"
 
     @property
-    def preference_mode(self) -> str:
-        """The mode the shield ranks actions with: the heuristic ranks by distance (its choice
-        first: it follows a closer move), a checkpoint by its Q-values: `preferences` when given,
+    def resolved_ranking(self) -> str:
+        """The ranking the conflict rule arbitrates: the heuristic ranks by distance (its choice
+        first: it follows a closer move), a checkpoint by its Q-values: `ranking` when given,
         else the ranking the checkpoint records for the rule, else the rule's default."""
-        if self.preferences is not None:
-            return self.preferences
+        if self.ranking is not None:
+            return self.ranking
         if self.kind == "heuristic":
             return "distance"
-        return default_q_mode(self.shield, dict(self.rankings))
+        return default_ranking(self.conflict_rule, dict(self.rankings))
 
 
-def with_shield(spec: PolicySpec, shield: str, preferences: str | None = None) -> PolicySpec:
-    """`spec` under a shield; the row label says which (and the preference mode when given)."""
+def with_conflict_rule(spec: PolicySpec, rule: str, ranking: str | None = None) -> PolicySpec:
+    """`spec` under a conflict rule; the row label says which (and the ranking when given)."""
     from dataclasses import replace
 
-    if shield not in SHIELDS:
-        raise ValueError(f"--shield must be one of {SHIELDS}, got {shield!r}")
-    if preferences is not None and preferences not in PREFERENCE_MODES:
-        raise ValueError(f"--preferences must be among {PREFERENCE_MODES}, got {preferences!r}")
-    if shield == "none" or spec.is_planner:
+    if rule not in CONFLICT_RULES:
+        raise ValueError(f"--conflict-rule must be one of {CONFLICT_RULES}, got {rule!r}")
+    if ranking is not None and ranking not in RANKINGS:
+        raise ValueError(f"--ranking must be among {RANKINGS}, got {ranking!r}")
+    if rule == REVERT or spec.is_planner:
         return spec
-    if spec.kind == "heuristic" and preferences not in (None, "distance"):
-        raise ValueError(f"--preferences {preferences}: the heuristic has no Q-values "
-                         f"(its ranking is 'distance'); the Q modes are {Q_MODES}")
+    if spec.kind == "heuristic" and ranking not in (None, "distance"):
+        raise ValueError(f"--ranking {ranking}: the heuristic has no Q-values "
+                         f"(its ranking is 'distance'); the Q rankings are {Q_RANKINGS}")
     # the ranking is named unless it comes from the rule's table: asked for, or the checkpoint's
-    named = preferences if preferences is not None else recorded_ranking(shield, dict(spec.rankings))
-    label = SHIELD_LABELS.get(shield, "+" + shield) + ("" if named is None else f"({named})")
-    return replace(spec, name=f"{spec.name} {label}", shield=shield, preferences=preferences)
+    named = ranking if ranking is not None else recorded_ranking(rule, dict(spec.rankings))
+    label = RULE_LABELS.get(rule, "+" + rule) + ("" if named is None else f"({named})")
+    return replace(spec, name=f"{spec.name} {label}", conflict_rule=rule, ranking=ranking)
 
 
 def parse_policy(arg: str, *, device: str = "cpu", planner_time_limit: float = 10.0, planner_seed: int = 0) -> PolicySpec:
@@ -127,7 +127,7 @@ def unique_names(specs: list[PolicySpec]) -> list[PolicySpec]:
 
 
 def _tie_breakers(tick: int, batch: int, agents: int) -> np.ndarray:
-    from mapf_fleet.coordination.preferences import tie_breakers
+    from mapf_fleet.coordination.ranking import tie_breakers
 
     return np.broadcast_to(tie_breakers(np.arange(agents), tick), (batch, agents, 5))
 
@@ -138,14 +138,14 @@ class HeuristicBatchPolicy:
 
     observation = "paper"  # it reads the heuristic bits only
 
-    def __init__(self, preference_mode: str = "distance"):
-        self.preference_mode = preference_mode
+    def __init__(self, ranking: str = "distance"):
+        self.ranking = ranking
 
     def reset(self, num_envs: int, num_agents: int) -> None:
         pass
 
     def rank(self, obs: np.ndarray, positions: np.ndarray, tick: int) -> np.ndarray:
-        from mapf_fleet.coordination.preferences import rank_actions
+        from mapf_fleet.coordination.ranking import rank_actions
 
         return rank_actions(obs, mode="distance", ties=_tie_breakers(tick, *obs.shape[:2]))
 
@@ -162,7 +162,7 @@ class HeuristicBatchPolicy:
 class CheckpointBatchPolicy:
     """A learned checkpoint through `mapf_fleet.models.policy.LearnedPolicy`."""
 
-    def __init__(self, path: str, device: str = "cpu", preference_mode: str = DEFAULT_Q_MODE):
+    def __init__(self, path: str, device: str = "cpu", ranking: str = DEFAULT_RANKING):
         from mapf_fleet.models.checkpoint import load_checkpoint
         from mapf_fleet.models.policy import LearnedPolicy
 
@@ -175,7 +175,7 @@ class CheckpointBatchPolicy:
         self.metadata = metadata
         self.policy = LearnedPolicy(model, device)
         self.observation = self.policy.observation
-        self.preference_mode = preference_mode
+        self.ranking = ranking
 
     def reset(self, num_envs: int, num_agents: int) -> None:
         self.policy.reset(num_envs, num_agents)
@@ -195,10 +195,10 @@ class CheckpointBatchPolicy:
 
     def rank(self, obs: np.ndarray, positions: np.ndarray, tick: int) -> np.ndarray:
         """Preference orders (B, N, 5) from this step's Q-values (the step runs here)."""
-        from mapf_fleet.coordination.preferences import rank_actions
+        from mapf_fleet.coordination.ranking import rank_actions
 
         self.act(obs, positions)
-        return rank_actions(obs, self.policy.q_values, self.preference_mode,
+        return rank_actions(obs, self.policy.q_values, self.ranking,
                             ties=_tie_breakers(tick, *obs.shape[:2]))
 
     def executed(self, actions: np.ndarray) -> None:
@@ -209,11 +209,11 @@ class CheckpointBatchPolicy:
 def build_policy(spec: PolicySpec):
     """The object the runner steps for `spec` (a batch policy or a ClassicalPlanner)."""
     if spec.kind == "heuristic":
-        return HeuristicBatchPolicy(spec.preference_mode)
+        return HeuristicBatchPolicy(spec.resolved_ranking)
     if spec.kind == "planner":
         from mapf_fleet.coordination.planners import ClassicalPlanner
 
         return ClassicalPlanner(spec.algorithm, spec.planner_time_limit, spec.planner_seed)
     if spec.kind == "checkpoint":
-        return CheckpointBatchPolicy(spec.path, spec.device, spec.preference_mode)
+        return CheckpointBatchPolicy(spec.path, spec.device, spec.resolved_ranking)
     raise ValueError(f"unknown policy kind {spec.kind!r}")

@@ -64,7 +64,7 @@ def _make_env(instances: InstanceSet, k: int, max_steps: int, observation: str =
     return MAPFEnv(instances.instance(k), EnvConfig(max_steps=max_steps, observation=observation))
 
 
-def run_decentralized(policy, instances: InstanceSet, max_steps: int, shield: str = "none",
+def run_decentralized(policy, instances: InstanceSet, max_steps: int, conflict_rule: str = "revert",
                       planning_budget: float | None = None, stats: list | None = None
                       ) -> list[EpisodeRecord]:
     """Step all episodes of `instances` together with a batch policy (reset/act[/keep]).
@@ -72,10 +72,11 @@ def run_decentralized(policy, instances: InstanceSet, max_steps: int, shield: st
     Only live episodes are passed to `act`; when some end, `policy.keep(rows)` (if the policy
     has it) drops their recurrent state so the batch shrinks with them.
 
-    shield "pibt" / "pibt_anchor": each step the policy ranks its five actions per agent
+    conflict_rule "revert": the paper's environment on the policy's `act`; "pibt" / "pibt_anchor"
+    (and their variants): each step the policy ranks its five actions per agent
     (`policy.rank`), one `PIBTShield` per episode turns the rankings into conflict-free moves,
     those are executed (and reported back with `policy.executed`), and the overridden
-    agent-steps are counted. shield "lacam": the planning arbiter (`coordination.plan.PlanKeeper`)
+    agent-steps are counted. "lacam": the planning arbiter (`coordination.plan.PlanKeeper`)
     with `planning_budget` seconds per re-plan; its counters (`PlanKeeper.stats`) are appended
     to `stats` when given, one dict per episode."""
     bounds = lower_bounds(instances)
@@ -84,12 +85,12 @@ def run_decentralized(policy, instances: InstanceSet, max_steps: int, shield: st
     obs = np.stack([env.reset() for env in envs]).astype(np.float32)
     positions = np.stack([np.asarray(env.positions) for env in envs])
     trackers = [EpisodeTracker(positions[k], instances.goals[k], max_steps, bounds[k]) for k in range(len(envs))]
-    from mapf_fleet.coordination.pibt import SHIELD_RULES, make_shield
+    from mapf_fleet.coordination.pibt import CONFLICT_RULES, REVERT, make_shield
 
-    if shield not in ("none", *SHIELD_RULES):
-        raise ValueError(f"shield must be 'none' or one of {SHIELD_RULES}, got {shield!r}")
-    shields = None if shield == "none" else [
-        make_shield(shield, instances.maps[k], instances.goals[k], planning_budget=planning_budget)
+    if conflict_rule not in CONFLICT_RULES:
+        raise ValueError(f"conflict_rule must be one of {CONFLICT_RULES}, got {conflict_rule!r}")
+    shields = None if conflict_rule == REVERT else [
+        make_shield(conflict_rule, instances.maps[k], instances.goals[k], planning_budget=planning_budget)
         for k in range(len(envs))]
     policy.reset(len(envs), instances.starts.shape[1])
     live = list(range(len(envs)))
@@ -108,8 +109,8 @@ def run_decentralized(policy, instances: InstanceSet, max_steps: int, shield: st
         if shields is None:
             actions = np.asarray(policy.act(obs[live], positions[live]))
         else:
-            preferences = policy.rank(obs[live], positions[live], tick)
-            steps = [shields[k].step(positions[k], preferences[j]) for j, k in enumerate(live)]
+            rankings = policy.rank(obs[live], positions[live], tick)
+            steps = [shields[k].step(positions[k], rankings[j]) for j, k in enumerate(live)]
             actions = np.stack([s.actions for s in steps])
             overridden = [s.overridden for s in steps]
             policy.executed(actions)
@@ -188,7 +189,7 @@ def run_job(job: Job) -> tuple[list[EpisodeRecord], float, float | None, int]:
         records, plan_time, failures = run_planner(policy, job.instances, job.scenario.max_steps)
     else:
         records, plan_time, failures = run_decentralized(
-            policy, job.instances, job.scenario.max_steps, job.spec.shield,
+            policy, job.instances, job.scenario.max_steps, job.spec.conflict_rule,
             planning_budget=job.spec.planning_budget), None, 0
     return records, time.perf_counter() - began, plan_time, failures
 

@@ -3,9 +3,9 @@ the robots are commanded to, with the configured conflict rule. The simulator an
 aggregator both call it; only the arbiter commands waypoints.
 
 Rules (`CONFLICT_RULES`):
-  pibt    `coordination.pibt.PIBTShield` over the robots' preference orders (CS-PIBT): nobody's
+  pibt    `coordination.pibt.PIBTShield` over the robots' rankings (CS-PIBT): nobody's
           move is reverted, a robot in the way may be pushed to another of its ranked moves.
-          The batched evaluator's `--shield pibt` (`evaluation.runner.run_decentralized`).
+          The batched evaluator's `--conflict-rule pibt` (`evaluation.runner.run_decentralized`).
   pibt_anchor  the same, with the highest-priority robot on its distance order whatever it
           ranked (`PIBTShield(anchor=True)`; measured in docs/results.md).
   pibt[_anchor]_swap, pibt[_anchor][_swap]_hindrance  the same with lacam3's swap in
@@ -31,10 +31,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mapf_fleet.coordination.pibt import SHIELD_RULES, make_shield
+from mapf_fleet.coordination.pibt import CONFLICT_RULES, make_shield
 from mapf_fleet.grid.actions import NUM_ACTIONS, STAY, actions_between
 
-CONFLICT_RULES = (*SHIELD_RULES, "revert")
 # The fleet's default: the anchor measured above plain "pibt" with the shipped policy (40x40 at 64
 # agents 0.700 vs 0.490), swap on top of it above "pibt_anchor" on every family measured, one-shot
 # and lifelong, with the heuristic and with the learned default; hindrance added nothing on top
@@ -57,16 +56,16 @@ def single_choice_ranking(action: int) -> list[int]:
     return [action] + ([STAY] if action != STAY else []) + rest
 
 
-def ranking_problem(action: int, preferences) -> str:
-    """"" when `preferences` (possibly empty) is a valid ranking whose first entry is `action`,
+def ranking_problem(action: int, ranking) -> str:
+    """"" when `ranking` (possibly empty) is a valid ranking whose first entry is `action`,
     else what is wrong with it."""
-    prefs = [int(a) for a in preferences]
+    prefs = [int(a) for a in ranking]
     if not prefs:
         return "" if 0 <= int(action) < NUM_ACTIONS else f"action {action} out of range"
     if sorted(prefs) != list(range(NUM_ACTIONS)):
-        return f"preferences {prefs} are not a ranking of the actions 0..{NUM_ACTIONS - 1}"
+        return f"ranking {prefs} is not a ranking of the actions 0..{NUM_ACTIONS - 1}"
     if prefs[0] != int(action):
-        return f"action {action} is not its first preference {prefs}"
+        return f"action {action} is not the first of its ranking {prefs}"
     return ""
 
 
@@ -133,12 +132,12 @@ class TickArbiter:
             top = float(shield.priorities.max()) + 1.0
             shield.priorities[list(robots)] = top + shield.base_priority[list(robots)]
 
-    def resolve(self, positions, preferences, held=None, reserved=()) -> Resolution:
-        """Arbitrate one tick. positions (N, 2) the robots' cells; preferences (N, 5) each row a
+    def resolve(self, positions, rankings, held=None, reserved=()) -> Resolution:
+        """Arbitrate one tick. positions (N, 2) the robots' cells; rankings (N, 5) each row a
         ranking (best first; a held robot's row is ignored); held (N,) bool; reserved: cells
         (row, col) kept free."""
         positions = np.asarray(positions, dtype=np.int64)
-        prefs = np.asarray(preferences, dtype=np.int64)
+        prefs = np.asarray(rankings, dtype=np.int64)
         n = len(positions)
         held = np.zeros(n, dtype=bool) if held is None else np.asarray(held, dtype=bool).copy()
         reserved = [(int(r), int(c)) for r, c in reserved]
@@ -354,7 +353,7 @@ class RobotCommands:
     problems: list
 
 
-def plan_robot_commands(arbiter: TickArbiter, positions, waypoints, preferences,
+def plan_robot_commands(arbiter: TickArbiter, positions, waypoints, rankings,
                         missing=()) -> RobotCommands:
     """The real-robot arbiter's decision for one tick. positions (N, 2): the robots' cells in the
     tick's state; waypoints (N, 2): their last commanded cells; a robot whose cell is not its
@@ -367,7 +366,7 @@ def plan_robot_commands(arbiter: TickArbiter, positions, waypoints, preferences,
     held = late.copy()
     held[list(missing)] = True
     reserved = [tuple(int(v) for v in waypoints[i]) for i in np.flatnonzero(late)]
-    result = arbiter.resolve(positions, preferences, held=held, reserved=reserved)
+    result = arbiter.resolve(positions, rankings, held=held, reserved=reserved)
     commanded, stopped = break_rotations(positions, result.positions)
     problems = ([result.problem] if result.problem else
                 unsafe_commands(arbiter.grid, positions, commanded, result.held, reserved))

@@ -27,19 +27,19 @@ import numpy as np
 @dataclass(frozen=True)
 class Decisions:
     """The moves collected for one tick; a missing robot's action is 0 (stay), its
-    preferences [0, 1, 2, 3, 4]."""
+    rankings [0, 1, 2, 3, 4]."""
 
     tick: int
     actions: np.ndarray            # (N,) int64: first choices
-    preferences: np.ndarray        # (N, 5) int64: each robot's actions ranked, best first
+    rankings: np.ndarray        # (N, 5) int64: each robot's actions ranked, best first
     missing: list[int]             # robots without a move by the deadline
     requested: list[list[int]]     # per robot: DHC partners / DCC requested peers
     messages: list[int]            # per robot: peer messages it used
 
     @classmethod
-    def complete(cls, tick: int, preferences) -> "Decisions":
+    def complete(cls, tick: int, rankings) -> "Decisions":
         """Every robot decided (the evaluator's rollout): rankings (N, 5), no messages."""
-        prefs = np.asarray(preferences, dtype=np.int64)
+        prefs = np.asarray(rankings, dtype=np.int64)
         n = len(prefs)
         return cls(int(tick), prefs[:, 0].copy(), prefs, [], [[] for _ in range(n)], [0] * n)
 

@@ -251,7 +251,7 @@ class FleetRun:
         held = np.zeros(self.num_robots, dtype=bool) if held is None else \
             np.asarray(held, dtype=bool).copy()
         held[list(decisions.missing)] = True
-        return self.arbiter.resolve(self.positions, decisions.preferences, held=held,
+        return self.arbiter.resolve(self.positions, decisions.rankings, held=held,
                                     reserved=reserved)
 
     def step(self, decisions: Decisions, **series) -> tuple[Resolution, list[GoalEvent]]:

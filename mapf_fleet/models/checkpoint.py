@@ -18,10 +18,11 @@ metadata fields:
     evaluation       dict or None (evaluation summary)
     created          ISO 8601 UTC time of writing
     extra            dict, free plain data (optional)
-    rankings         {shield rule: preference mode} (optional): the ranking the weights were
-                     trained behind each rule (DAgger writes {shield: preferences}); the
+    rankings         {conflict rule: ranking} (optional): the ranking the weights were
+                     trained behind each rule (the trainer and DAgger write {conflict_rule:
+                     ranking} of their config, older files {shield: preferences}); the
                      evaluator and the policy nodes default to it under that rule
-                     (coordination.preferences.default_q_mode)
+                     (coordination.ranking.default_ranking)
 Writes are atomic (temporary file in the same directory + os.replace), so a reader never sees
 half a file.
 """
@@ -236,18 +237,18 @@ def _check_metadata(meta: Mapping[str, Any], path: str) -> None:
 
 
 def _check_rankings(rankings: Any, fail) -> None:
-    """metadata.rankings: {rule: mode}, a rule of coordination.pibt.SHIELD_RULES and a Q mode of
-    coordination.preferences.Q_MODES (a learned policy ranks by its Q-values)."""
-    from mapf_fleet.coordination.pibt import SHIELD_RULES
-    from mapf_fleet.coordination.preferences import Q_MODES
+    """metadata.rankings: {rule: ranking}, a rule of coordination.pibt.COORDINATED_RULES and a
+    ranking of coordination.ranking.Q_RANKINGS (a learned policy ranks by its Q-values)."""
+    from mapf_fleet.coordination.pibt import COORDINATED_RULES
+    from mapf_fleet.coordination.ranking import Q_RANKINGS
 
     if not isinstance(rankings, Mapping):
-        fail("rankings", "a dict {shield rule: preference mode}", rankings)
+        fail("rankings", "a dict {conflict rule: ranking}", rankings)
     for rule, mode in rankings.items():
-        if rule not in SHIELD_RULES:
-            fail("rankings", f"shield rules among {SHIELD_RULES}", rule)
-        if mode not in Q_MODES:
-            fail(f"rankings.{rule}", f"one of {Q_MODES}", mode)
+        if rule not in COORDINATED_RULES:
+            fail("rankings", f"conflict rules among {COORDINATED_RULES}", rule)
+        if mode not in Q_RANKINGS:
+            fail(f"rankings.{rule}", f"one of {Q_RANKINGS}", mode)
 
 
 def _check_plain(value: Any, where: str, path: str) -> None:

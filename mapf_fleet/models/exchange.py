@@ -6,7 +6,7 @@ exchanges in memory).
 - `PolicyExchange`: the robots' FOV observations (`grid.observation.ObservationBuilder`), the
   network's batched pieces with the numbers of the batched `model.step` (same padding and
   masks), the peer messages through the link and into the `Mailbox`, and the robots' ranked
-  actions (`coordination.preferences.rank_actions`, ties by `tie_breakers(robot id, tick)`).
+  actions (`coordination.ranking.rank_actions`, ties by `tie_breakers(robot id, tick)`).
   DHC: `comm_rounds` rounds of hidden vectors to every process. DCC: whom each robot requests
   (its decision-causal set) announced to every process, then requests and replies addressed
   to the robots' processes.
@@ -25,7 +25,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from mapf_fleet.coordination.preferences import rank_actions, tie_breakers
+from mapf_fleet.coordination.ranking import rank_actions, tie_breakers
 from mapf_fleet.grid.observation import ObservationBuilder
 
 from .comm import dhc_partners
@@ -36,7 +36,7 @@ TIMING_EVERY = 50  # the hub logs its per-tick time split every this many decisi
 class Decision(NamedTuple):
     """The local robots' decisions of one tick, one row per robot (in the exchange's order)."""
 
-    preferences: np.ndarray  # int (M, 5): each robot's actions ranked, first choice first
+    rankings: np.ndarray  # int (M, 5): each robot's actions ranked, first choice first
     requested: list  # per robot: whom it asked (DHC partners, DCC decision-causal set)
     received: list  # per robot: how many peer messages it used
     missing: list  # per robot: the set of peers whose message was left out (comm_timeout)
@@ -58,14 +58,14 @@ class PolicyExchange:
     and delivers what comes from the others to `receive_hidden`, `receive_announce`,
     `receive`."""
 
-    def __init__(self, model, ids, comm_timeout: float, preference_mode: str, link):
+    def __init__(self, model, ids, comm_timeout: float, ranking: str, link):
         self.model = model.eval()
         self.algo = model.config.algo
         self.radius = int(model.config.obs_radius)
         self.ids = np.array(ids, dtype=np.int64)
         self.index_of = {int(r): m for m, r in enumerate(ids)}
         self.comm_timeout = float(comm_timeout)
-        self.preference_mode = preference_mode
+        self.ranking = ranking
         self.link = link
         self.mailbox = Mailbox()
         self._observer: ObservationBuilder | None = None
@@ -147,13 +147,13 @@ class PolicyExchange:
                     tick, obs, torch.as_tensor(last[self.ids]), positions)
             q = self.model.head(h).numpy()
         self.timing.mark("network")
-        preferences = rank_actions(obs.numpy(), q, self.preference_mode,
+        rankings = rank_actions(obs.numpy(), q, self.ranking,
                                    ties=tie_breakers(self.ids, tick))
         if self.mailbox.current_tick != tick:
             return None  # the fleet moved on while we waited: this decision is stale
         self._hidden = h
         self.decisions += 1
-        return Decision(preferences, requested, received, missing, q)
+        return Decision(rankings, requested, received, missing, q)
 
     def _fleet_array(self, values, name: str) -> np.ndarray:
         values = np.asarray(values, dtype=np.int64)
@@ -306,10 +306,10 @@ class LinkedExchanges:
     thread, as each process would. `drop(kind, sender, receiver)` loses a DCC request or reply.
     """
 
-    def __init__(self, model, groups, comm_timeout: float = 5.0, preference_mode: str = "q",
+    def __init__(self, model, groups, comm_timeout: float = 5.0, ranking: str = "q",
                  drop=None):
         self.drop = drop or (lambda kind, sender, receiver: False)
-        self.exchanges = [PolicyExchange(model, group, comm_timeout, preference_mode,
+        self.exchanges = [PolicyExchange(model, group, comm_timeout, ranking,
                                          _MemoryLink(self, k))
                           for k, group in enumerate(groups)]
         self.owner = {int(r): ex for ex in self.exchanges for r in ex.ids}

@@ -41,16 +41,16 @@ from mapf_fleet_interfaces.msg import FleetOutcome
 from rclpy.node import Node
 
 from mapf_fleet.entry import one_line_errors
-from mapf_fleet.grid.actions import STAY, actions_between
-from mapf_fleet.ros import common, fleet_io
+from mapf_fleet.fleet import parameters
 from mapf_fleet.fleet.arbiter import (check_conflict_rule, check_pose, plan_robot_commands,
                                       ready_to_send)
+from mapf_fleet.fleet.lockstep import FleetTicker, fleet_run, instance_source
 from mapf_fleet.fleet.record import Decisions
+from mapf_fleet.grid.actions import STAY, actions_between
+from mapf_fleet.ros import common, fleet_io
 from mapf_fleet.ros.goals import GoalServer
-from mapf_fleet.ros import parameters
-from mapf_fleet.ros.lockstep import FleetTicker, fleet_run, instance_source, set_parameters_result
 
-PARAMETERS = parameters.AGGREGATOR  # name -> Param (ros.parameters: the one table)
+PARAMETERS = parameters.AGGREGATOR  # name -> Param (fleet.parameters: the one table)
 
 
 REJECT_LOG_PERIOD_S = 10.0
@@ -103,14 +103,8 @@ class FleetStateAggregator(Node):
         self.channels.publish_map_and_goals(self.grid, self.instance_goals)
         # goals at run time; bound to the run once the robots have posed
         self.goals = GoalServer(self, None, self.lock, self.geometry, self.num_robots)
-        # decision_timeout, arrival_timeout, progress_every apply from the next tick; any other
-        # change at runtime is refused with the reason (ros.parameters: runtime)
-        self.add_on_set_parameters_callback(
-            lambda changes: set_parameters_result(self.params, changes, PARAMETERS,
-                                                  self.get_logger()))
-        self._thread = threading.Thread(
-            target=fleet_io.run_reporting_failure, args=(self, "aggregator", self._run),
-            name="aggregator", daemon=True)
+        # decision_timeout, arrival_timeout, progress_every apply from the next tick
+        self._thread = fleet_io.tick_thread(self, "aggregator", PARAMETERS)
 
     @property
     def tick(self) -> int:
@@ -272,7 +266,7 @@ class FleetStateAggregator(Node):
             self.ticker.stop()
         missing = sorted(set(decisions.missing) | set(silent))
         plan = plan_robot_commands(self.run.arbiter, self.positions.copy(), self.waypoints,
-                                   decisions.preferences, missing)
+                                   decisions.rankings, missing)
         if plan.problems:
             self.get_logger().error(f"tick {decisions.tick}: unsafe commands "
                                     f"({'; '.join(plan.problems)}): every robot stays")

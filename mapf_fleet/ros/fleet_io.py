@@ -8,6 +8,7 @@ between the two nodes is the `step` they give `run_lockstep`: how a tick's moves
 from __future__ import annotations
 
 import sys
+import threading
 import time
 
 import numpy as np
@@ -16,16 +17,17 @@ from geometry_msgs.msg import PoseStamped
 from mapf_fleet_interfaces.msg import (FleetOutcome, FleetProgress, FleetState, RobotMove,
                                        RobotStatus)
 from nav_msgs.msg import OccupancyGrid
-from rcl_interfaces.msg import ParameterDescriptor
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.executors import SingleThreadedExecutor
 from visualization_msgs.msg import Marker, MarkerArray
 
-from mapf_fleet.ros import common, parameters
-from mapf_fleet.ros.lockstep import FleetTicker
+from mapf_fleet.fleet import parameters
+from mapf_fleet.fleet.lockstep import FleetTicker, parameter_change_problem
+from mapf_fleet.ros import common
 
 
 def declare_parameters(node, table: dict) -> dict:
-    """Declare the parameters of `table` (ros.parameters: name -> Param) on `node` and check
+    """Declare the parameters of `table` (fleet.parameters: name -> Param) on `node` and check
     them (ValueError, one line, for the first refused); {name: value}."""
     for name, param in table.items():
         when = "changeable at run time" if param.runtime else "read at start-up"
@@ -33,6 +35,22 @@ def declare_parameters(node, table: dict) -> dict:
                                ParameterDescriptor(description=f"{param.description} ({when})"))
     values = {name: node.get_parameter(name).value for name in table}
     return parameters.check_values(table, values)
+
+
+def set_parameters_result(params: dict, parameters, table: dict, logger=None):
+    """For a node's `add_on_set_parameters_callback`: apply the changes to `params` (the dict
+    the tick loop reads every tick) when all of them are allowed by the node's parameter
+    `table`, else refuse them all with the reasons (rcl_interfaces SetParametersResult)."""
+    problems = [p for p in (parameter_change_problem(q.name, q.value, table)
+                            for q in parameters) if p]
+    if problems:
+        return SetParametersResult(successful=False, reason="; ".join(problems))
+    for parameter in parameters:
+        if logger is not None and params[parameter.name] != parameter.value:
+            logger.info(f"parameter {parameter.name}: {params[parameter.name]} -> "
+                        f"{parameter.value} (from the next tick)")
+        params[parameter.name] = table[parameter.name].coerce(parameter.value)
+    return SetParametersResult(successful=True)
 
 
 class FleetChannels:
@@ -215,6 +233,17 @@ def run_lockstep(node, channels: FleetChannels, run, step, publish_state, *, loc
         run.recorder.write(record_file)
         run.recorder.close_journal(record_file)
     return outcome
+
+
+def tick_thread(node, name: str, table: dict) -> threading.Thread:
+    """The simulator's or the aggregator's tick thread (not started) running `node._run`, after
+    registering its runtime parameter changes: checked against `table`, applied to
+    `node.params` from the next tick, refused with the reason otherwise (fleet.parameters:
+    runtime)."""
+    node.add_on_set_parameters_callback(
+        lambda changes: set_parameters_result(node.params, changes, table, node.get_logger()))
+    return threading.Thread(target=run_reporting_failure, args=(node, name, node._run), name=name,
+                            daemon=True)
 
 
 def run_reporting_failure(node, name: str, run) -> None:

@@ -28,7 +28,6 @@ import math
 import threading
 import time
 
-import numpy as np
 from geometry_msgs.msg import PoseStamped
 from mapf_fleet_interfaces.action import NavigateToPose
 from mapf_fleet_interfaces.msg import GoalEvent as GoalEventMsg

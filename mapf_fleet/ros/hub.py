@@ -20,12 +20,12 @@ interface does not change with the process layout), but the robots of one proces
   discovery traffic tick after tick until every decision was missed). The per-robot services
   `/robot_<i>/dcc_request` / `dcc_reply` still take messages from anything else.
 
-Each robot publishes its five actions ranked (`coordination.preferences.rank_actions` over its
-Q-values, `preference_mode`, ties broken by `tie_breakers(robot id, tick)`, exactly as the batched
+Each robot publishes its five actions ranked (`coordination.ranking.rank_actions` over its
+Q-values, `ranking`, ties broken by `tie_breakers(robot id, tick)`, exactly as the batched
 evaluator's shield), not a waypoint: the tick's arbiter (simulator or aggregator) resolves the
 moves and commands the robots.
 
-Only `comm_timeout`, `service_timeout`, `status_period` and `preference_mode` of the first hosted
+Only `comm_timeout`, `service_timeout`, `status_period` and `ranking` of the first hosted
 node are used.
 """
 
@@ -39,9 +39,9 @@ import time
 
 import numpy as np
 
+from mapf_fleet.fleet.lockstep import EpisodeBinding
 from mapf_fleet.models.exchange import TIMING_EVERY, PolicyExchange
 from mapf_fleet.ros import common
-from mapf_fleet.ros.lockstep import EpisodeBinding
 
 BATCH_KINDS = ("request", "reply")  # DccBatch.kind
 
@@ -109,7 +109,7 @@ class PolicyHub:
         first = nodes[0]
         # the exchange's numbers; this hub is its ROS link (publish_hidden, publish_announce,
         # send, warn)
-        self.exchange = PolicyExchange(model, ids, first.comm_timeout, first.preference_mode,
+        self.exchange = PolicyExchange(model, ids, first.comm_timeout, first.ranking,
                                        self)
         self.algo = self.exchange.algo
         self.ids = self.exchange.ids
@@ -340,12 +340,12 @@ class PolicyHub:
                                    arrived, state.header.stamp)
         if decision is None:
             return  # the fleet moved on while we waited: this decision is stale
-        preferences, requested, received, missing = decision[:4]
+        rankings, requested, received, missing = decision[:4]
         from mapf_fleet_interfaces.msg import RobotMove
 
         tick = exchange.tick
         for m, node in enumerate(self.nodes):
-            ranking = preferences[m].tolist()
+            ranking = rankings[m].tolist()
             node.move_pub.publish(RobotMove(
                 episode=state.episode, tick=tick, robot_id=node.robot_id, action=ranking[0],
                 preferences=ranking, missing_peers=sorted(missing[m]), requested=requested[m],

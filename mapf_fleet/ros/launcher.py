@@ -1,6 +1,6 @@
-"""`mapf-fleet up`: start the fleet's processes from the checked plan of
-`mapf_fleet.ros.up_options` (its options, help and parameters), supervise them, show live
-progress, print the outcome and exit 0 on success."""
+"""`mapf-fleet up`: check its options and its nodes' parameters (`prepare`: the ROS-free plan of
+`mapf_fleet.fleet.up_options`, plus the checkpoint and the instance it loads), start the fleet's
+processes, supervise them, show live progress, print the outcome and exit 0 on success."""
 
 from __future__ import annotations
 
@@ -13,21 +13,124 @@ import tempfile
 import time
 from pathlib import Path
 
+from mapf_fleet.fleet import parameters as P
+from mapf_fleet.fleet.instances import InstanceSource
+from mapf_fleet.fleet.up_options import (MAX_DISCOVERED_PROCESSES, MAX_NODES_PER_PROCESS, UpError,
+                                         build_parser, default_robot_count, layout_problem,
+                                         layout_warning, plan_parameters, plan_policy_parameters,
+                                         policy_processes, policy_value, record_problem,
+                                         unknown_as_free_warning)
+from mapf_fleet.paths import data_root
 from mapf_fleet.ros import common
-from mapf_fleet.ros import parameters as P
-from mapf_fleet.ros.up_options import (DATA_ROOT, DEFAULT_CHECKPOINT, MAX_DISCOVERED_PROCESSES,
-                                       MAX_NODES_PER_PROCESS, UpError, build_parser,
-                                       checkpoint_problem,
-                                       default_checkpoint, layout_problem, layout_warning,
-                                       policy_processes, prepare)
 
-# `up`'s API (its options live in up_options, re-exported here)
-__all__ = ["DATA_ROOT", "DEFAULT_CHECKPOINT", "MAX_DISCOVERED_PROCESSES", "MAX_NODES_PER_PROCESS", "UpError", "build_parser",
-           "checkpoint_problem", "default_checkpoint", "layout_problem", "layout_warning",
-           "main", "policy_processes", "prepare", "report"]
+# `up`'s API (its options live in fleet.up_options, re-exported here)
+__all__ = ["DATA_ROOT", "DEFAULT_CHECKPOINT", "MAX_DISCOVERED_PROCESSES", "MAX_NODES_PER_PROCESS",
+           "UpError", "build_parser", "checkpoint_problem", "default_checkpoint",
+           "layout_problem", "layout_warning", "main", "policy_processes", "prepare", "report"]
+
+# where models/ lives: the install's share/mapf_fleet, else the checkout
+DATA_ROOT = data_root("models")
+DEFAULT_CHECKPOINT = DATA_ROOT / "models" / "default.pt"
+
+
+def default_checkpoint() -> str:
+    """models/default.pt if present, else the first DHC (or any) checkpoint in models/."""
+    if DEFAULT_CHECKPOINT.is_file():
+        return str(DEFAULT_CHECKPOINT)
+    found = sorted(glob.glob(str(DATA_ROOT / "models" / "*.pt")))
+    preferred = [f for f in found if "dhc" in Path(f).name.lower()] or found
+    return preferred[0] if preferred else ""
+
+
+def prepare(argv: list[str]):
+    """(args, plan, instance source) of `up` with every value checked, nothing started;
+    UpError (one line) for anything refused."""
+    own, ros_argv = common.split_ros_args(argv)
+    args = build_parser().parse_args(own)
+    plan = plan_parameters(args, ros_argv)
+    if args.record:
+        problem = record_problem(args.record)
+        if problem:
+            raise UpError(problem)
+    elif plan.origin[plan.sim_name]["record_file"] != "default":
+        problem = record_problem(plan.sim["record_file"],
+                                 plan.origin[plan.sim_name]["record_file"] + ": record_file")
+        if problem:
+            raise UpError(problem)
+    given = args.checkpoint
+    if given is None:
+        policy_checkpoint = policy_value(args, ros_argv, "checkpoint")
+        given = policy_checkpoint or None
+    checkpoint = given or default_checkpoint()
+    if not checkpoint or not Path(checkpoint).is_file():
+        if given:
+            problem = f"checkpoint not found: {given!r}"
+        else:
+            problem = f"no checkpoint in {DATA_ROOT / 'models'} (default {DEFAULT_CHECKPOINT.name})"
+        raise UpError(f"{problem}. Pass --checkpoint FILE.pt (a file written by "
+                      f"mapf_fleet.models.save_checkpoint, e.g. by training), or put one at "
+                      f"{DEFAULT_CHECKPOINT}.")
+    if args.real_robots and args.single_process:
+        raise UpError("--real-robots runs the aggregator in its own process; drop "
+                      "--single-process")
+    problem = checkpoint_problem(checkpoint)
+    if problem:  # before anything starts: the policy processes would die one by one
+        raise UpError(problem)
+    sim = plan.sim
+    try:
+        if plan.origin[plan.sim_name]["num_robots"] == "default":
+            sim["num_robots"] = args.num_robots = default_robot_count(args)
+        source = InstanceSource(sim["instance_file"], sim["map_file"], sim["scen_file"],
+                                sim["num_robots"], sim["size"], sim["density"], sim["seed"],
+                                sim["cell_size"])
+        instance = source.load()
+        num_robots = instance.num_agents
+    except (ValueError, OSError) as exc:
+        raise UpError(f"bad instance: {exc}") from None
+    warning = unknown_as_free_warning(sim["map_file"])
+    if warning:
+        plan.warnings.append(warning)
+    if args.bag:  # tick 0 waits until the hubs and the recorder hear the state: no tick missed
+        from mapf_fleet.ros.bag import RECORDER_NODE
+
+        sim["state_subscribers"] = (
+            policy_processes(num_robots, args.single_process, args.nodes_per_process) + 1)
+        sim["state_recorder"] = RECORDER_NODE
+    if sim["task_file"]:  # a bad or unreachable task: one line naming file, line, task, field
+        from mapf_fleet.fleet.tasks import TaskFileError, load_task_file
+
+        geometry = common.MapGeometry(*(source.geometry() or (
+            sim["resolution"], sim.get("origin_x", 0.0), sim.get("origin_y", 0.0))))
+        try:
+            load_task_file(sim["task_file"], num_robots=num_robots, cell_of=geometry.xy_to_cell,
+                           grid=instance.grid, starts=instance.starts)
+        except TaskFileError as exc:
+            raise UpError(str(exc)) from None
+    problem = layout_problem(num_robots, args.single_process, args.nodes_per_process)
+    if problem:
+        raise UpError(problem)
+    if args.bag and Path(args.bag).exists():
+        raise UpError(f"--bag {args.bag} exists already: a rosbag2 is written into a new "
+                      f"directory")
+    plan_policy_parameters(plan, args, ros_argv, num_robots, checkpoint)
+    return args, plan, num_robots
+
+
+def checkpoint_problem(path: str) -> str:
+    """"" when `path` loads as a policy (as the policy nodes load it), else the reason, e.g.
+    "bad.pt: not a readable checkpoint (corrupt, truncated or not weights-only): ..."."""
+    from mapf_fleet.models.checkpoint import load_checkpoint
+
+    try:
+        load_checkpoint(path)
+    except (ValueError, OSError) as exc:  # CheckpointError is a ValueError
+        return str(exc).strip().splitlines()[0] if str(exc).strip() else repr(exc)
+    return ""
+
 
 START_MARGIN_S = 120.0  # a process's own start-up (imports, DDS) on a loaded machine
 OUTCOME_WAIT_S = 15.0  # longest wait at the end for the bag recorder to write the outcome
+
 
 def main(argv: list[str] | None = None) -> int:
     from mapf_fleet.ros.processes import stop_signals

@@ -27,11 +27,12 @@ from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
-from mapf_fleet.coordination.preferences import default_q_mode
+from mapf_fleet.coordination.ranking import default_ranking
 from mapf_fleet.entry import one_line_errors
-from mapf_fleet.ros import common, parameters
+from mapf_fleet.fleet import parameters
+from mapf_fleet.ros import common
 
-PARAMETERS = parameters.POLICY  # name -> Param (ros.parameters: the one table)
+PARAMETERS = parameters.POLICY  # name -> Param (fleet.parameters: the one table)
 
 
 def load_policy_model(path: str):
@@ -95,9 +96,8 @@ class PolicyNode(Node):
         # a ranking given (params file, -p, `up --ranking`) always wins; else the ranking the
         # checkpoint was trained behind under the rule (metadata rankings), else the ranking
         # measured best under the rule (docs/results.md)
-        self.ranking = given or default_q_mode(self.conflict_rule,
+        self.ranking = given or default_ranking(self.conflict_rule,
                                                self.checkpoint_metadata.get("rankings"))
-        self.preference_mode = self.ranking  # the hub's name for it
         self.algo = model.config.algo
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.hub = None  # set by PolicyHub

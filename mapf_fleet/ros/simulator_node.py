@@ -4,7 +4,7 @@ Tick k: publish the fleet state of k (and poses, markers); wait for every robot'
 move missing after `decision_timeout` counts as "stay" and is reported, and the robot cannot be
 pushed); arbitrate the moves with `conflict_rule` (`arbiter.TickArbiter`: "pibt" = PIBT over the
 robots' ranked actions, "pibt_anchor" = the same with the top-priority robot on its
-distance order, their "_swap" / "_hindrance" variants (coordination.pibt.SHIELD_RULES; the
+distance order, their "_swap" / "_hindrance" variants (coordination.pibt.COORDINATED_RULES; the
 default `pibt_anchor_swap`),
 "revert" = the paper's grid.resolve_moves on their first choices);
 command each robot's waypoint; publish progress; go on with k + 1. The run itself (cells, goals,
@@ -30,14 +30,14 @@ from mapf_fleet_interfaces.msg import FleetOutcome
 from rclpy.node import Node
 
 from mapf_fleet.entry import one_line_errors
-from mapf_fleet.ros import common, fleet_io
+from mapf_fleet.fleet import parameters
 from mapf_fleet.fleet.arbiter import check_conflict_rule
+from mapf_fleet.fleet.lockstep import FleetTicker, fleet_run, instance_source
 from mapf_fleet.fleet.record import Decisions
+from mapf_fleet.ros import common, fleet_io
 from mapf_fleet.ros.goals import GoalServer
-from mapf_fleet.ros import parameters
-from mapf_fleet.ros.lockstep import FleetTicker, fleet_run, instance_source, set_parameters_result
 
-PARAMETERS = parameters.SIMULATOR  # name -> Param (ros.parameters: the one table)
+PARAMETERS = parameters.SIMULATOR  # name -> Param (fleet.parameters: the one table)
 
 
 class SimulatorNode(Node):
@@ -73,14 +73,8 @@ class SimulatorNode(Node):
             f"instance {self.instance.size[0]}x{self.instance.size[1]} with {self.num_robots} "
             f"robots, conflict rule {self.conflict_rule}, task source {p['task_source']}, "
             f"episode {self.episode}")
-        # tick_period, decision_timeout, progress_every apply from the next tick; changing any
-        # other parameter at runtime is refused with the reason (ros.parameters: runtime)
-        self.add_on_set_parameters_callback(
-            lambda changes: set_parameters_result(self.params, changes, PARAMETERS,
-                                                  self.get_logger()))
-        self._thread = threading.Thread(
-            target=fleet_io.run_reporting_failure, args=(self, "simulator", self._run),
-            name="simulator", daemon=True)
+        # tick_period, decision_timeout, progress_every apply from the next tick
+        self._thread = fleet_io.tick_thread(self, "simulator", PARAMETERS)
 
     @property
     def tick(self) -> int:

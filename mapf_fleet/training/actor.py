@@ -133,7 +133,7 @@ class EpisodeWorker:
         hidden = np.zeros((instance.num_agents, self.hidden_dim), np.float32)
         from mapf_fleet.coordination.pibt import make_shield
 
-        shield = make_shield(self.cfg.shield, instance.grid, instance.goals)
+        shield = make_shield(self.cfg.conflict_rule, instance.grid, instance.goals)
         state = {"env": env, "obs": obs, "hidden": hidden, "shield": shield,
                  "map_kind": kind, "map_size": int(size),
                  "rec": _Recorder(pack_obs(obs), env.positions.astype(np.int16),
@@ -170,16 +170,16 @@ class EpisodeWorker:
 
     def _shield(self, envs, chosen: np.ndarray, q: list) -> np.ndarray:
         """The executed actions (B, N_max) under PIBT: each agent's ranking by its Q-values
-        (`shield_preferences`), its chosen action (greedy, or the exploring agent's random one)
+        (`ranking`), its chosen action (greedy, or the exploring agent's random one)
         moved to the front, arbitrated per environment."""
-        from mapf_fleet.coordination.preferences import rank_actions, tie_breakers
+        from mapf_fleet.coordination.ranking import rank_actions, tie_breakers
 
         executed = chosen.copy()
         for slot, e in enumerate(envs):
             env = e["env"]
             n = env.num_agents
             ties = tie_breakers(np.arange(n), env.steps)
-            ranking = rank_actions(e["obs"], q[slot], self.cfg.shield_preferences, ties=ties)
+            ranking = rank_actions(e["obs"], q[slot], self.cfg.ranking, ties=ties)
             first = ranking == chosen[slot, :n][:, None]
             # stable: the chosen action first, the others keep their order
             order = np.argsort(~first, axis=1, kind="stable")
@@ -207,7 +207,7 @@ class EpisodeWorker:
         sequences, stats = [], []
         agent_steps, t0 = 0, time.perf_counter()
         # behind the shield, training first choices: the executed actions are recorded beside
-        record_executed = cfg.shield != "none" and cfg.shield_replay == "preferred"
+        record_executed = cfg.conflict_rule != "revert" and cfg.replay_action == "preferred"
         for _ in range(num_steps):
             envs = self.envs
             actions, q, new_hidden = self._forward(envs)
@@ -218,7 +218,7 @@ class EpisodeWorker:
             actions = np.where(explore, self.rng.integers(0, 5, actions.shape), actions)
             # trained: the action the replay stores; actions: what the environment executes
             trained = actions
-            if cfg.shield != "none":
+            if cfg.conflict_rule != "revert":
                 actions = self._shield(envs, actions, q)
             if not record_executed:
                 trained = actions

@@ -15,6 +15,8 @@ from typing import Any
 
 import yaml
 
+from mapf_fleet.aliases import renamed_keys
+
 
 class TrainConfigError(ValueError):
     """A training configuration value is missing, unknown or out of range."""
@@ -45,23 +47,24 @@ class TrainConfig:
     # neighbour pays in training (exploring neighbours step aside at random) and the greedy
     # policy deadlocks at test time (docs/results.md, the shipped checkpoints' table).
     explore_all_agents: bool = False
-    # "pibt": actors act through the coordination layer (mapf_fleet.coordination.pibt): each
-    # agent's ranking (`shield_preferences` over its Q-values; an exploring agent's random action
+    # conflict_rule "pibt": actors act through the coordination layer (mapf_fleet.coordination.pibt): each
+    # agent's ranking (`ranking` over its Q-values; an exploring agent's random action
     # ranked first) is arbitrated by PIBT, the environment executes the result, and the replay
     # stores the EXECUTED action, so the learner trains Q on what really happened (and DCC's
-    # last-action input is the executed action, as at test time). "none": the paper's recipe.
+    # last-action input is the executed action, as at test time). "revert": the paper's recipe.
     # "pibt_anchor": the same with the top-priority agent on its distance order
     # (`PIBTShield(anchor=True)`, the fleet's `--conflict-rule pibt_anchor`).
-    shield: str = "none"
-    shield_preferences: str = "q"
-    # With shield "pibt", which action the replay trains Q on. "executed" (above): Q of the move
-    # PIBT let happen; a first choice PIBT overrode is never trained, so a policy that keeps
-    # asking for blocked moves is never told (it did not beat no shield: docs/results.md).
+    conflict_rule: str = "revert"
+    ranking: str = "q"
+    # Under a coordinated conflict rule ("pibt", ...), which action the replay trains Q on.
+    # "executed" (above): Q of the move PIBT let happen; a first choice PIBT overrode is never
+    # trained, so a policy that keeps asking for blocked moves is never told (it did not beat
+    # "revert": docs/results.md).
     # "preferred": each agent's own first choice (its greedy or exploring action), with the
     # reward and next observation of what the shield made of it: the shield is part of the
     # environment, as it is at deployment, and Q(s, a) learns what asking for `a` under PIBT
     # returns. DCC's last-action input stays the executed action in both.
-    shield_replay: str = "executed"
+    replay_action: str = "executed"
     actor_update_interval: int = 400  # learner updates between weight broadcasts
     gate_actor_fraction: float = 0.5  # success gate uses the lowest-epsilon fraction of explorers
 
@@ -202,19 +205,19 @@ class TrainConfig:
                 raise bad(name, "must be a number >= 0")
         if self.finish_reward not in ("team", "per_agent"):
             raise bad("finish_reward", "must be 'team' or 'per_agent'")
-        from mapf_fleet.coordination.pibt import SHIELD_RULES
+        from mapf_fleet.coordination.pibt import CONFLICT_RULES
 
-        if self.shield not in ("none", *SHIELD_RULES):
-            raise bad("shield", f"must be 'none' or one of {', '.join(SHIELD_RULES)}")
-        if self.shield == "lacam":
-            raise bad("shield", "the planning arbiter executes its plan, not the policy's moves: "
-                                "train under 'pibt' or 'pibt_anchor'")
-        if self.shield_replay not in ("executed", "preferred"):
-            raise bad("shield_replay", "must be 'executed' or 'preferred'")
-        from mapf_fleet.coordination.preferences import Q_MODES
+        if self.conflict_rule not in CONFLICT_RULES:
+            raise bad("conflict_rule", f"must be one of {', '.join(CONFLICT_RULES)}")
+        if self.conflict_rule == "lacam":
+            raise bad("conflict_rule", "the planning arbiter executes its plan, not the "
+                                       "policy's moves: train under 'pibt' or 'pibt_anchor'")
+        if self.replay_action not in ("executed", "preferred"):
+            raise bad("replay_action", "must be 'executed' or 'preferred'")
+        from mapf_fleet.coordination.ranking import Q_RANKINGS
 
-        if self.shield_preferences not in Q_MODES:
-            raise bad("shield_preferences", f"must be one of {Q_MODES}")
+        if self.ranking not in Q_RANKINGS:
+            raise bad("ranking", f"must be one of {Q_RANKINGS}")
         if isinstance(self.obstacle_density, str):
             if self.obstacle_density != "triangular":
                 raise bad("obstacle_density", "must be 'triangular' or a number in [0, 0.9]")
@@ -378,12 +381,17 @@ DCC_PAPER_OVERRIDES: dict[str, Any] = {
 PRESETS: dict[str, dict[str, Any]] = {"dhc": {}, "dcc": DCC_PAPER_OVERRIDES}
 
 
-def config_from_dict(data: dict[str, Any], source: str = "<dict>") -> TrainConfig:
+def config_from_dict(data: dict[str, Any], source: str = "<dict>", quiet: bool = False) -> TrainConfig:
     """Build a config from a mapping. A `preset: dhc|dcc` key starts from that column of the
-    paper's table; other keys override it."""
+    paper's table; other keys override it. The deprecated keys (`shield`, `shield_preferences`)
+    are read as their new names (`mapf_fleet.aliases`), with a warning unless `quiet` (a
+    checkpoint's recorded config)."""
     if not isinstance(data, dict):
         raise TrainConfigError(f"{source}: top level must be a mapping, got {type(data).__name__}")
-    data = dict(data)
+    try:
+        data = renamed_keys(data, source, quiet)
+    except ValueError as exc:
+        raise TrainConfigError(str(exc)) from None
     preset = data.pop("preset", None)
     values: dict[str, Any] = {}
     if preset is not None:

@@ -29,7 +29,7 @@ class EpisodeRecord:
     individual_rewards: np.ndarray | None = None  # (T, N) env rewards before Eq. 2 (for checks)
     # (T, N) the actions the environment executed, when they differ from the trained `actions`:
     # an actor behind the PIBT shield that trains each agent's own first choice
-    # (`shield_replay: preferred`). None = `actions` were executed. The last-action input of
+    # (`replay_action: preferred`). None = `actions` were executed. The last-action input of
     # every step (DCC's) is always the executed action, as at test time.
     executed_actions: np.ndarray | None = None
 

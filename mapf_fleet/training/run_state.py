@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from mapf_fleet.aliases import renamed_keys
 from mapf_fleet.files import atomic_write
 
 from .config import TrainConfig, config_from_dict, load_config
@@ -88,7 +89,7 @@ def resumed_config(run_dir: str | Path) -> TrainConfig:
     does not silently return to the starting config."""
     run_dir = Path(run_dir)
     cfg = load_config(run_dir / CONFIG_FILE)
-    earlier = earlier_overrides(run_dir)
+    earlier = renamed_keys(earlier_overrides(run_dir), str(run_dir / STATE_FILE), quiet=True)
     if earlier:
         cfg = config_from_dict({**cfg.to_dict(), **earlier},
                                source=f"{run_dir / STATE_FILE} (overrides of earlier sessions)")

@@ -30,6 +30,7 @@ from pathlib import Path
 
 import torch
 
+from mapf_fleet.aliases import renamed_keys
 from mapf_fleet.version import code_version
 
 from . import demos, run_state
@@ -227,10 +228,10 @@ class Trainer:
                           # the compute spent up to this checkpoint (cards, side-by-side tables)
                           "counters": {k: self.counters[k] for k in CHECKPOINT_COUNTERS
                                        if k in self.counters}}}
-        if self.cfg.shield != "none":
+        if self.cfg.conflict_rule != "revert":
             # trained behind the shield under this ranking: the evaluator and the policy nodes
             # rank with it under that rule unless told otherwise (as DAgger's checkpoints do)
-            meta["rankings"] = {self.cfg.shield: self.cfg.shield_preferences}
+            meta["rankings"] = {self.cfg.conflict_rule: self.cfg.ranking}
         return meta
 
     def save_checkpoint(self, name: str, alpha: float | None = None) -> Path:
@@ -571,7 +572,8 @@ def train(config_path: str | Path | None = None, run_dir: str | Path | None = No
         if config_path is None or run_dir is None:
             raise ValueError("train: give config_path and run_dir, or resume")
         cfg = load_config(config_path)
-    if overrides:
+    if overrides:  # the CLI warned once about a deprecated key: read it quietly here
+        overrides = renamed_keys(overrides, "overrides", quiet=True)
         cfg = config_from_dict({**cfg.to_dict(), **overrides}, source="overrides")
     return Trainer(cfg, run_dir, resume=resume is not None,
                    session_overrides=overrides if resume is not None else None).run()

@@ -9,7 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from mapf_fleet.coordination.pibt import PIBT_RULES, SHIELD_RULES, PIBTShield, rule_options
+from mapf_fleet.coordination.pibt import PIBT_RULES, COORDINATED_RULES, PIBTShield, rule_options
 from mapf_fleet.grid.actions import ACTION_DELTAS
 from mapf_fleet.grid.actions import actions_between
 from mapf_fleet.grid.env import resolve_moves
@@ -18,7 +18,7 @@ from mapf_fleet.fleet.arbiter import (CONFLICT_RULES, TickArbiter, break_rotatio
                                     check_conflict_rule,
                                     plan_robot_commands, ranking_problem, ready_to_send,
                                     single_choice_ranking, unsafe_commands)
-from mapf_fleet.ros.lockstep import FleetTicker
+from mapf_fleet.fleet.lockstep import FleetTicker
 
 
 def _random_preferences(rng, n):
@@ -29,7 +29,7 @@ def test_rule_names_and_rankings():
     assert check_conflict_rule("pibt") == "pibt" and check_conflict_rule("revert") == "revert"
     assert check_conflict_rule("pibt_anchor") == "pibt_anchor"
     # every PIBT variant is a conflict rule of the simulator and the aggregator
-    assert set(SHIELD_RULES) < set(CONFLICT_RULES)
+    assert set(COORDINATED_RULES) < set(CONFLICT_RULES)
     assert check_conflict_rule("pibt_anchor_swap_hindrance") == "pibt_anchor_swap_hindrance"
     with pytest.raises(ValueError, match="conflict_rule"):
         check_conflict_rule("pibt_hindrance_swap")  # options in their order only
@@ -39,13 +39,13 @@ def test_rule_names_and_rankings():
     assert single_choice_ranking(0) == [0, 1, 2, 3, 4]
     assert ranking_problem(2, [2, 0, 1, 3, 4]) == "" and ranking_problem(2, []) == ""
     assert "not a ranking" in ranking_problem(2, [2, 2, 1, 3, 4])
-    assert "first preference" in ranking_problem(1, [2, 0, 1, 3, 4])
+    assert "first of its ranking" in ranking_problem(1, [2, 0, 1, 3, 4])
 
 
 @pytest.mark.parametrize("rule", PIBT_RULES)
 def test_pibt_rule_is_the_evaluators_shield_tick_after_tick(rule):
     """Same positions, rankings and priorities as one PIBTShield per episode (the runner's
-    `--shield pibt` / `pibt_anchor`)."""
+    `--conflict-rule pibt` / `pibt_anchor`)."""
     rng = np.random.default_rng(0)
     instance = generate_instance(10, 16, 0.25, 3)
     arbiter = TickArbiter(instance.grid, instance.goals, rule)
@@ -175,7 +175,7 @@ def test_ticker_carries_rankings_and_falls_back_to_the_choice():
     assert ticker.on_move(move(1, 3, [])) is None                  # no ranking: its choice
     assert "not a ranking" in ticker.on_move(move(2, 1, [1, 1, 0, 2, 3]))
     decisions = ticker.collect(0.01)
-    np.testing.assert_array_equal(decisions.preferences,
+    np.testing.assert_array_equal(decisions.rankings,
                                   [[2, 4, 0, 1, 3], [3, 0, 1, 2, 4], [0, 1, 2, 3, 4]])
     np.testing.assert_array_equal(decisions.actions, [2, 3, 0])
     assert decisions.missing == [2]
@@ -230,7 +230,7 @@ def test_real_robots_with_random_delays_never_share_a_cell(rule):
 
 
 def test_fleet_up_defaults_to_the_anchored_pibt_arbiter_with_swap():
-    from mapf_fleet.ros import parameters
+    from mapf_fleet.fleet import parameters
     from mapf_fleet.ros.launcher import build_parser
 
     assert build_parser().parse_args([]).conflict_rule is None  # not given: the table's
@@ -240,5 +240,5 @@ def test_fleet_up_defaults_to_the_anchored_pibt_arbiter_with_swap():
         build_parser().parse_args(["--conflict-rule", "swap"])
     for table in (parameters.SIMULATOR, parameters.AGGREGATOR, parameters.POLICY):
         assert table["conflict_rule"].default == "pibt_anchor_swap"
-    for rule in SHIELD_RULES:  # every PIBT variant reaches the simulator / aggregator
+    for rule in COORDINATED_RULES:  # every PIBT variant reaches the simulator / aggregator
         assert build_parser().parse_args(["--conflict-rule", rule]).conflict_rule == rule

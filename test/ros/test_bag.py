@@ -1,4 +1,4 @@
-"""`mapf-fleet record` (mapf_fleet/ros/bag.py, issue 17 item 13): a rosbag2 with MCAP storage of
+"""`mapf-fleet record` (mapf_fleet/ros/bag.py): a rosbag2 with MCAP storage of
 the fleet's topics, written with `rosbags`, read back with `rosbags` and compared with the JSON
 record of the same run."""
 

@@ -1,4 +1,4 @@
-"""Issue 17 items 1 and 2 in one process (rclpy, no other processes): a NaN / infinite pose and a
+"""Bad pose feeds in one process (rclpy, no other processes): a NaN / infinite pose and a
 two-cell jump reach the aggregator's pose callback and are rejected with one log line naming the
 robot, the field and the value, the robot holds its cell, and the callback does not raise (it
 used to, and the spin thread then stopped the executor without a word). A callback that does

@@ -1,5 +1,5 @@
 """Bad input at the entry points is one line on stderr (file, field, value) and exit code 2, never
-a traceback (issue 17 item 9): `mapf-fleet` sub-commands, `mapf-fleet node ...`, the node
+a traceback: `mapf-fleet` sub-commands, `mapf-fleet node ...`, the node
 processes `up` starts (`python -m mapf_fleet.ros.run`) and the stand-in robots."""
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ def bad_files(tmp_path_factory, checkpoints):
     (folder / "bad.map").write_text("type octile\nheight 2\nwidth 3\nmap\n...\n.@\n")
     (folder / "bad.scen").write_text("version 1\n")
     (folder / "no_goals.yaml").write_text('grid: ["...."]\nstarts: [[0, 0]]\n')
-    # issue 22: a building map without its resolution, a task list with a bad task
+    # continuous operation's inputs: a building map without its resolution, a bad task
     (folder / "building.yaml").write_text("image: map.pgm\norigin: [0, 0, 0]\nnegate: 0\n"
                                           "occupied_thresh: 0.65\nfree_thresh: 0.196\n")
     (folder / "tasks.yaml").write_text("tasks:\n  - goal: [1, 1]\n  - {goal: [2]}\n")
@@ -60,7 +60,7 @@ CASES = [
     ("up-decision-timeout-0", CLI + ["up", "--decision-timeout", "0", "--single-process",
                                      "--num-robots", "2", "--size", "8", "--checkpoint",
                                      "{dhc}", "--quiet"], "--decision-timeout must be > 0"),
-    # issue 23 defect 5: every value refused before anything starts (these ran, or failed late)
+    # every value refused before anything starts (these once ran, or failed late)
     ("up-max-steps-0", CLI + ["up", "--max-steps", "0", "--checkpoint", "{dhc}", "--quiet"],
      "--max-steps must be >= 1"),
     ("up-max-steps-negative", CLI + ["up", "--max-steps", "-5", "--checkpoint", "{dhc}",
@@ -82,7 +82,7 @@ CASES = [
                                       "{dhc}", "--quiet"], "missing.yaml"),
     ("echo-bogus-type", CLI + ["echo", "/fleet/map", "--type", "bogus", "--timeout", "1"],
      "bogus"),
-    # issue 22: continuous operation
+    # continuous operation
     ("up-map-yaml-missing-field", CLI + ["up", "--map", "{d}/building.yaml", "--checkpoint",
                                          "{dhc}", "--quiet"], "building.yaml: field 'resolution'"),
     ("up-task-file-bad-task", CLI + ["up", "--task-source", "tasks", "{d}/tasks.yaml",

@@ -1,6 +1,6 @@
 """`mapf-fleet echo` and `mapf-fleet topics` against stand-in publishers (test/ros/graph_helper.py):
-QoS matched to the publisher (issue 17 item 5), clean end on SIGINT/SIGTERM, and `topics`
-waiting for discovery to settle (item 10)."""
+QoS matched to the publisher (a latched topic read late still arrives), clean end on
+SIGINT/SIGTERM, and `topics` waiting for discovery to settle."""
 
 from __future__ import annotations
 

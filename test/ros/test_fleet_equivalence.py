@@ -1,6 +1,6 @@
 """The fleet's main test: separate ROS processes reproduce the batched in-process rollout, under
-the paper's rule (`--conflict-rule revert`: `run_decentralized(shield="none")`) and under the
-shield (`--conflict-rule pibt`: `run_decentralized(shield="pibt")`)."""
+the paper's rule (`--conflict-rule revert`: `run_decentralized(conflict_rule="revert")`) and under the
+shield (`--conflict-rule pibt`: `run_decentralized(conflict_rule="pibt")`)."""
 
 from __future__ import annotations
 
@@ -45,13 +45,13 @@ def batched_shielded_rollout(checkpoint: str, instance, max_steps: int, comm=Non
                              rule=None):
     """The batched evaluator's shielded path (`evaluation.runner.run_decentralized(...,
     shield="pibt")` with `CheckpointBatchPolicy`): each step the policy's Q-values ranked by
-    `rank_actions` (the rule's default mode, `default_q_mode`: the fleet's policy nodes follow
+    `rank_actions` (the rule's default mode, `default_ranking`: the fleet's policy nodes follow
     the conflict rule too; ties `tie_breakers(agent ids, step)`), one `PIBTShield` for
     the episode, the executed actions fed back as DCC's last action. Returns (first choices,
     executed actions, positions, overridden robot ids per step). `rule` (a shield rule) wins
     over `anchor`."""
     from mapf_fleet.coordination.pibt import make_shield
-    from mapf_fleet.coordination.preferences import default_q_mode, rank_actions, tie_breakers
+    from mapf_fleet.coordination.ranking import default_ranking, rank_actions, tie_breakers
 
     torch.set_num_threads(1)
     model, _ = load_checkpoint(checkpoint)
@@ -62,7 +62,7 @@ def batched_shielded_rollout(checkpoint: str, instance, max_steps: int, comm=Non
     policy.reset(1, n)
     rule = rule or ("pibt_anchor" if anchor else "pibt")
     shield = make_shield(rule, instance.grid, instance.goals)
-    mode = default_q_mode(rule)
+    mode = default_ranking(rule)
     choices, executed, overridden = [], [], []
     positions = [env.positions.tolist()]
     for tick in range(max_steps):
@@ -185,7 +185,7 @@ def test_shielded_fleet_matches_batched_shielded_rollout(tmp_path, ros_env, chec
 @pytest.mark.slow
 def test_anchored_fleet_matches_batched_anchored_rollout(tmp_path, ros_env, checkpoints):
     """`--conflict-rule pibt_anchor`: the simulator's arbiter anchors the top-priority robot
-    exactly as the evaluator's `--shield pibt_anchor` (one dense instance, 4 robots per process)."""
+    exactly as the evaluator's `--conflict-rule pibt_anchor` (one dense instance, 4 robots per process)."""
     instance = generate_instance(9, 12, 0.2, 7)
     choices, executed, positions, expected_overridden = batched_shielded_rollout(
         checkpoints["dcc_sensitive"], instance, 20, anchor=True)
@@ -202,7 +202,7 @@ def test_anchored_fleet_matches_batched_anchored_rollout(tmp_path, ros_env, chec
 @pytest.mark.slow
 def test_swap_hindrance_fleet_matches_batched_rollout(tmp_path, ros_env, checkpoints):
     """`--conflict-rule pibt_anchor_swap_hindrance`: the simulator's arbiter runs the PIBT
-    variants exactly as the evaluator's `--shield pibt_anchor_swap_hindrance` (one dense
+    variants exactly as the evaluator's `--conflict-rule pibt_anchor_swap_hindrance` (one dense
     instance, 4 robots per process)."""
     rule = "pibt_anchor_swap_hindrance"
     instance = generate_instance(9, 12, 0.2, 7)

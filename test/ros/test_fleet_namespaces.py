@@ -1,6 +1,6 @@
-"""Two fleets on one ROS_DOMAIN_ID (issue 17 item 7): topic and service names are relative, so
+"""Two fleets on one ROS_DOMAIN_ID: topic and service names are relative, so
 fleets in different namespaces (`up --namespace`, `-r __ns:=`) do not hear each other; and a
-policy hub serves one run at a time (lockstep.EpisodeBinding), so a second simulator never takes
+policy hub serves one run at a time (fleet.lockstep.EpisodeBinding), so a second simulator never takes
 over robots that serve another simulator's run."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from mapf_fleet.ros.lockstep import EpisodeBinding, FleetTicker
+from mapf_fleet.fleet.lockstep import EpisodeBinding, FleetTicker
 
 CLI = [sys.executable, "-m", "mapf_fleet.cli"]
 

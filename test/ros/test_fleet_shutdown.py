@@ -1,4 +1,4 @@
-"""Issue 17 items 3, 4 and 12 over real processes: `mapf-fleet up` stopped by SIGINT / SIGTERM
+"""Stopping and failing over real processes: `mapf-fleet up` stopped by SIGINT / SIGTERM
 (every child gone within seconds, the record and a "stopped at tick k" outcome written, exit
 130 / 143, no traceback, no temporary directory left), with a bad checkpoint (refused before
 anything starts), with a policy process that dies (its last lines reported, exit non-zero), and
@@ -125,7 +125,7 @@ def test_up_reports_a_dead_policy_process_and_ends_non_zero(tmp_path, ros_env, c
     # a policy process killed (kill -9) while the fleet waits for it at start-up: up reports it
     # with its last lines, stops the simulator (its "stopped at tick 0" record still comes out
     # however long that takes on a loaded machine) and ends with 1, keeping the logs (every bad
-    # value is refused before anything starts since issue 23, so a refusal cannot kill it)
+    # value is refused before anything starts, so a refusal cannot kill it)
     env = _env(ros_env, tmp_path)
     proc = subprocess.Popen(
         UP + ["--checkpoint", checkpoints["dhc"], "--num-robots", "2", "--size", "8",

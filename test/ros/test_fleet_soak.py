@@ -1,7 +1,7 @@
-"""Soak test (issue 23): a continuous 64-robot fleet (lifelong goals: a new goal on arrival) in
+"""Soak test: a continuous 64-robot fleet (lifelong goals: a new goal on arrival) in
 the large-fleet layout (4 processes x 16 robots, DCC with communicating weights, so requests and
 replies cross processes every tick) runs 320 ticks without a missed decision, and its tick time at the end is not far above its tick time
-at the start. Before issue 23 the tick time grew over the run (a service client created per
+at the start. It once grew over the run (a service client created per
 robot pair as robots met new peers) until every decision was missed. The ratio is generous
 (3x, medians of 50 ticks) and there is no absolute time: the machine may be busy."""
 

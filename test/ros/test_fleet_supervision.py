@@ -1,4 +1,4 @@
-"""Issue 17 items 1-4 and 12, the plain-Python pieces (no ROS graph): the pose check (NaN, inf,
+"""Faults and supervision, the plain-Python pieces (no ROS graph): the pose check (NaN, inf,
 jumps), stop signals, a lockstep run stopped at tick k, the supervision of `mapf-fleet up`'s
 children (a dead policy process reported with its last lines, a signal passed on once, nothing
 left running), `up`'s checkpoint and layout checks, its ticks/s, and the policy hub's notice
@@ -20,13 +20,13 @@ from mapf_fleet.fleet.arbiter import check_pose
 from mapf_fleet.ros.common import MapGeometry
 from mapf_fleet.fleet.run import FleetRun
 from mapf_fleet.fleet.tasks import InstanceTasks
-from mapf_fleet.ros.lockstep import FleetTicker
+from mapf_fleet.fleet.lockstep import FleetTicker
 
 GRID = np.zeros((4, 4), dtype=np.uint8)
 GRID[1, 1] = 1
 
 
-# ---- item 1 and 2: the pose check ----
+# ---- the pose check ----
 @pytest.mark.parametrize("x, y, field, value", [
     (float("nan"), 0.5, "pose.position.x", "nan"),
     (0.5, float("inf"), "pose.position.y", "inf"),
@@ -54,7 +54,7 @@ def test_check_pose_rejects_a_jump_of_two_cells_and_accepts_one_move():
     assert "on an obstacle" in check_pose(GRID, geometry, 1.5, 1.5, last=(1, 0)).reason
 
 
-# ---- item 4: a stopped lockstep run ----
+# ---- a stopped lockstep run ----
 def test_stopped_ticker_returns_at_once_and_the_outcome_says_stopped_at_tick(tmp_path):
     ticker = FleetTicker(2, episode=5, tick=7)
     ticker.stop()
@@ -86,7 +86,7 @@ def test_stop_signals_turn_sigint_and_sigterm_into_a_request_without_traceback()
     assert signal.getsignal(signal.SIGINT) is not signals._handle
 
 
-# ---- item 3 and 4: supervision of up's children ----
+# ---- supervision of up's children ----
 def _script(tmp_path, name, body):
     path = tmp_path / name
     path.write_text(textwrap.dedent(body))
@@ -273,7 +273,7 @@ def test_stop_request_sends_once_the_child_catches_it_and_counts_the_grace_from_
     assert not stop.overdue(9.9) and stop.overdue(10.1)
 
 
-# ---- item 3 and 12: up's checks and report ----
+# ---- up's checks and report ----
 def test_up_checks_the_checkpoint_before_anything_starts(tmp_path):
     from mapf_fleet.ros.launcher import checkpoint_problem, default_checkpoint
 
@@ -320,7 +320,7 @@ def test_up_reports_ticks_per_second_from_the_first_tick(tmp_path, capsys):
     assert "5.00 ticks/s" in out and "wall time 12.0 s" in out
 
 
-# ---- item 12: the hub notices that the fleet state stopped coming ----
+# ---- the hub notices that the fleet state stopped coming ----
 def test_state_watch_logs_once_when_the_state_stops_coming():
     from mapf_fleet.ros.hub import StateWatch
 

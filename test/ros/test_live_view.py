@@ -1,4 +1,4 @@
-"""`mapf-fleet view` on a running simulated fleet (issue 24 item 1): the page, opened in headless
+"""`mapf-fleet view` on a running simulated fleet: the page, opened in headless
 chromium, shows the fleet's map and its robots where the fleet says they are, and follows the
 run; the Foxglove app's WebSocket server answers on loopback with the view's channels. A run
 recorded with `up --record --bag` renders to a GIF from either file (`render --run`).

@@ -1,6 +1,6 @@
 """ROS parameters of the fleet's nodes as ROS users handle them: every policy node keeps its
-parameter services whatever the process layout (issue 17 item 16), and a parameter set at
-runtime either takes effect or is refused with a reason (item 11)."""
+parameter services whatever the process layout (`ros2 param` reaches each robot), and a
+parameter set at runtime either takes effect or is refused with a reason."""
 
 from __future__ import annotations
 

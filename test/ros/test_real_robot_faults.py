@@ -1,12 +1,12 @@
-"""Issue 23, section 2: defects a new user hit in real-robot mode and with a dead simulator.
+"""Defects a new user hit in real-robot mode and with a dead simulator:
 
-1. every pose feed goes silent: each robot is reported once by id and held; when all are
-   silent the run ends with a clear outcome (it went on at one tick per arrival_timeout);
-2. stand-ins for only some robots: progress while waiting, one line at the end, exit 2, no
-   traceback;
-4. a simulator killed with -9: the record keeps the ticks run, marked incomplete;
-6. Ctrl-C during start-up: no positions of -1, "stopped at tick 0 while waiting for poses";
-7. every rejected pose message is counted, also when a good pose follows within the tick.
+- every pose feed goes silent: each robot is reported once by id and held; when all are
+  silent the run ends with a clear outcome (it went on at one tick per arrival_timeout);
+- stand-ins for only some robots: progress while waiting, one line at the end, exit 2, no
+  traceback;
+- a simulator killed with -9: the record keeps the ticks run, marked incomplete;
+- Ctrl-C during start-up: no positions of -1, "stopped at tick 0 while waiting for poses";
+- every rejected pose message is counted, also when a good pose follows within the tick.
 """
 
 from __future__ import annotations

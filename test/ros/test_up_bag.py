@@ -1,4 +1,4 @@
-"""Issue 17 item 13, the launcher's side: `mapf-fleet up --bag DIR` runs the rosbag2 recorder
+"""The bag, the launcher's side: `mapf-fleet up --bag DIR` runs the rosbag2 recorder
 (`mapf-fleet record`, mapf_fleet/ros/bag.py) beside the fleet and closes the bag when the fleet
 ends, also when `up` is stopped by Ctrl-C; the bag's states are the JSON record's."""
 

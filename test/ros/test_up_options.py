@@ -1,9 +1,8 @@
-"""`mapf-fleet up` as a new user meets it (issue 23 section 2): every option has help and its
-default stated (defect 8), --resolution / --origin for real robots, a .scen's own robot count
-(defect 8), --log-dir and the logs of a failed run kept (defect 10), `mapf-fleet param`
-(defect 9), --single-process with 128 robots ready without waiting out the start-up timeout
-(defect 3), and the policy nodes' default preference_mode following the checkpoint's recorded
-ranking, else the conflict rule. The bad values refused up front (defect 5) are in test_cli_errors.py."""
+"""`mapf-fleet up` as a new user meets it: every option has help and its default stated,
+--resolution / --origin for real robots, a .scen's own robot count, --log-dir and the logs of a
+failed run kept, `mapf-fleet param`, --single-process with 128 robots ready without waiting out
+the start-up timeout, and the policy nodes' default ranking following the checkpoint's recorded
+ranking, else the conflict rule. The bad values refused up front are in test_cli_errors.py."""
 
 from __future__ import annotations
 
@@ -79,7 +78,7 @@ def _policy_nodes(plan, checkpoint, tmp_path, robots=(0,)):
     """Policy nodes started from the merged params file `up` writes for `plan`."""
     import rclpy
 
-    from mapf_fleet.ros import parameters as P
+    from mapf_fleet.fleet import parameters as P
     from mapf_fleet.ros.policy_node import PolicyNode
 
     plan.params_path = str(tmp_path / "merged.yaml")
@@ -102,18 +101,18 @@ def _policy_nodes(plan, checkpoint, tmp_path, robots=(0,)):
 @pytest.mark.ros
 def test_default_ranking_follows_the_rule_and_yields_to_a_params_file(
         tmp_path, checkpoints, ros_env):
-    """No ranking given: the rule's default (`default_q_mode`: today confidence under
+    """No ranking given: the rule's default (`default_ranking`: today confidence under
     pibt_anchor, q under pibt and revert). A params file's (or the command line's) ranking wins
     whatever the rule, the deprecated preference_mode too: `up` passes the policy nodes its
     conflict rule, never a ranking of its own."""
-    from mapf_fleet.coordination.preferences import default_q_mode
+    from mapf_fleet.coordination.ranking import default_ranking
 
     params = tmp_path / "p.yaml"
     params.write_text("/**:\n  ros__parameters:\n    ranking: q_demote_stay\n")
     old = tmp_path / "old.yaml"
     old.write_text("/**:\n  ros__parameters:\n    preference_mode: q_demote_stay\n")
-    assert default_q_mode("pibt_anchor") != default_q_mode("pibt")  # the rule matters
-    cases = [([], default_q_mode("pibt_anchor")), (["--conflict-rule", "pibt"], "q"),
+    assert default_ranking("pibt_anchor") != default_ranking("pibt")  # the rule matters
+    cases = [([], default_ranking("pibt_anchor")), (["--conflict-rule", "pibt"], "q"),
              (["--conflict-rule", "revert"], "q"),
              (["--params-file", str(params)], "q_demote_stay"),  # no rule's default
              (["--params-file", str(old)], "q_demote_stay"),  # the deprecated name
@@ -152,20 +151,20 @@ def test_default_ranking_is_the_checkpoints_recorded_ranking(tmp_path, ros_env):
     process hosts beside the first (sharing its model) rank the same."""
     import torch
 
-    from mapf_fleet.coordination.preferences import default_q_mode
+    from mapf_fleet.coordination.ranking import default_ranking
     from mapf_fleet.models.checkpoint import build_model, save_checkpoint
     from mapf_fleet.models.config import ModelConfig
 
     torch.manual_seed(7)
     recorded = "q_then_distance"
-    assert recorded != default_q_mode("pibt_anchor")  # the checkpoint's, not the rule's
+    assert recorded != default_ranking("pibt_anchor")  # the checkpoint's, not the rule's
     checkpoint = str(save_checkpoint(tmp_path / "round.pt",
                                      build_model(ModelConfig.preset("dhc", "small")), {
         "alpha": 0.0, "curriculum": {}, "learner_steps": 0, "training_config": {},
         "rankings": {"pibt_anchor": recorded}}))
     params = tmp_path / "p.yaml"
     params.write_text("/**:\n  ros__parameters:\n    ranking: q_demote_stay\n")
-    cases = [([], recorded), (["--conflict-rule", "pibt"], default_q_mode("pibt")),
+    cases = [([], recorded), (["--conflict-rule", "pibt"], default_ranking("pibt")),
              (["--params-file", str(params)], "q_demote_stay"),
              (["--ranking", "confidence"], "confidence")]
     for own, expected in cases:
@@ -208,7 +207,7 @@ def test_log_dir_keeps_the_policy_logs_and_a_failed_run_keeps_them_too(tmp_path,
 @pytest.mark.ros
 @pytest.mark.slow
 def test_single_process_128_robots_are_ready_without_the_startup_timeout(ros_env, checkpoints):
-    """Before issue 23 the one executor spun every robot's node: the heartbeats of 128 robots
+    """The one executor once spun every robot's node: the heartbeats of 128 robots
     were not taken in time and `up` waited out the whole start-up timeout."""
     done = _up(ros_env, "--single-process", "--checkpoint", checkpoints["dcc"],
                "--num-robots", "128", "--size", "40", "--max-steps", "1",

@@ -1,4 +1,4 @@
-"""The fleet's parameters have one truth (mapf_fleet.ros.parameters: one table per node kind):
+"""The fleet's parameters have one truth (mapf_fleet.fleet.parameters: one table per node kind):
 the nodes declare them from it, `mapf-fleet up` takes its defaults and checks from it and hands
 every node one merged params file (table defaults < params file < options < -p), and
 config/fleet/fleet.yaml agrees with it. Every bad value is refused by `up` before anything
@@ -16,14 +16,14 @@ import pytest
 import yaml
 
 from mapf_fleet.ros import launcher
-from mapf_fleet.ros import parameters as P
+from mapf_fleet.fleet import parameters as P
 
 CLI = [sys.executable, "-m", "mapf_fleet.cli"]
 REPO = Path(__file__).resolve().parents[2]
 
 
 def test_the_table_module_and_up_import_no_rclpy():
-    code = ("import sys, mapf_fleet.ros.parameters, mapf_fleet.ros.launcher; "
+    code = ("import sys, mapf_fleet.fleet.parameters, mapf_fleet.ros.launcher; "
             "print('rclpy' in sys.modules)")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                           timeout=120)

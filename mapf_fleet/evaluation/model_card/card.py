@@ -67,7 +67,7 @@ def how_to_run(checkpoint: Path, metadata: dict) -> list[str]:
     path = _repo_relative(str(checkpoint))
     lines = ["```bash",
              f"mapf-fleet up --checkpoint {path}            # a simulated fleet over ROS 2",
-             f"mapf-fleet evaluate --checkpoint {path} heuristic --shield none pibt_anchor --sizes 40",
+             f"mapf-fleet evaluate --checkpoint {path} heuristic --conflict-rule revert pibt_anchor --sizes 40",
              "```", ""]
     if metadata["algorithm"] == "dcc":
         lines += ["On a fleet, DCC robots exchange requests and replies with their neighbours each tick "

@@ -7,6 +7,7 @@ from __future__ import annotations
 from typing import Any
 
 from mapf_fleet import paths
+from mapf_fleet.aliases import renamed_keys
 
 
 def model_summary(model, metadata: dict) -> dict:
@@ -33,7 +34,8 @@ def training_config_diff(training_config: dict) -> tuple[list[tuple[str, Any, An
     except ImportError:
         return [], None, None
     try:
-        config = config_from_dict(dict(training_config), source="checkpoint training_config").to_dict()
+        config = config_from_dict(dict(training_config), source="checkpoint training_config",
+                                  quiet=True).to_dict()
         paper = config_from_dict({"preset": config["algo"]}, source="paper preset").to_dict()
     except (TrainConfigError, KeyError, TypeError):
         return [], None, None
@@ -107,8 +109,9 @@ def dagger_training_text(record: dict) -> str:
     cfg = record["config"]
     rounds = cfg.get("rounds")
     of = f" of {rounds}" if isinstance(rounds, int) else ""
-    return (f"DAgger round {record.get('round', '?')}{of} behind `{cfg.get('shield', '?')}` "
-            f"(ranking `{cfg.get('preferences', '?')}`), {cfg.get('loss', '?')} loss on LaCAM labels")
+    cfg = renamed_keys(cfg, "checkpoint training_config.dagger", quiet=True)  # older checkpoints
+    return (f"DAgger round {record.get('round', '?')}{of} behind `{cfg.get('conflict_rule', '?')}` "
+            f"(ranking `{cfg.get('ranking', '?')}`), {cfg.get('loss', '?')} loss on LaCAM labels")
 
 
 def dagger_facts(record: dict) -> list[tuple[str, str]]:

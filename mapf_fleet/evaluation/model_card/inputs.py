@@ -94,9 +94,10 @@ def match_policy(evaluation: dict, checkpoint: Path, eval_path: Path) -> str:
     same bytes, or (the path being relative to a directory we cannot know) has the same file
     name. Anything else is an evaluation of another checkpoint."""
     entries = [p for p in evaluation["metadata"]["policies"] if p.get("kind") == "checkpoint"]
-    # the checkpoint's own row is its unshielded one; its shielded rows (`--shield pibt`, label
-    # "<name> +PIBT...") are shown beside it by evaluation_section
-    entries.sort(key=lambda p: p.get("shield", "none") not in (None, "none"))
+    # the checkpoint's own row is its row under `revert`; its rows under the coordination layer
+    # (`--conflict-rule pibt`, label "<name> +PIBT...") are shown beside it by evaluation_section.
+    # JSONs written before the rename name the rule "shield" and `revert` "none".
+    entries.sort(key=lambda p: p.get("conflict_rule", p.get("shield")) not in (None, "none", "revert"))
     if not entries:
         raise CardError(f"--eval {eval_path}: evaluates no checkpoint (only references)")
     own_hash = None

@@ -7,8 +7,8 @@
 Round k (k = 0, 1, ...):
   1. collect (`rollout.py`, `labeller.py`): `episodes_per_round` episodes drawn from the task
      list (`tasks`, plus `late_tasks` from round `late_tasks_from`), each played by the round's
-     policy (the init checkpoint in round 0, else round k-1's weights) under `shield` (PIBT with
-     the anchor by default, the fleet's arbiter) with its Q-values ranked by `preferences`. At
+     policy (the init checkpoint in round 0, else round k-1's weights) under `conflict_rule` (PIBT with
+     the anchor by default, the fleet's arbiter) with its Q-values ranked by `ranking`. At
      every `label_interval`-th step (backing off after states it cannot label,
      `label_backoff_max`) the labeller labels the joint state (`labeller`: "lacam" as follows,
      "committed": the next move of one kept plan, or "stuck": that plan's moves from the state
@@ -37,7 +37,7 @@ Round k (k = 0, 1, ...):
      every agent of every labelled step: `loss` "cross_entropy" (softmax over the Q-head as
      logits) or "margin" (the DQfD large-margin loss of `training.demos.margin_loss`).
   4. checkpoint `checkpoints/round_{k}.pt` (the checkpoint format, atomic; metadata: round,
-     labels, CPU seconds, `rankings` {shield: preferences}: the ranking it runs with by default)
+     labels, CPU seconds, `rankings` {conflict_rule: ranking}: the ranking it runs with by default)
      and the training state, then the held-out check: `heldout` settings, `heldout_count`
      generated instances each (seeded apart from training; never the published test sets),
      success and average steps under the shield, appended to `curve.json` / `curve.csv` and

@@ -4,7 +4,7 @@
         [--set labeller=lacam] [--json OUT]
 
 A policy that imitated its labels perfectly would play as the labeller does at the states it
-visits; so the labeller's closed loop under the configured conflict rule (`shield`) is the most
+visits; so the labeller's closed loop under the configured conflict rule (`conflict_rule`) is the most
 that imitating it can reach. For each one-shot suite of `ceiling` ({kind, size, agents: [..],
 max_steps}; `ceiling_count` generated instances per agent count (`--count`), instance i from the seed
 sequence (ceiling_seed, crc32(kind), size, agents, i), the evaluator's generated sets) it plays
@@ -60,7 +60,7 @@ def _plans(labeller, out: dict) -> int:
 def one_shot_row(cfg: DaggerConfig, task: dict, agents: int, count: int, log=None) -> dict:
     instances = ceiling_instances(task, agents, count, cfg.ceiling_seed)
     steps = task["max_steps"]
-    plain = [play_plain_pibt(inst, steps, cfg.shield) for inst in instances]
+    plain = [play_plain_pibt(inst, steps, cfg.conflict_rule) for inst in instances]
     expert, plans, agree, pairs = [], 0, 0, 0
     began = time.process_time()
     for k, inst in enumerate(instances):
@@ -68,7 +68,7 @@ def one_shot_row(cfg: DaggerConfig, task: dict, agents: int, count: int, log=Non
         shadow = (make_labeller(cfg, seed=cfg.planner_seed + 1)
                   if k < cfg.ceiling_agreement_episodes else None)
         before = _plans(labeller, {"label_calls": 0})
-        out = play_episode(None, inst, steps, cfg.shield, "distance", None, labeller, beta=1.0,
+        out = play_episode(None, inst, steps, cfg.conflict_rule, "distance", None, labeller, beta=1.0,
                            label_interval=cfg.label_interval,
                            rng=np.random.default_rng([cfg.ceiling_seed, k]), record=False,
                            backoff_max=cfg.label_backoff_max, shadow=shadow)
@@ -81,7 +81,7 @@ def one_shot_row(cfg: DaggerConfig, task: dict, agents: int, count: int, log=Non
     cpu = sum(o["label_cpu_seconds"] for o in expert)
     row = {
         "suite": _suite_name(task), "kind": task["kind"], "size": task["size"],
-        "agents": agents, "instances": count, "max_steps": steps, "rule": cfg.shield,
+        "agents": agents, "instances": count, "max_steps": steps, "rule": cfg.conflict_rule,
         "labeller": cfg.labeller,
         "pibt_success": sum(p["success"] for p in plain) / count,
         "pibt_steps": statistics.mean(p["steps"] for p in plain),
@@ -110,12 +110,12 @@ def lifelong_row(cfg: DaggerConfig, task: dict, agents: int, count: int, log=Non
     steps = task["max_steps"]
     seeds = [int(np.random.SeedSequence([cfg.ceiling_seed, k]).generate_state(1)[0])
              for k in range(count)]
-    plain = [play_lifelong(inst, steps, cfg.shield, s) for inst, s in zip(instances, seeds)]
-    expert = [play_lifelong(inst, steps, cfg.shield, s, make_labeller(cfg))
+    plain = [play_lifelong(inst, steps, cfg.conflict_rule, s) for inst, s in zip(instances, seeds)]
+    expert = [play_lifelong(inst, steps, cfg.conflict_rule, s, make_labeller(cfg))
               for inst, s in zip(instances, seeds)]
     calls = sum(o["label_calls"] for o in expert)
     row = {"suite": _suite_name(task) + " lifelong", "kind": task["kind"], "size": task["size"],
-           "agents": agents, "instances": count, "max_steps": steps, "rule": cfg.shield,
+           "agents": agents, "instances": count, "max_steps": steps, "rule": cfg.conflict_rule,
            "labeller": cfg.labeller,
            "pibt_throughput": statistics.mean(p["throughput"] for p in plain),
            "expert_throughput": statistics.mean(o["throughput"] for o in expert),
@@ -140,7 +140,7 @@ def expert_ceiling(cfg: DaggerConfig, count: int | None = None, log=None) -> dic
                 for task in cfg.ceiling_lifelong for n in task["agents"]]
     import os
 
-    return {"labeller": cfg.labeller, "rule": cfg.shield, "count": count,
+    return {"labeller": cfg.labeller, "rule": cfg.conflict_rule, "count": count,
             # the planners' budgets are wall clock: the machine's load says how much CPU they got
             "loadavg_at_end": list(os.getloadavg()),
             "lifelong_count": lifelong_count,

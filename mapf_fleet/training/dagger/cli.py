@@ -8,6 +8,8 @@ from pathlib import Path
 
 import yaml
 
+from mapf_fleet.aliases import renamed_keys
+
 from . import __doc__ as OVERVIEW
 from .config import DaggerConfigError, config_from_dict
 from .driver import CONFIG_FILE, STATE_JSON, Dagger
@@ -67,9 +69,10 @@ def main(argv: list[str] | None = None) -> int:
             source = args.config
         else:
             raise DaggerConfigError(f"{run_dir}: no run to resume; give --config")
-        cfg = config_from_dict({**data, **overrides}, source=source)
+        cfg = config_from_dict({**renamed_keys(data, source), **renamed_keys(overrides, "--set")},
+                               source=source)
         result = Dagger(cfg, run_dir, log=lambda m: print(m, flush=True)).run()
-    except (DaggerConfigError, FileNotFoundError, OSError) as exc:
+    except (DaggerConfigError, FileNotFoundError, OSError, ValueError) as exc:
         print(f"mapf-fleet dagger: {exc}", file=sys.stderr)
         return 2
     print(json.dumps(result, indent=1))
@@ -100,9 +103,10 @@ def _ceiling(args) -> int:
             data = yaml.safe_load(Path(args.config).read_text()) or {}
         except yaml.YAMLError as exc:
             raise DaggerConfigError(f"{args.config}: invalid YAML: {exc}") from None
-        cfg = config_from_dict({**data, **_overrides(args.set)}, source=args.config)
+        cfg = config_from_dict({**renamed_keys(data, args.config),
+                                **renamed_keys(_overrides(args.set), "--set")}, source=args.config)
         result = expert_ceiling(cfg, args.count, log=lambda m: print(m, flush=True))
-    except (DaggerConfigError, OSError) as exc:
+    except (DaggerConfigError, OSError, ValueError) as exc:
         print(f"mapf-fleet dagger: {exc}", file=sys.stderr)
         return 2
     print(markdown(result))

@@ -10,10 +10,10 @@ from typing import Any
 
 import yaml
 
+from mapf_fleet.aliases import renamed_keys
+
 LOSSES = ("cross_entropy", "margin")
 COMMITTED_PLANNERS = ("lacam", "pymapf")
-# the project's names (config keys) for the fields `shield` and `preferences`
-NEW_NAMES = {"conflict_rule": "shield", "ranking": "preferences"}
 
 
 class DaggerConfigError(ValueError):
@@ -56,10 +56,10 @@ class DaggerConfig:
     # --- policy ------------------------------------------------------------------------------
     # the checkpoint DAgger starts from (its network is kept: DCC or DHC as the paper built it)
     init_checkpoint: str = "models/default.pt"
-    shield: str = "pibt_anchor"  # the arbiter the rollouts run under (coordination.pibt)
-    # how the policy's Q-values become the ranking the shield reads (coordination.preferences);
+    conflict_rule: str = "pibt_anchor"  # the arbiter the rollouts run under (coordination.pibt)
+    # how the policy's Q-values become the ranking the rule reads (coordination.ranking);
     # q_then_distance: the best ranking under pibt_anchor (docs/results.md)
-    preferences: str = "q_then_distance"
+    ranking: str = "q_then_distance"
     # what the network reads (grid.env.OBSERVATIONS): None = the init checkpoint's; "cost_to_go"
     # from a "paper" checkpoint warm-starts it with the extra channel's weights zero
     # (models.checkpoint.with_observation), so round 0 plays exactly as the init checkpoint
@@ -145,26 +145,26 @@ class DaggerConfig:
         self.validate()
 
     def validate(self, source: str = "DaggerConfig") -> None:
-        from mapf_fleet.coordination.pibt import SHIELD_RULES
-        from mapf_fleet.coordination.preferences import Q_MODES
+        from mapf_fleet.coordination.pibt import COORDINATED_RULES
+        from mapf_fleet.coordination.ranking import Q_RANKINGS
         from mapf_fleet.grid.env import OBSERVATIONS
 
         def bad(name: str, why: str) -> DaggerConfigError:
             return DaggerConfigError(f"{source}: field {name!r} = {getattr(self, name)!r}: {why}")
 
-        if self.shield not in SHIELD_RULES:
-            raise bad("shield", f"must be one of {SHIELD_RULES}")
-        if self.shield == "lacam":
-            raise bad("shield", "the planning arbiter executes its plan, not the policy's moves: "
-                                "roll out under a PIBT rule such as 'pibt_anchor'")
+        if self.conflict_rule not in COORDINATED_RULES:
+            raise bad("conflict_rule", f"must be one of {COORDINATED_RULES}")
+        if self.conflict_rule == "lacam":
+            raise bad("conflict_rule", "the planning arbiter executes its plan, not the policy's "
+                                       "moves: roll out under a PIBT rule such as 'pibt_anchor'")
         from .labeller import LABELLERS
 
         if self.labeller not in LABELLERS:
             raise bad("labeller", f"must be one of {LABELLERS}")
         if self.committed_planner not in COMMITTED_PLANNERS:
             raise bad("committed_planner", f"must be one of {COMMITTED_PLANNERS}")
-        if self.preferences not in Q_MODES:
-            raise bad("preferences", f"must be one of {Q_MODES}")
+        if self.ranking not in Q_RANKINGS:
+            raise bad("ranking", f"must be one of {Q_RANKINGS}")
         if self.loss not in LOSSES:
             raise bad("loss", f"must be one of {LOSSES}")
         if self.observation is not None and self.observation not in OBSERVATIONS:
@@ -248,17 +248,16 @@ def _check_task(task: Any, many: bool) -> None:
         raise ValueError(f"weight {weight!r} must be a number >= 0")
 
 
-def config_from_dict(data: dict, source: str = "<dict>") -> DaggerConfig:
+def config_from_dict(data: dict, source: str = "<dict>", quiet: bool = False) -> DaggerConfig:
+    """Build a config from a mapping; the deprecated keys (`shield`, `preferences`) are read as
+    their new names (`mapf_fleet.aliases`), with a warning unless `quiet`."""
     if not isinstance(data, dict):
         raise DaggerConfigError(f"{source}: top level must be a mapping")
+    try:
+        data = renamed_keys(data, source, quiet)
+    except ValueError as exc:
+        raise DaggerConfigError(str(exc)) from None
     known = {f.name: f for f in dataclasses.fields(DaggerConfig)}
-    data = dict(data)
-    for new, old in NEW_NAMES.items():  # the project's names for two older fields
-        if new in data:
-            if old in data:
-                raise DaggerConfigError(f"{source}: give {new!r} or {old!r}, not both "
-                                        f"({new}={data[new]!r}, {old}={data[old]!r})")
-            data[old] = data.pop(new)
     values = {}
     for key, value in data.items():
         if key not in known:

@@ -271,7 +271,7 @@ class Dagger:
                                      "train": train_summary}},
                 # the states it learned from were visited under this ranking behind this rule:
                 # the evaluator and the policy nodes rank with it there unless told otherwise
-                "rankings": {self.cfg.shield: self.cfg.preferences}}
+                "rankings": {self.cfg.conflict_rule: self.cfg.ranking}}
         return save_checkpoint(self.run_dir / CHECKPOINT_DIR / f"round_{round_index:03d}.pt",
                                self.model, meta)
 

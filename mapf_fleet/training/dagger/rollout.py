@@ -20,21 +20,23 @@ def window_starts(length: int, seq_len: int, burn_in: int) -> np.ndarray:
     return np.maximum(0, np.arange(0, length, seq_len) - burn_in).astype(np.int64)
 
 
-def play_episode(model, instance, max_steps: int, shield_rule: str, preferences: str,
+def play_episode(model, instance, max_steps: int, conflict_rule: str, ranking: str,
                  device, labeller: Labeller | None = None, beta: float = 0.0,
                  label_interval: int = 1, rng: np.random.Generator | None = None,
                  seq_len: int = 16, burn_in: int = 8, record: bool = True,
                  backoff_max: int = 1, shadow: Labeller | None = None) -> dict:
-    """One episode of `model` under the shield; with a labeller, the visited states are labelled
-    (and the expert's ranking executed with probability `beta` at labelled steps). Returns the
-    outcome and, with `record`, the arrays of a shard (`data.py`).
+    """One episode of `model` under `conflict_rule` (its Q-values ranked by `ranking`); with a
+    labeller, the visited states are labelled (and the expert's ranking executed with
+    probability `beta` at labelled steps). Returns the outcome and, with `record`, the arrays of
+    a shard (`data.py`).
 
     `model` None: the policy is plain PIBT (the distance ranking, no network; nothing to
     record), so with `beta` 1 the labeller itself is the policy wherever it labels (the expert
-    ceiling; `labels_executed` counts the labels the rule let through unchanged). `shadow`: a second labeller labelling the same states (another seed); the agents
-    both label count in `agree_pairs`, those labelled alike in `agree`."""
+    ceiling; `labels_executed` counts the labels the rule let through unchanged). `shadow`: a
+    second labeller labelling the same states (another seed); the agents both label count in
+    `agree_pairs`, those labelled alike in `agree`."""
     from mapf_fleet.coordination.pibt import make_shield
-    from mapf_fleet.coordination.preferences import rank_actions, tie_breakers
+    from mapf_fleet.coordination.ranking import rank_actions, tie_breakers
     from mapf_fleet.grid.env import EnvConfig, MAPFEnv
     from mapf_fleet.grid.heuristic import bfs_distances_many
     from mapf_fleet.models.policy import LearnedPolicy
@@ -47,7 +49,7 @@ def play_episode(model, instance, max_steps: int, shield_rule: str, preferences:
     env = MAPFEnv(instance, EnvConfig(max_steps=max_steps, observation=observation))
     obs = env.reset()
     n = instance.num_agents
-    shield = make_shield(shield_rule, instance.grid, instance.goals)
+    shield = make_shield(conflict_rule, instance.grid, instance.goals)
     policy = None if model is None else LearnedPolicy(model, device)
     if policy is not None:
         policy.reset(1, n)
@@ -71,10 +73,10 @@ def play_episode(model, instance, max_steps: int, shield_rule: str, preferences:
             hiddens.append(policy.hidden[0].detach().to("cpu", torch.float16).numpy())
         ties = tie_breakers(ties_agents, t)
         if policy is None:
-            ranking = rank_actions(obs, mode="distance", ties=ties)
+            rankings = rank_actions(obs, mode="distance", ties=ties)
         else:
             policy.act(obs[None].astype(np.float32), env.positions[None])
-            ranking = rank_actions(obs, policy.q_values[0], preferences, ties=ties)
+            rankings = rank_actions(obs, policy.q_values[0], ranking, ties=ties)
         label = np.full(n, -1, np.int8)
         if labeller is not None and t >= next_label:
             state = LabelState(instance.grid, env.positions, instance.goals, distances, t,
@@ -103,7 +105,7 @@ def play_episode(model, instance, max_steps: int, shield_rule: str, preferences:
                 stats["labelled_states"] += 1
                 stats["labels"] += int(have.sum())
                 off_goal = ~env.on_goal() & have
-                differ = (ranking[:, 0] != expert) & have
+                differ = (rankings[:, 0] != expert) & have
                 stats["disagree"] += int(differ.sum())
                 stats["disagree_off_goal"] += int((differ & off_goal).sum())
                 stats["off_goal_labels"] += int(off_goal.sum())
@@ -112,11 +114,11 @@ def play_episode(model, instance, max_steps: int, shield_rule: str, preferences:
                     # keep the policy's ranking
                     onehot = (np.arange(5) == expert[:, None]).astype(np.float64)
                     ranked = rank_actions(obs, onehot, "q_then_distance", ties=ties)
-                    ranking = np.where(have[:, None], ranked, ranking)
+                    rankings = np.where(have[:, None], ranked, rankings)
                     stats["expert_steps"] += 1
         if record:
             rec_labels.append(label)
-        executed = shield.step(env.positions, ranking).actions
+        executed = shield.step(env.positions, rankings).actions
         labelled = label >= 0
         stats["labels_executed"] += int((labelled & (executed == label)).sum())
         if policy is not None:
@@ -179,8 +181,8 @@ class DaggerWorker:
     def collect(self, job: dict) -> dict:
         cfg = self.cfg
         instance = make_instance(job["task"], job["seed_words"])
-        out = play_episode(self.model, instance, job["task"]["max_steps"], cfg.shield,
-                           cfg.preferences, self.device, self.labeller, job["beta"],
+        out = play_episode(self.model, instance, job["task"]["max_steps"], cfg.conflict_rule,
+                           cfg.ranking, self.device, self.labeller, job["beta"],
                            cfg.label_interval, np.random.default_rng(job["seed_words"] + [1]),
                            cfg.seq_len, cfg.burn_in, record=True,
                            backoff_max=cfg.label_backoff_max)
@@ -192,28 +194,28 @@ class DaggerWorker:
         cfg = self.cfg
         instance = make_instance(job["task"], job["seed_words"])
         if job.get("heuristic"):
-            out = play_plain_pibt(instance, job["task"]["max_steps"], cfg.shield)
+            out = play_plain_pibt(instance, job["task"]["max_steps"], cfg.conflict_rule)
         else:
-            out = play_episode(self.model, instance, job["task"]["max_steps"], cfg.shield,
-                               cfg.preferences, self.device, record=False)
+            out = play_episode(self.model, instance, job["task"]["max_steps"], cfg.conflict_rule,
+                               cfg.ranking, self.device, record=False)
         return {**out, "job": job, "pid": os.getpid(),
                 "process_cpu_seconds": time.process_time()}
 
 
-def play_plain_pibt(instance, max_steps: int, shield_rule: str) -> dict:
+def play_plain_pibt(instance, max_steps: int, conflict_rule: str) -> dict:
     """The baseline: the shield over distance rankings (the heuristic checkpoint's rows)."""
-    out = play_episode(None, instance, max_steps, shield_rule, "distance", None, record=False)
+    out = play_episode(None, instance, max_steps, conflict_rule, "distance", None, record=False)
     return {"success": out["success"], "steps": out["steps"], "num_agents": out["num_agents"]}
 
 
-def play_lifelong(instance, steps: int, shield_rule: str, goal_seed: int,
+def play_lifelong(instance, steps: int, conflict_rule: str, goal_seed: int,
                   labeller: Labeller | None = None) -> dict:
     """A lifelong run (`fleet.run.FleetRun` with the lifelong task source: a new goal on arrival,
-    robot i's goals from (goal_seed, i)) of `steps` ticks under the shield, ranked by plain
+    robot i's goals from (goal_seed, i)) of `steps` ticks under `conflict_rule`, ranked by plain
     PIBT's distance ranking, or, with a labeller, its label first where it labels (the
     labeller as the policy; its other moves in the distance order). Returns the goals reached
     per tick (`throughput`)."""
-    from mapf_fleet.coordination.preferences import rank_actions, tie_breakers
+    from mapf_fleet.coordination.ranking import rank_actions, tie_breakers
     from mapf_fleet.fleet.record import Decisions
     from mapf_fleet.fleet.run import FleetRun
     from mapf_fleet.fleet.tasks import LifelongTasks
@@ -222,7 +224,7 @@ def play_lifelong(instance, steps: int, shield_rule: str, goal_seed: int,
 
     run = FleetRun(instance.grid, instance.starts, LifelongTasks(grid=instance.grid,
                                                                  seed=int(goal_seed)),
-                   instance.goals, rule=shield_rule, max_steps=steps)
+                   instance.goals, rule=conflict_rule, max_steps=steps)
     agents = np.arange(run.num_robots)
     maps: dict = {}  # BFS distance map per goal cell (goals come back)
     label_seconds, label_cpu, calls = 0.0, 0.0, 0
@@ -230,7 +232,7 @@ def play_lifelong(instance, steps: int, shield_rule: str, goal_seed: int,
         goals = np.asarray(run.goals, np.int64)
         obs = ObservationBuilder.for_goals(run.grid, goals).observe(run.positions)
         ties = tie_breakers(agents, run.tick)
-        ranking = rank_actions(obs, mode="distance", ties=ties)
+        rankings = rank_actions(obs, mode="distance", ties=ties)
         if labeller is not None:
             for g in map(tuple, goals.tolist()):
                 if g not in maps:
@@ -245,8 +247,8 @@ def play_lifelong(instance, steps: int, shield_rule: str, goal_seed: int,
             have = expert >= 0
             onehot = (np.arange(5) == expert[:, None]).astype(np.float64)
             ranked = rank_actions(obs, onehot, "q_then_distance", ties=ties)
-            ranking = np.where(have[:, None], ranked, ranking)
-        run.step(Decisions.complete(run.tick, ranking))
+            rankings = np.where(have[:, None], ranked, rankings)
+        run.step(Decisions.complete(run.tick, rankings))
     return {"throughput": run.goals_reached / steps, "goals_reached": int(run.goals_reached),
             "steps": steps, "num_agents": run.num_robots, "label_seconds": label_seconds,
             "label_cpu_seconds": label_cpu, "label_calls": calls}

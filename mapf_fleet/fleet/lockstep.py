@@ -1,4 +1,5 @@
-"""The lockstep bookkeeping the simulator and the aggregator share (plain Python, no rclpy).
+"""The lockstep bookkeeping the simulator and the aggregator share (plain Python, no rclpy: the
+robots' messages are read by their fields).
 
 Both nodes run the same tick: publish the fleet state of tick k, collect every robot's RobotMove
 for k (its ranked actions; a move missing after `decision_timeout` is "stay" and reported),
@@ -17,13 +18,14 @@ import time
 
 import numpy as np
 
+from mapf_fleet.fleet import parameters
 from mapf_fleet.fleet.arbiter import ranking_problem, single_choice_ranking
-from mapf_fleet.fleet.record import Decisions
-from mapf_fleet.ros import parameters
 from mapf_fleet.fleet.instances import InstanceSource
+from mapf_fleet.fleet.record import Decisions
+
 
 def parameter_change_problem(name: str, value, table: dict) -> str:
-    """Why parameter `name` of a node with parameter table `table` (ros.parameters) may not
+    """Why parameter `name` of a node with parameter table `table` (fleet.parameters) may not
     become `value` at runtime ("" when it may)."""
     if name not in table:
         return f"{name}: no such parameter"
@@ -33,24 +35,6 @@ def parameter_change_problem(name: str, value, table: dict) -> str:
                 f"-p {name}:=VALUE); changeable at runtime: {runtime}")
     problem = table[name].problem(value)
     return f"{name}: {problem}" if problem else ""
-
-
-def set_parameters_result(params: dict, parameters, table: dict, logger=None):
-    """For a node's `add_on_set_parameters_callback`: apply the changes to `params` (the dict
-    the tick loop reads every tick) when all of them are allowed by the node's parameter
-    `table`, else refuse them all with the reasons (rcl_interfaces SetParametersResult)."""
-    from rcl_interfaces.msg import SetParametersResult
-
-    problems = [p for p in (parameter_change_problem(q.name, q.value, table)
-                            for q in parameters) if p]
-    if problems:
-        return SetParametersResult(successful=False, reason="; ".join(problems))
-    for parameter in parameters:
-        if logger is not None and params[parameter.name] != parameter.value:
-            logger.info(f"parameter {parameter.name}: {params[parameter.name]} -> "
-                        f"{parameter.value} (from the next tick)")
-        params[parameter.name] = table[parameter.name].coerce(parameter.value)
-    return SetParametersResult(successful=True)
 
 
 def instance_source(params: dict) -> InstanceSource:
@@ -144,12 +128,12 @@ class FleetTicker:
                 return None  # stale tick or another run
             if msg.robot_id >= self.num_robots or msg.action > 4:
                 return f"ignored bad move {msg.robot_id}/{msg.action}"
-            preferences = list(getattr(msg, "preferences", ()))
-            problem = ranking_problem(msg.action, preferences)
+            ranking = list(getattr(msg, "preferences", ()))  # the field keeps its wire name
+            problem = ranking_problem(msg.action, ranking)
             if problem:
                 return f"ignored bad move of robot {msg.robot_id}: {problem}"
             robot = int(msg.robot_id)
-            self._prefs[robot] = ([int(a) for a in preferences] if preferences
+            self._prefs[robot] = ([int(a) for a in ranking] if ranking
                                   else single_choice_ranking(msg.action))
             self._comm[robot] = ([int(j) for j in msg.requested], int(msg.messages_received))
             self.cond.notify_all()
@@ -197,9 +181,9 @@ class FleetTicker:
             tick = self.tick
         n = self.num_robots
         stay_first = list(range(5))
-        preferences = np.array([prefs.get(i, stay_first) for i in range(n)],
-                               dtype=np.int64).reshape(n, 5)
-        return Decisions(tick=tick, actions=preferences[:, 0].copy(), preferences=preferences,
+        rankings = np.array([prefs.get(i, stay_first) for i in range(n)],
+                            dtype=np.int64).reshape(n, 5)
+        return Decisions(tick=tick, actions=rankings[:, 0].copy(), rankings=rankings,
                          missing=sorted(set(range(n)) - set(prefs)),
                          requested=[comm.get(i, ([], 0))[0] for i in range(n)],
                          messages=[comm.get(i, ([], 0))[1] for i in range(n)])

@@ -1,10 +1,13 @@
-"""`mapf-fleet up`'s options and its nodes' parameters: parsed, resolved and checked before
-anything starts (`prepare`); `mapf_fleet.ros.launcher` starts and supervises the processes."""
+"""`mapf-fleet up`'s options and its nodes' parameters, ROS-free: the parser (`build_parser`),
+every node's parameters resolved from the tables of `fleet.parameters` (`plan_parameters`,
+`plan_policy_parameters`: defaults < params file < options < `--ros-args -p`) and the checks
+that refuse a value before anything starts (one line each, `UpError`). `ros.launcher.prepare`
+adds what needs the ROS side or the networks (the checkpoint loads, the bag recorder) and
+starts the processes."""
 
 from __future__ import annotations
 
 import argparse
-import glob
 import os
 import re
 import sys
@@ -12,11 +15,8 @@ import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from mapf_fleet.fleet.arbiter import CONFLICT_RULES
-from mapf_fleet.paths import data_root
-from mapf_fleet.ros import common
-from mapf_fleet.ros import parameters as P
-from mapf_fleet.fleet.instances import InstanceSource
+from mapf_fleet.coordination.pibt import CONFLICT_RULES
+from mapf_fleet.fleet import parameters as P
 
 # the user's help text of `mapf-fleet up`
 DESCRIPTION = """`mapf-fleet up`: start a simulated fleet (simulator + one policy node per robot), show live
@@ -41,12 +41,6 @@ are reverted).
 With no arguments: 8 simulated robots on a generated 16x16 map, checkpoint models/default.pt.
 """
 
-# where models/ lives: the install's share/mapf_fleet, else the checkout
-DATA_ROOT = data_root("models")
-
-
-DEFAULT_CHECKPOINT = DATA_ROOT / "models" / "default.pt"
-
 # Robots' nodes one process hosts at most (`--single-process`: all of them; else
 # `--nodes-per-process`). Creating the nodes of one process takes time that grows with the
 # square of their number (every new publisher is matched against the process's others on the
@@ -57,15 +51,6 @@ MAX_NODES_PER_PROCESS = 512
 # handle (docs/fleet.md, Process layouts: about 32 are discovered; with 64 half never see
 # each other and the shared-memory transport can deadlock). Above it `up` warns, not refuses.
 MAX_DISCOVERED_PROCESSES = 32
-
-
-def default_checkpoint() -> str:
-    """models/default.pt if present, else the first DHC (or any) checkpoint in models/."""
-    if DEFAULT_CHECKPOINT.is_file():
-        return str(DEFAULT_CHECKPOINT)
-    found = sorted(glob.glob(str(DATA_ROOT / "models" / "*.pt")))
-    preferred = [f for f in found if "dhc" in Path(f).name.lower()] or found
-    return preferred[0] if preferred else ""
 
 
 class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
@@ -160,7 +145,7 @@ def build_parser() -> argparse.ArgumentParser:
                              "the policy nodes' ranking if a params file sets it, else "
                              "the ranking the checkpoint records for the conflict rule "
                              "(metadata rankings, e.g. a DAgger round's), else the rule's, "
-                             "coordination.preferences.default_q_mode: confidence under "
+                             "coordination.ranking.default_ranking: confidence under "
                              "pibt_anchor, q under pibt and revert)")
     parser.add_argument("--preference-mode", dest="preference_mode", choices=P.RANKINGS,
                         default=None, help="deprecated spelling of --ranking")
@@ -441,80 +426,6 @@ def task_source_problem(args) -> str:
     return ""
 
 
-def prepare(argv: list[str]):
-    """(args, plan, instance source) of `up` with every value checked, nothing started;
-    UpError (one line) for anything refused."""
-    own, ros_argv = common.split_ros_args(argv)
-    args = build_parser().parse_args(own)
-    plan = plan_parameters(args, ros_argv)
-    if args.record:
-        problem = record_problem(args.record)
-        if problem:
-            raise UpError(problem)
-    elif plan.origin[plan.sim_name]["record_file"] != "default":
-        problem = record_problem(plan.sim["record_file"],
-                                 plan.origin[plan.sim_name]["record_file"] + ": record_file")
-        if problem:
-            raise UpError(problem)
-    given = args.checkpoint
-    if given is None:
-        policy_checkpoint = _policy_value(args, ros_argv, "checkpoint")
-        given = policy_checkpoint or None
-    checkpoint = given or default_checkpoint()
-    if not checkpoint or not Path(checkpoint).is_file():
-        if given:
-            problem = f"checkpoint not found: {given!r}"
-        else:
-            problem = f"no checkpoint in {DATA_ROOT / 'models'} (default {DEFAULT_CHECKPOINT.name})"
-        raise UpError(f"{problem}. Pass --checkpoint FILE.pt (a file written by "
-                      f"mapf_fleet.models.save_checkpoint, e.g. by training), or put one at "
-                      f"{DEFAULT_CHECKPOINT}.")
-    if args.real_robots and args.single_process:
-        raise UpError("--real-robots runs the aggregator in its own process; drop "
-                      "--single-process")
-    problem = checkpoint_problem(checkpoint)
-    if problem:  # before anything starts: the policy processes would die one by one
-        raise UpError(problem)
-    sim = plan.sim
-    try:
-        if plan.origin[plan.sim_name]["num_robots"] == "default":
-            sim["num_robots"] = args.num_robots = default_robot_count(args)
-        source = InstanceSource(sim["instance_file"], sim["map_file"], sim["scen_file"],
-                                sim["num_robots"], sim["size"], sim["density"], sim["seed"],
-                                sim["cell_size"])
-        instance = source.load()
-        num_robots = instance.num_agents
-    except (ValueError, OSError) as exc:
-        raise UpError(f"bad instance: {exc}") from None
-    warning = unknown_as_free_warning(sim["map_file"])
-    if warning:
-        plan.warnings.append(warning)
-    if args.bag:  # tick 0 waits until the hubs and the recorder hear the state: no tick missed
-        from mapf_fleet.ros.bag import RECORDER_NODE
-
-        sim["state_subscribers"] = (
-            policy_processes(num_robots, args.single_process, args.nodes_per_process) + 1)
-        sim["state_recorder"] = RECORDER_NODE
-    if sim["task_file"]:  # a bad or unreachable task: one line naming file, line, task, field
-        from mapf_fleet.fleet.tasks import TaskFileError, load_task_file
-
-        geometry = common.MapGeometry(*(source.geometry() or (
-            sim["resolution"], sim.get("origin_x", 0.0), sim.get("origin_y", 0.0))))
-        try:
-            load_task_file(sim["task_file"], num_robots=num_robots, cell_of=geometry.xy_to_cell,
-                           grid=instance.grid, starts=instance.starts)
-        except TaskFileError as exc:
-            raise UpError(str(exc)) from None
-    problem = layout_problem(num_robots, args.single_process, args.nodes_per_process)
-    if problem:
-        raise UpError(problem)
-    if args.bag and Path(args.bag).exists():
-        raise UpError(f"--bag {args.bag} exists already: a rosbag2 is written into a new "
-                      f"directory")
-    plan_policy_parameters(plan, args, ros_argv, num_robots, checkpoint)
-    return args, plan, num_robots
-
-
 def unknown_as_free_warning(map_file: str) -> str:
     """A warning ("" when none) for a Nav2 map whose thresholds read map_saver's unknown grey
     as free (its cells do not block)."""
@@ -531,7 +442,7 @@ def unknown_as_free_warning(map_file: str) -> str:
             f"set free_thresh: 0.196 in {map_file} to have them block")
 
 
-def _policy_value(args, ros_argv, name):
+def policy_value(args, ros_argv, name):
     """The value a params file or -p gives the first policy node's `name` ("" when none)."""
     ros = P.read_ros_args(ros_argv, _is_up_option)
     files = [args.params_file] if args.params_file else []
@@ -541,18 +452,6 @@ def _policy_value(args, ros_argv, name):
     except ValueError as exc:
         raise UpError(str(exc)) from None
     return values["mapf_policy_0"][name] if origin["mapf_policy_0"][name] != "default" else ""
-
-
-def checkpoint_problem(path: str) -> str:
-    """"" when `path` loads as a policy (as the policy nodes load it), else the reason, e.g.
-    "bad.pt: not a readable checkpoint (corrupt, truncated or not weights-only): ..."."""
-    from mapf_fleet.models.checkpoint import load_checkpoint
-
-    try:
-        load_checkpoint(path)
-    except (ValueError, OSError) as exc:  # CheckpointError is a ValueError
-        return str(exc).strip().splitlines()[0] if str(exc).strip() else repr(exc)
-    return ""
 
 
 def layout_problem(num_robots: int, single_process: bool, nodes_per_process: int) -> str:

@@ -24,12 +24,11 @@ from typing import Callable
 
 import yaml
 
-from mapf_fleet.coordination.preferences import (DEFAULT_Q_MODE_BY_RULE, PREFERENCE_MODES,
-                                                 default_q_mode)
+from mapf_fleet.aliases import PARAMETERS as PARAMETER_ALIASES
+from mapf_fleet.coordination.ranking import (DEFAULT_RANKING_BY_RULE, RANKINGS,
+                                             default_ranking)
 from mapf_fleet.fleet.arbiter import CONFLICT_RULES, DEFAULT_CONFLICT_RULE
 from mapf_fleet.fleet.tasks import TASK_SOURCES
-
-RANKINGS = PREFERENCE_MODES
 
 
 @dataclass(frozen=True)
@@ -111,7 +110,7 @@ _RUN = {
                            "how the tick's decisions become moves: pibt (PIBT over the robots' "
                            "ranked actions, nothing reverted), pibt_anchor (the same, the "
                            "top-priority robot on its distance order), their _swap / _hindrance "
-                           "variants (coordination.pibt.SHIELD_RULES), lacam (a kept LaCAM "
+                           "variants (coordination.pibt.COORDINATED_RULES), lacam (a kept LaCAM "
                            "plan over the robots' rankings, re-planned when something leaves it) "
                            "or revert (the paper's rules on the first choices)",
                            choices=CONFLICT_RULES),
@@ -194,12 +193,12 @@ POLICY = {
                          f"one of {', '.join(RANKINGS)}; empty: the ranking the checkpoint "
                          "records for the conflict rule (metadata rankings, e.g. a DAgger "
                          "round's), else the rule's default ("
-                     + ", ".join(f"{m} under {r}" for r, m in DEFAULT_Q_MODE_BY_RULE.items())
-                     + f", {default_q_mode('revert')} otherwise)", choices=("",) + RANKINGS),
+                     + ", ".join(f"{m} under {r}" for r, m in DEFAULT_RANKING_BY_RULE.items())
+                     + f", {default_ranking('revert')} otherwise)", choices=("",) + RANKINGS),
 }
 
 # deprecated parameter names still read (a warning each): old name -> name
-ALIASES = {"preference_mode": "ranking"}
+ALIASES = PARAMETER_ALIASES
 # parameters every rclpy node has: a params file may set them for any node
 STANDARD = ("use_sim_time", "start_type_description_service")
 
@@ -465,6 +464,6 @@ def write_params_file(path, values: dict, namespace: str = "", skip=("robot_id",
     """One entry per node, keyed by its full name, every value resolved."""
     prefix = "/" + namespace.strip("/") if namespace.strip("/") else ""
     data = {f"{prefix}/{node}": {"ros__parameters": {k: v for k, v in params.items()
-                                                     if k not in skip}}
+                                                 if k not in skip}}
             for node, params in values.items()}
     Path(path).write_text(yaml.safe_dump(data, sort_keys=False))

@@ -1,4 +1,4 @@
-"""Preference orders (each agent's five actions ranked, best first) from any decentralized policy.
+"""Rankings (each agent's five actions ranked, best first) from any decentralized policy.
 
 Everything here reads only what a robot has on board: its 9x9 observation (channel 1 obstacles,
 channels 2..5 the heuristic bits "this move gets strictly closer to my goal", DHC order up, down,
@@ -11,7 +11,7 @@ A robot publishes its whole ranking, moves into occupied cells included: PIBT de
 yields, and an agent that ranks "stay" first whenever its closer cell is occupied never pushes
 (the non-learned heuristic's failure under the shield).
 
-Modes (`PREFERENCE_MODES`):
+Rankings (`RANKINGS`; `Q_RANKINGS` those that read Q-values):
   q               the actions by descending Q (ties: action order) — CS-PIBT as published
   q_demote_stay   the Q order, but an agent off its goal ranks "stay" below every move that
                   gets closer
@@ -23,11 +23,11 @@ Modes (`PREFERENCE_MODES`):
                   then Q): the network overrides plain PIBT only where it is sure
   distance        the distance order, ties by action order: plain PIBT (no learning); also the
                   non-learned heuristic's ranking (it follows a closer move, else stays)
-The learned default is `DEFAULT_Q_MODE` (chosen by measurement; docs/results.md);
-`default_q_mode(rule, recorded)` is the ranking a learned policy uses under each shield rule when
+The learned default is `DEFAULT_RANKING` (chosen by measurement; docs/results.md);
+`default_ranking(rule, recorded)` is the ranking a learned policy uses under each shield rule when
 none is asked for, in the evaluator and the fleet's policy nodes alike: the ranking its checkpoint
 records for the rule (metadata `rankings`, e.g. what a DAgger round was trained under), else the
-rule's (`DEFAULT_Q_MODE_BY_RULE`, chosen by measurement: docs/results.md, "Ranking modes under
+rule's (`DEFAULT_RANKING_BY_RULE`, chosen by measurement: docs/results.md, "Ranking modes under
 the anchored shield").
 """
 
@@ -39,13 +39,13 @@ import numpy as np
 
 from mapf_fleet.grid.actions import ACTION_DELTAS, NUM_ACTIONS, STAY
 
-PREFERENCE_MODES = ("q", "q_demote_stay", "q_then_distance", "confidence", "distance")
-Q_MODES = ("q", "q_demote_stay", "q_then_distance", "confidence")
-DEFAULT_Q_MODE = "q"
+RANKINGS = ("q", "q_demote_stay", "q_then_distance", "confidence", "distance")
+Q_RANKINGS = ("q", "q_demote_stay", "q_then_distance", "confidence")
+DEFAULT_RANKING = "q"
 # The ranking each conflict rule uses by default, chosen by measurement (docs/results.md, "Ranking
 # modes under the anchored shield"): `confidence` where the anchor is on, `q` otherwise; the swap
 # and hindrance variants take their base rule's.
-DEFAULT_Q_MODE_BY_RULE = {
+DEFAULT_RANKING_BY_RULE = {
     "pibt": "q", "pibt_anchor": "confidence",
     "pibt_swap": "q", "pibt_anchor_swap": "confidence",
     "pibt_hindrance": "q", "pibt_anchor_hindrance": "confidence",
@@ -60,7 +60,7 @@ RANKING_RULE_OF = {"lacam": "pibt_anchor"}
 CONFIDENCE_MARGIN = 0.3
 
 
-def default_q_mode(rule: str, recorded: Mapping[str, str] | None = None) -> str:
+def default_ranking(rule: str, recorded: Mapping[str, str] | None = None) -> str:
     """The ranking a learned policy uses under shield `rule` when none is asked for: the one its
     checkpoint records for `rule` (`recorded`, the metadata's `rankings` {rule: mode}), else the
     rule's default. A checkpoint trained on the states one ranking visits does best under that
@@ -70,8 +70,8 @@ def default_q_mode(rule: str, recorded: Mapping[str, str] | None = None) -> str:
     if found is not None:
         return found
     if rule in RANKING_RULE_OF:  # a rule without rankings of its own: its fallback rule's
-        return default_q_mode(RANKING_RULE_OF[rule], recorded)
-    return DEFAULT_Q_MODE_BY_RULE.get(rule, DEFAULT_Q_MODE)
+        return default_ranking(RANKING_RULE_OF[rule], recorded)
+    return DEFAULT_RANKING_BY_RULE.get(rule, DEFAULT_RANKING)
 
 
 def recorded_ranking(rule: str, recorded: Mapping[str, str] | None) -> str | None:
@@ -139,19 +139,19 @@ def tie_breakers(agent_ids, tick: int, seed: int = 0) -> np.ndarray:
     return (x >> np.uint64(11)).astype(np.float64) / float(2**53)
 
 
-def rank_actions(obs, q=None, mode: str = DEFAULT_Q_MODE, ties=None,
+def rank_actions(obs, q=None, mode: str = DEFAULT_RANKING, ties=None,
                  margin: float | None = None) -> np.ndarray:
-    """(..., 5) int64 preference orders. obs (..., 6, S, S); q (..., 5) for the Q modes;
+    """(..., 5) int64 rankings. obs (..., 6, S, S); q (..., 5) for the Q modes;
     `ties` (..., 5) breaks the remaining ties (`tie_breakers`; default: the action order);
     `margin`: the `confidence` mode's threshold (default `CONFIDENCE_MARGIN`)."""
-    if mode not in PREFERENCE_MODES:
-        raise ValueError(f"preference mode must be one of {PREFERENCE_MODES}, got {mode!r}")
+    if mode not in RANKINGS:
+        raise ValueError(f"ranking must be one of {RANKINGS}, got {mode!r}")
     classes = distance_classes(obs)
     tail = [] if ties is None else [np.asarray(ties, dtype=np.float64)]
     if mode == "distance":
         return _rank([classes, *tail])
     if q is None:
-        raise ValueError(f"preference mode {mode!r} needs Q-values")
+        raise ValueError(f"ranking {mode!r} needs Q-values")
     q = np.asarray(q, dtype=np.float64)
     if q.shape != classes.shape:
         raise ValueError(f"Q-values must have shape {classes.shape}, got {q.shape}")

@@ -14,7 +14,7 @@ import pytest
 
 from mapf_fleet.fleet.run import FleetRun
 from mapf_fleet.fleet.tasks import InstanceTasks
-from mapf_fleet.ros.lockstep import FleetTicker
+from mapf_fleet.fleet.lockstep import FleetTicker
 
 
 def _move(robot, action, tick=0, episode=9, requested=(), received=0, missing=()):
