@@ -34,10 +34,8 @@ import numpy as np
 from mapf_fleet.coordination.pibt import CONFLICT_RULES, make_shield
 from mapf_fleet.grid.actions import NUM_ACTIONS, STAY, actions_between
 
-# The fleet's default: the anchor measured above plain "pibt" with the shipped policy (40x40 at 64
-# agents 0.700 vs 0.490), swap on top of it above "pibt_anchor" on every family measured, one-shot
-# and lifelong, with the heuristic and with the learned default; hindrance added nothing on top
-# of swap (docs/results.md, PIBT variants)
+# The fleet's default: of the PIBT variants, the one that led on every family measured, one-shot
+# and lifelong, with the heuristic and with the learned default (docs/results.md, PIBT variants)
 DEFAULT_CONFLICT_RULE = "pibt_anchor_swap"
 
 
