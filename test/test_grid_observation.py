@@ -61,3 +61,49 @@ def test_bad_calls_say_what_is_wrong():
                                   4, np.array([0, 1]))
     with pytest.raises(ValueError, match="one map"):
         two_maps.observe(instance.starts[:2])
+
+
+@pytest.mark.parametrize("observation", ["paper", "cost_to_go"])
+def test_the_goal_observer_equals_a_builder_rebuilt_for_every_step(observation):
+    from mapf_fleet.grid.heuristic import HeuristicCache
+    from mapf_fleet.grid.observation import GoalObserver
+
+    rng = np.random.default_rng(7)
+    for trial in range(12):
+        h, w = rng.integers(3, 24, size=2)
+        grid = rng.random((h, w)) < 0.3
+        free = np.argwhere(~grid)
+        if len(free) < 2:
+            continue
+        n = int(rng.integers(1, min(len(free), 12) + 1))
+        observer = GoalObserver(grid, 4, observation, spare=int(rng.integers(0, 3)))
+        goals = free[rng.integers(0, len(free), n)]
+        for step in range(8):  # a few goals change each step, some come back
+            positions = free[rng.choice(len(free), n, replace=False)]
+            change = rng.random(n) < 0.4
+            goals[change] = np.argwhere(np.ones((h, w)))[rng.integers(0, h * w, change.sum())]
+            agents = np.sort(rng.choice(n, int(rng.integers(1, n + 1)), replace=False))
+            expected = ObservationBuilder.for_goals(grid, goals[agents], 4, observation,
+                                                    HeuristicCache()).observe(positions, agents)
+            got = observer.observe(positions, goals[agents], agents)
+            assert got.dtype == expected.dtype
+            np.testing.assert_array_equal(got, expected, err_msg=f"trial {trial} step {step}")
+    assert observer.searched > 0
+
+
+def test_bfs_distances_equal_scipy_dijkstra_on_random_maps():
+    from scipy.sparse.csgraph import shortest_path
+
+    from mapf_fleet.grid.heuristic import _adjacency
+
+    rng = np.random.default_rng(11)
+    for trial in range(40):
+        h, w = rng.integers(1, 30, size=2)
+        grid = rng.random((h, w)) < rng.random() * 0.6
+        goals = np.argwhere(np.ones((h, w)))[rng.integers(0, h * w, 4)]  # obstacles too
+        flat = shortest_path(_adjacency(grid), method="D", unweighted=True,
+                             indices=goals[:, 0] * w + goals[:, 1])
+        expected = np.where(np.isinf(flat), -1, flat).astype(np.int32).reshape(-1, h, w)
+        expected[grid[goals[:, 0], goals[:, 1]]] = -1
+        np.testing.assert_array_equal(bfs_distances_many(grid, goals), expected,
+                                      err_msg=f"trial {trial}")

@@ -77,3 +77,34 @@ def test_relative_position_index_is_row_major_from_the_top_left_corner():
     assert relative_position_index(torch.tensor([4, 4])).item() == 80
     with pytest.raises(ValueError, match="outside radius"):
         relative_position_index(np.array([5, 0]))
+
+
+@settings(max_examples=150, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), batch=st.integers(1, 3), agents=st.integers(1, 80),
+       side=st.integers(1, 24), radius=st.integers(1, 4), masked=st.booleans())
+def test_the_neighbour_lookup_by_cell_equals_the_pair_table(seed, batch, agents, side, radius,
+                                                           masked):
+    from mapf_fleet.models.comm import (
+        _fov_neighbour_table_by_cell, _fov_neighbour_table_by_pairs,
+    )
+
+    rng = np.random.default_rng(seed)
+    agents = min(agents, side * side)
+    cells = [rng.choice(side * side, agents, replace=False) for _ in range(batch)]
+    positions = torch.from_numpy(np.stack([np.stack(np.divmod(c, side), 1) for c in cells])
+                                 + rng.integers(-50, 50, size=2))
+    mask = torch.from_numpy(rng.random((batch, agents)) < 0.7) if masked else None
+    by_cell = _fov_neighbour_table_by_cell(positions, radius, mask)
+    assert torch.equal(by_cell, _fov_neighbour_table_by_pairs(positions, radius, mask))
+
+
+def test_agents_sharing_a_cell_fall_back_to_the_pair_table():
+    from mapf_fleet.models.comm import SPATIAL_NEIGHBOURS_FROM, _fov_neighbour_table_by_cell
+
+    rng = np.random.default_rng(3)
+    positions = rng.integers(0, 40, size=(1, SPATIAL_NEIGHBOURS_FROM, 2))
+    positions[0, 1] = positions[0, 0]  # two agents in one cell: both see each other
+    positions = torch.from_numpy(positions)
+    assert _fov_neighbour_table_by_cell(positions, 4) is None
+    table = fov_neighbour_table(positions, 4)
+    assert 1 in table[0, 0].tolist() and 0 in table[0, 1].tolist()

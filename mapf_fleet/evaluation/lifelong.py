@@ -30,6 +30,7 @@ import os
 import shlex
 import sys
 import time
+import weakref
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -128,11 +129,22 @@ def episode_seed(seed: int, k: int) -> int:
 
 def observe_runs(runs: list[FleetRun], observation: str = "paper") -> np.ndarray:
     """(B, N, C, 9, 9) observations of every run's robots with their current goals (C = 6, 7
-    for the "cost_to_go" observation: distances from the same cache, keyed by goal)."""
-    from mapf_fleet.grid.observation import ObservationBuilder
+    for the "cost_to_go" observation). Each run keeps a `GoalObserver` per observation, so a
+    step searches only the goals that are new."""
+    return np.stack([_observer(run, observation).observe(run.positions, run.goals)
+                     for run in runs]).astype(np.float32, copy=False)
 
-    return np.stack([ObservationBuilder.for_goals(run.grid, run.goals, observation=observation)
-                     .observe(run.positions) for run in runs]).astype(np.float32)
+
+_OBSERVERS: "weakref.WeakKeyDictionary[FleetRun, dict]" = weakref.WeakKeyDictionary()
+
+
+def _observer(run: FleetRun, observation: str):
+    from mapf_fleet.grid.observation import GoalObserver
+
+    mine = _OBSERVERS.setdefault(run, {})
+    if observation not in mine:
+        mine[observation] = GoalObserver(run.grid, observation=observation)
+    return mine[observation]
 
 
 def rollout(policy, runs: list[FleetRun], shielded: bool) -> None:

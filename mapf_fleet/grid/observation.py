@@ -198,6 +198,125 @@ class ObservationBuilder:
         return obs.reshape(n, self.channels, s, s)
 
 
+class GoalObserver:
+    """FOV observations of agents on one map whose goals change (a lifelong run, a fleet process):
+    `observe(positions, goals, agents)` equals `ObservationBuilder.for_goals(grid, goals, radius,
+    observation).observe(positions, agents)` without rebuilding anything for goals it has seen.
+
+    Each goal cell's padded static bytes (obstacle bit + its heuristic bits, and its padded
+    distances for "cost_to_go") sit in one slot of a pool, searched once when the goal first
+    appears; slots of goals no agent holds any more are kept for `spare` goals (goals repeat:
+    idle robots, task stations) and reused least recently used first. Memory: one padded map
+    (one byte a cell, three with distances on maps under 32,767 cells) per current goal plus `spare`.
+    """
+
+    def __init__(self, grid, radius: int = 4, observation: str = "paper", spare: int = 256):
+        from .heuristic import _adjacency, _as_grid
+
+        self.blocked = _as_grid(grid)
+        self.channels = observation_channels(observation)
+        self.observation = observation
+        self.radius = r = int(radius)
+        self.size = 2 * r + 1
+        self.spare = max(int(spare), 0)
+        h, w = self.blocked.shape
+        self.hp, self.wp = h + 2 * r, w + 2 * r
+        self._graph = _adjacency(self.blocked)
+        obstacle = np.ones((self.hp, self.wp), dtype=np.uint8)
+        obstacle[r:r + h, r:r + w] = self.blocked
+        self._obstacle = obstacle.reshape(-1)
+        offsets = np.arange(self.size)
+        self.window = (offsets[:, None] * self.wp + offsets[None, :]).reshape(-1)
+        self.centre = r * self.wp + r
+        self._static = np.empty((0, self.hp * self.wp), dtype=np.uint8)
+        self._distances = None
+        self._slot_of: dict[int, int] = {}  # goal flat cell -> slot, least recently used first
+        self._free: list[int] = []
+        self.searched = 0  # goals searched so far
+
+    def _grow(self, needed: int) -> None:
+        old = self._static.shape[0]
+        cap = max(needed, old + old // 2, 16)
+        static = np.empty((cap, self.hp * self.wp), dtype=np.uint8)
+        static[:old] = self._static
+        self._static = static
+        if self.channels > NUM_OBS_CHANNELS:
+            # int16 while every distance fits (compact_distances' rule)
+            fits = self.blocked.size < np.iinfo(np.int16).max
+            dist = np.empty((cap, self.hp * self.wp), dtype=np.int16 if fits else np.int32)
+            if old:
+                dist[:old] = self._distances
+            self._distances = dist
+        self._free.extend(range(cap - 1, old - 1, -1))
+
+    def slots(self, goals) -> np.ndarray:
+        """int64 (M,) the pool slots of `goals` (M, 2), searching the goals not in the pool."""
+        from .heuristic import _as_goals, _bits_from_distances, _distances
+
+        h, w = self.blocked.shape
+        goals = _as_goals(goals, self.blocked.shape)
+        flat = goals[:, 0] * w + goals[:, 1]
+        unique = np.unique(flat).tolist()
+        slot_of = self._slot_of
+        missing = [g for g in unique if g not in slot_of]
+        for g in unique:  # most recently used last
+            if g in slot_of:
+                slot_of[g] = slot_of.pop(g)
+        if missing:
+            in_use = len(unique) - len(missing)
+            keep = in_use + len(missing) + self.spare
+            while len(slot_of) + len(missing) > keep:  # the least recently used goals go first
+                self._free.append(slot_of.pop(next(iter(slot_of))))
+            if len(self._free) < len(missing):
+                self._grow(self._static.shape[0] + len(missing) - len(self._free))
+            r = self.radius
+            for start in range(0, len(missing), 64):  # bounded temporaries
+                chunk = missing[start:start + 64]
+                cells = np.array([divmod(g, w) for g in chunk], dtype=np.int64)
+                dist = _distances(self.blocked, cells, self._graph)
+                bits = _bits_from_distances(dist)
+                for k, g in enumerate(chunk):
+                    slot = self._free.pop()
+                    static = self._static[slot].reshape(self.hp, self.wp)
+                    static[:] = 1
+                    static[r:r + h, r:r + w] = self.blocked | (bits[k] << 1)
+                    if self._distances is not None:
+                        padded = self._distances[slot].reshape(self.hp, self.wp)
+                        padded[:] = UNREACHABLE
+                        padded[r:r + h, r:r + w] = dist[k]
+                    slot_of[g] = slot
+            self.searched += len(missing)
+        lookup = np.array([slot_of[g] for g in unique], dtype=np.int64)
+        return lookup[np.searchsorted(np.asarray(unique, dtype=np.int64), flat)]
+
+    def observe(self, positions, goals, agents=None) -> np.ndarray:
+        """float32 (M, C, S, S) of agents `agents` (M,) (None: all N) heading to `goals` (M, 2),
+        given every agent's `positions` (N, 2): the other agents are seen in channel 0 too."""
+        positions = check_positions(positions, self.blocked.shape)
+        own = positions if agents is None else positions[np.asarray(agents, dtype=np.int64)]
+        goals = np.asarray(goals)
+        if goals.shape != (len(own), 2):
+            raise ValueError(f"goals must have shape ({len(own)}, 2), got {goals.shape}")
+        slots = self.slots(goals)
+        s = self.size
+        n = len(own)
+        occupancy = np.zeros(self.hp * self.wp, dtype=np.uint8)
+        occupancy[positions[:, 0] * self.wp + positions[:, 1] + self.centre] = 1
+        corners = own[:, 0] * self.wp + own[:, 1]
+        windows = corners[:, None] + self.window  # (M, S*S)
+        static = self._static[slots[:, None], windows]
+        obs = np.empty((n, self.channels, s * s), dtype=np.float32)
+        obs[:, 0] = occupancy[windows]
+        obs[:, 0, (s * s) // 2] = 0.0  # the agent itself is not in its agent channel
+        for bit in range(5):
+            obs[:, 1 + bit] = (static >> bit) & 1
+        if self._distances is not None:
+            obs[:, COST_TO_GO_CHANNEL] = cost_to_go_channel(
+                cost_to_go_steps(self._distances[slots[:, None], windows], self.radius),
+                self.radius)
+        return obs.reshape(n, self.channels, s, s)
+
+
 def observe(grid, positions, goals, channels, radius: int = 4, distances=None) -> np.ndarray:
     """float32 (N, 6, 2r+1, 2r+1) observations centred on each agent, (N, 7, ...) with
     `distances`.

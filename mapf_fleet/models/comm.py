@@ -129,6 +129,11 @@ def dhc_partners_torch(
     return partners
 
 
+# Above this many agents an episode's FOV neighbours come from a lookup of the agents' cells
+# (O(N (2r+1)^2)) instead of the N x N pair table (both give the same table).
+SPATIAL_NEIGHBOURS_FROM = 256
+
+
 def fov_neighbour_table(
     positions: torch.Tensor, radius: int, agent_mask: torch.Tensor | None = None
 ) -> torch.Tensor:
@@ -137,6 +142,16 @@ def fov_neighbour_table(
     K is the largest neighbour count in the batch (at least 1), so memory grows with the local
     density, not with N^2.
     """
+    if positions.shape[-2] >= SPATIAL_NEIGHBOURS_FROM:
+        table = _fov_neighbour_table_by_cell(positions, radius, agent_mask)
+        if table is not None:
+            return table
+    return _fov_neighbour_table_by_pairs(positions, radius, agent_mask)
+
+
+def _fov_neighbour_table_by_pairs(
+    positions: torch.Tensor, radius: int, agent_mask: torch.Tensor | None = None
+) -> torch.Tensor:
     keys = _pair_keys_torch(positions, radius, agent_mask)
     inside = keys >= 0
     width = max(int(inside.sum(-1).max()) if inside.numel() else 0, 1)
@@ -147,3 +162,44 @@ def fov_neighbour_table(
     order = torch.argsort(rank, dim=-1)[..., :width]
     valid = torch.gather(inside, -1, order)
     return torch.where(valid, order, torch.full_like(order, -1))
+
+
+def _fov_neighbour_table_by_cell(
+    positions: torch.Tensor, radius: int, agent_mask: torch.Tensor | None = None
+) -> torch.Tensor | None:
+    """`fov_neighbour_table` from the sorted cells of the agents: each agent looks up the
+    (2r+1)^2 - 1 cells around its own. None when two agents share a cell (the pair table
+    handles that)."""
+    batch, num_agents = positions.shape[:2]
+    device = positions.device
+    flat = positions.reshape(-1, 2)
+    valid = torch.ones(batch * num_agents, dtype=torch.bool, device=device) \
+        if agent_mask is None else agent_mask.reshape(-1).bool()
+    table = torch.full((batch * num_agents, 1), -1, dtype=torch.long, device=device)
+    agents = valid.nonzero(as_tuple=True)[0]
+    if agents.numel() == 0:
+        return table.view(batch, num_agents, 1)
+    cells = flat[agents]
+    low = cells.min(0).values
+    # every cell r away from an agent stays inside its own episode's block and row
+    extent = cells.max(0).values - low + 1 + 2 * radius
+    rows, cols = int(extent[0]), int(extent[1])
+    key = (agents // num_agents) * (rows * cols) + (cells[:, 0] - low[0] + radius) * cols \
+        + (cells[:, 1] - low[1] + radius)
+    sorted_keys, order = torch.sort(key)
+    if bool((sorted_keys[1:] == sorted_keys[:-1]).any()):
+        return None
+    span = torch.arange(-radius, radius + 1, device=device)
+    shifts = (span[:, None] * cols + span[None, :]).reshape(-1)
+    shifts = shifts[shifts != 0]
+    wanted = key[:, None] + shifts  # (M, (2r+1)^2 - 1)
+    at = torch.searchsorted(sorted_keys, wanted).clamp(max=sorted_keys.numel() - 1)
+    hit = sorted_keys[at] == wanted
+    neighbour = agents[order[at]] % num_agents
+    ranked = torch.sort(torch.where(hit, neighbour, neighbour + num_agents), dim=-1).values
+    width = max(int(hit.sum(-1).max()), 1)
+    ranked = ranked[:, :width]
+    ranked = torch.where(ranked < num_agents, ranked, torch.full_like(ranked, -1))
+    table = torch.full((batch * num_agents, width), -1, dtype=torch.long, device=device)
+    table[agents] = ranked
+    return table.view(batch, num_agents, width)

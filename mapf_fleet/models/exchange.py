@@ -3,7 +3,7 @@ forward pass of DHC and DCC for the robots one process hosts, with the messages 
 going through a `link` (the ROS hub in `mapf_fleet.ros.hub`; tests and the checks below link
 exchanges in memory).
 
-- `PolicyExchange`: the robots' FOV observations (`grid.observation.ObservationBuilder`), the
+- `PolicyExchange`: the robots' FOV observations (`grid.observation.GoalObserver`), the
   network's batched pieces with the numbers of the batched `model.step` (same padding and
   masks), the peer messages through the link and into the `Mailbox`, and the robots' ranked
   actions (`coordination.ranking.rank_actions`, ties by `tie_breakers(robot id, tick)`).
@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from mapf_fleet.coordination.ranking import rank_actions, tie_breakers
-from mapf_fleet.grid.observation import ObservationBuilder
+from mapf_fleet.grid.observation import GoalObserver
 
 from .comm import dhc_partners
 
@@ -68,7 +68,8 @@ class PolicyExchange:
         self.ranking = ranking
         self.link = link
         self.mailbox = Mailbox()
-        self._observer: ObservationBuilder | None = None
+        self._observer: GoalObserver | None = None
+        self._observer_key = None
         self._hidden: torch.Tensor | None = None  # (M, H) carried post-communication hidden
         self._episode = None
         self._tick = -1
@@ -120,11 +121,11 @@ class PolicyExchange:
         goals = self._fleet_array(goals, "goals")
         local_goals = goals[self.ids]
         observation = self.model.config.observation
-        key = (grid.shape, grid.tobytes(), local_goals.tobytes(), observation)
-        if self._observer is None or self._observer.key != key:
-            self._observer = ObservationBuilder.for_goals(grid, local_goals, self.radius,
-                                                          observation)
-        obs = self._observer.observe(positions, self.ids)
+        key = (grid.shape, grid.tobytes(), observation)
+        if self._observer is None or self._observer_key != key:  # goals: searched when new
+            self._observer = GoalObserver(grid, self.radius, observation)
+            self._observer_key = key
+        obs = self._observer.observe(positions, local_goals, self.ids)
         self.timing.begin(started, arrived, stamp)
         self.timing.mark("observe")
         return self.decide_on(obs, positions, last_actions)
