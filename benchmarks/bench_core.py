@@ -12,8 +12,10 @@ stepped the way `evaluation.lifelong.rollout` steps it:
     conflict rule `FleetRun.step`: the arbiter (PIBT distance tables per goal), arrivals and the
                   next goals of the lifelong source
 
+Conflict rule: the fleet's default for DCC, `pibt` for the heuristic (plain PIBT), or `--rule`.
 Times are wall clock (torch may use more than one thread: `--threads`), medians and means over
-`--steps` steps after `--warmup` steps; the first step (every goal's BFS) is printed apart.
+`--steps` steps after `--warmup` steps; the first step (every goal's BFS) is printed apart, and
+the process's peak memory (cumulative over the cases of one command).
 Printed beside each case: the figures measured before this benchmark existed (`BEFORE`, named
 constants with their source).
 
@@ -25,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import resource
 import statistics
 import sys
 import time
@@ -39,6 +42,7 @@ from mapf_fleet.evaluation.lifelong import observe_runs  # noqa: E402
 from mapf_fleet.evaluation.policies import (  # noqa: E402
     CheckpointBatchPolicy, HeuristicBatchPolicy,
 )
+from mapf_fleet.fleet.arbiter import DEFAULT_CONFLICT_RULE  # noqa: E402
 from mapf_fleet.fleet.record import Decisions  # noqa: E402
 from mapf_fleet.fleet.run import FleetRun  # noqa: E402
 from mapf_fleet.fleet.tasks import InstanceTasks, LifelongTasks  # noqa: E402
@@ -76,7 +80,8 @@ def run_case(case: str, policy_name: str, args) -> dict:
     side, agents, lifelong = CASES[case]
     inst = generate_instance(side, agents, args.density, args.seed)
     tasks = LifelongTasks(grid=inst.grid, seed=args.seed) if lifelong else InstanceTasks()
-    run = FleetRun(inst.grid, inst.starts, tasks, inst.goals, rule=args.rule,
+    rule = args.rule or ("pibt" if policy_name == "heuristic" else DEFAULT_CONFLICT_RULE)
+    run = FleetRun(inst.grid, inst.starts, tasks, inst.goals, rule=rule,
                    max_steps=args.warmup + args.steps + 1)
     policy = make_policy(policy_name, args.checkpoint)
     policy.reset(1, agents)
@@ -103,7 +108,7 @@ def run_case(case: str, policy_name: str, args) -> dict:
     total = [sum(v) for v in zip(parts["observations"], parts["inference"],
                                  parts["conflict_rule"])]
     row = {"case": case, "policy": policy_name, "side": side, "agents": agents,
-           "density": args.density, "lifelong": lifelong, "rule": args.rule,
+           "density": args.density, "lifelong": lifelong, "rule": rule,
            "steps": args.steps, "threads": args.threads,
            "first_step_s": round(sum(first.values()), 4),
            "median_s": {k: round(statistics.median(v), 4) for k, v in parts.items()
@@ -114,6 +119,7 @@ def run_case(case: str, policy_name: str, args) -> dict:
            "step_mean_s": round(statistics.fmean(total), 4),
            "goal_changes_per_step": round(statistics.fmean(parts["goal_changes"]), 1),
            "goals_reached": run.goals_reached,
+           "max_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024),
            "before_s": BEFORE.get((case, policy_name))}
     return row
 
@@ -125,10 +131,13 @@ def main(argv=None) -> int:
     p.add_argument("--policy", nargs="+", default=["dcc", "heuristic"],
                    choices=["dcc", "heuristic"], help="dcc: --checkpoint; heuristic: plain PIBT")
     p.add_argument("--checkpoint", default=str(ROOT / "models" / "default.pt"))
-    p.add_argument("--rule", default="pibt", help="conflict rule (default pibt)")
+    p.add_argument("--rule", help="conflict rule (default: the fleet's default for dcc, pibt for "
+                                  "heuristic, i.e. plain PIBT)")
     p.add_argument("--density", type=float, default=0.3)
     p.add_argument("--steps", type=int, default=10)
-    p.add_argument("--warmup", type=int, default=2)
+    p.add_argument("--warmup", type=int, default=5,
+                   help="steps before the timed ones (the first searches every goal; the "
+                        "conflict rule's swap searches its neighbours' goals over the next ones)")
     p.add_argument("--threads", type=int, default=1, help="torch.set_num_threads")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", metavar="OUT")
@@ -137,7 +146,7 @@ def main(argv=None) -> int:
 
     torch.set_num_threads(args.threads)
     rows = []
-    print(f"{'case':15s} {'policy':9s} {'obs ms':>8s} {'infer ms':>9s} {'rule ms':>8s} "
+    print(f"{'case':15s} {'policy':9s} {'rule':17s} {'obs ms':>8s} {'infer ms':>9s} {'rule ms':>8s} "
           f"{'step ms':>8s} {'mean ms':>8s} {'first s':>8s} {'new goals':>9s} {'before ms':>9s}")
     for case in args.case:
         for policy_name in args.policy:
@@ -145,11 +154,11 @@ def main(argv=None) -> int:
             rows.append(row)
             m = row["median_s"]
             before = "-" if row["before_s"] is None else f"{1e3 * row['before_s']:.0f}"
-            print(f"{case:15s} {policy_name:9s} {1e3 * m['observations']:8.1f} "
+            print(f"{case:15s} {policy_name:9s} {row['rule']:17s} {1e3 * m['observations']:8.1f} "
                   f"{1e3 * m['inference']:9.1f} {1e3 * m['conflict_rule']:8.1f} "
                   f"{1e3 * row['step_median_s']:8.1f} {1e3 * row['step_mean_s']:8.1f} "
                   f"{row['first_step_s']:8.2f} {row['goal_changes_per_step']:9.1f} "
-                  f"{before:>9s}", flush=True)
+                  f"{before:>9s} {row['max_rss_mb']:7d}", flush=True)
     print(f"before: {BEFORE_SOURCE}")
     if args.json:
         Path(args.json).write_text(json.dumps({"command": " ".join(sys.argv),

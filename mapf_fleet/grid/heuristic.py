@@ -54,7 +54,32 @@ def _adjacency(blocked: np.ndarray) -> csr_matrix:
     rows = np.concatenate([index[:, :-1][horizontal], index[:-1, :][vertical]])
     cols = np.concatenate([index[:, 1:][horizontal], index[1:, :][vertical]])
     both = (np.concatenate([rows, cols]), np.concatenate([cols, rows]))
-    return csr_matrix((np.ones(2 * rows.size, dtype=np.int8), both), shape=(h * w, h * w))
+    # float64 and canonical, as scipy's graph searches want it: no conversion copy per search
+    graph = csr_matrix((np.ones(2 * rows.size), both), shape=(h * w, h * w))
+    graph.sum_duplicates()
+    return graph
+
+
+_MAPS: OrderedDict[tuple, tuple[csr_matrix, OrderedDict]] = OrderedDict()
+_MAX_MAPS = 8
+# the last searches of a map, kept up to this many bytes: the observations and the conflict rule
+# ask for the same new goals within a tick
+RECENT_BYTES = 64 << 20
+
+
+def _map_entry(blocked: np.ndarray) -> tuple[csr_matrix, OrderedDict]:
+    """(`_adjacency`, recent searches by goal cell) of a map, kept for the last few maps:
+    callers that search one goal at a time (the conflict rules' distance tables, a fleet's goal
+    checks, the observations of a lifelong run) neither rebuild the graph nor search twice."""
+    key = (blocked.shape, np.packbits(blocked).tobytes())
+    entry = _MAPS.get(key)
+    if entry is None:
+        entry = _MAPS[key] = (_adjacency(blocked), OrderedDict())
+        while len(_MAPS) > _MAX_MAPS:
+            _MAPS.popitem(last=False)
+    else:
+        _MAPS.move_to_end(key)
+    return entry
 
 
 def _bfs_steps(graph: csr_matrix, source: int, size: int) -> np.ndarray:
@@ -67,9 +92,10 @@ def _bfs_steps(graph: csr_matrix, source: int, size: int) -> np.ndarray:
     position = np.empty(size, dtype=np.int64)
     position[order] = np.arange(order.size)
     parent = position[pred[order[1:]]]  # non-decreasing
-    ends = [1]
-    while ends[-1] < order.size:
-        ends.append(int(np.searchsorted(parent, ends[-1], side="left")) + 1)
+    ends, end, find = [1], 1, parent.searchsorted
+    while end < order.size:
+        end = int(find(end)) + 1
+        ends.append(end)
     steps = np.full(size, UNREACHABLE, dtype=np.int32)
     steps[order] = np.repeat(np.arange(len(ends), dtype=np.int32), np.diff([0, *ends]))
     return steps
@@ -80,13 +106,22 @@ def _distances(blocked: np.ndarray, goals: np.ndarray, graph: csr_matrix | None 
     dist = np.empty((goals.shape[0], h, w), dtype=np.int32)
     if goals.shape[0] == 0:
         return dist
-    if graph is None:
-        graph = _adjacency(blocked)
+    map_graph, recent = _map_entry(blocked)
+    graph = map_graph if graph is None else graph
+    keep = max(16, RECENT_BYTES // (4 * h * w))
     for k, (r, c) in enumerate(goals):
         if blocked[r, c]:  # a goal on an obstacle: report nothing as reachable
             dist[k] = UNREACHABLE
+            continue
+        cell = int(r) * w + int(c)
+        found = recent.get(cell)
+        if found is None:
+            found = recent[cell] = _bfs_steps(graph, cell, h * w)
+            while len(recent) > keep:
+                recent.popitem(last=False)
         else:
-            dist[k] = _bfs_steps(graph, int(r) * w + int(c), h * w).reshape(h, w)
+            recent.move_to_end(cell)
+        dist[k] = found.reshape(h, w)  # a copy: callers own what they get
     return dist
 
 

@@ -211,7 +211,7 @@ class GoalObserver:
     """
 
     def __init__(self, grid, radius: int = 4, observation: str = "paper", spare: int = 256):
-        from .heuristic import _adjacency, _as_grid
+        from .heuristic import _as_grid
 
         self.blocked = _as_grid(grid)
         self.channels = observation_channels(observation)
@@ -221,7 +221,6 @@ class GoalObserver:
         self.spare = max(int(spare), 0)
         h, w = self.blocked.shape
         self.hp, self.wp = h + 2 * r, w + 2 * r
-        self._graph = _adjacency(self.blocked)
         obstacle = np.ones((self.hp, self.wp), dtype=np.uint8)
         obstacle[r:r + h, r:r + w] = self.blocked
         self._obstacle = obstacle.reshape(-1)
@@ -273,7 +272,7 @@ class GoalObserver:
             for start in range(0, len(missing), 64):  # bounded temporaries
                 chunk = missing[start:start + 64]
                 cells = np.array([divmod(g, w) for g in chunk], dtype=np.int64)
-                dist = _distances(self.blocked, cells, self._graph)
+                dist = _distances(self.blocked, cells)
                 bits = _bits_from_distances(dist)
                 for k, g in enumerate(chunk):
                     slot = self._free.pop()
