@@ -107,3 +107,14 @@ def test_bfs_distances_equal_scipy_dijkstra_on_random_maps():
         expected[grid[goals[:, 0], goals[:, 1]]] = -1
         np.testing.assert_array_equal(bfs_distances_many(grid, goals), expected,
                                       err_msg=f"trial {trial}")
+
+
+def test_a_repeated_search_gives_the_same_distances_and_the_caller_owns_them():
+    from mapf_fleet.grid.heuristic import bfs_distances
+
+    grid = generate_instance(24, 2, 0.3, 5).grid
+    goal = tuple(np.argwhere(grid == 0)[0])
+    first = bfs_distances(grid, goal)
+    expected = first.copy()
+    first[:] = 7  # the map's kept searches are not the caller's array
+    np.testing.assert_array_equal(bfs_distances(grid, goal), expected)

@@ -250,7 +250,11 @@ class PIBTShield:
         goal = (int(self.goals[agent, 0]), int(self.goals[agent, 1]))
         found = self._distance_lists.get(goal)
         if found is None:
-            dist = self.distance_map(agent)
+            dist = self._distance_maps.get(goal)
+            if dist is None:  # only the anchor's ranking keeps the array: half the memory
+                from mapf_fleet.grid.heuristic import bfs_distances
+
+                dist = bfs_distances(self.grid, goal).ravel()
             found = array("i", np.where(dist >= 0, dist, dist.size + 1).astype(np.int32).tobytes())
             self._distance_lists[goal] = found
             if len(self._distance_lists) > MAX_DISTANCE_MAPS:
