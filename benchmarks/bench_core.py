@@ -33,8 +33,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
@@ -56,9 +54,8 @@ CASES = {
     "lifelong-10000": (512, 10000, True),
 }
 
-# Per-step figures measured before this benchmark, one process, one torch thread (issue report
-# "The fleet keeps its promises", item 10, quoted in docs/results.md "The core at scale"):
-# (case, policy) -> seconds per step in all.
+# Per-step figures reported before this benchmark (one process, one torch thread), quoted in
+# docs/results.md "The core at scale": (case, policy) -> seconds per step in all.
 BEFORE = {
     ("oneshot-2048", "dcc"): 0.603,
     ("oneshot-2048", "heuristic"): 0.0078,
@@ -67,7 +64,7 @@ BEFORE = {
     ("oneshot-10000", "dcc"): 12.1,
     ("oneshot-10000", "heuristic"): 0.044,
 }
-BEFORE_SOURCE = "docs/results.md, 'The core at scale' (figures of the issue report, before)"
+BEFORE_SOURCE = "docs/results.md, 'The core at scale' (as reported before this benchmark)"
 
 
 def make_policy(name: str, checkpoint: str):

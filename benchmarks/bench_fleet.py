@@ -1,6 +1,6 @@
-"""Fleet throughput and where a tick goes: `mapf-fleet up` at 32 / 64 / 128 / 256 robots in the
-recommended layouts (32: 24x24, 4 processes x 8 robots; 64: 32x32, 4 x 16; 128: 40x40, 4 x 32;
-256: 56x56, 8 x 32), DHC and DCC, beside the batched evaluator (MAPFEnv + network.step, one
+"""Fleet throughput and where a tick goes: `mapf-fleet up` at 32 / 64 / 128 / 256 / 512 robots in
+the recommended layouts (32: 24x24, 4 processes x 8 robots; 64: 32x32, 4 x 16; 128: 40x40, 4 x 32;
+256: 56x56, 8 x 32; 512: 80x80, 8 x 64), DHC and DCC, beside the batched evaluator (MAPFEnv + network.step, one
 thread) on the same instance and checkpoint.
 
 Per run: ticks/s from the first progress line to the last (the simulator logs one every 5 ticks
@@ -18,8 +18,13 @@ over the hubs, in ms per tick:
 DCC message counts: requests + replies to other processes per tick, and the service calls that
 carried them (one DccBatch per pair of processes and phase).
 
-    python benchmarks/bench_fleet.py [--robots 32 64 128 256] [--algos dcc dhc] [--steps 60]
+Each run also prints its ready time (launch to the first tick) and the peak memory of its
+processes (RSS summed over `up`'s process group, sampled every 2 s); a run stopped by
+--run-timeout prints the tail of its output instead of figures.
+
+    python benchmarks/bench_fleet.py [--robots 32 64 128 256 512] [--algos dcc dhc] [--steps 60]
         [--task-source lifelong]   (a continuous run: a new goal on arrival, every tick played)
+        [--run-timeout 600]
         [--conflict-rule lacam --planning-budget 0.2]
 
 On the 2-core development machine one core was busy with a training job: figures are as measured.
@@ -31,9 +36,11 @@ import argparse
 import json
 import os
 import re
+import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -41,7 +48,9 @@ REPO = Path(__file__).resolve().parent.parent
 CHECKPOINTS = {"dcc": REPO / "models" / "default.pt",
                "dhc": REPO / "models" / "dhc_5x30_cl_alpha1.0.pt"}
 # robots -> (map side, robots per process)
-LAYOUTS = {32: (24, 8), 64: (32, 16), 128: (40, 32), 256: (56, 32)}
+# 512: 8 processes x 64, the layout measured to become ready (16 x 32 never did: discovery and
+# start-up of 17 processes on a loaded 2-core machine)
+LAYOUTS = {32: (24, 8), 64: (32, 16), 128: (40, 32), 256: (56, 32), 512: (80, 64)}
 PHASES = ("latency", "wake", "observe", "network", "send", "wait", "moves")
 TICK_LINE = re.compile(r"\[(\d+\.\d+)\] \[[^\]]*mapf_simulator\]: tick (\d+): ")
 HUB_LINE = re.compile(r"hub timing over (\d+) ticks, ms per tick: (.*?); last")
@@ -100,7 +109,10 @@ def hub_split(log_dir: str) -> tuple[dict, float, float]:
 
 
 def run_fleet(checkpoint, robots, size, per_process, seed, steps, domain,
-              task_source="instance", conflict_rule=None, planning_budget=None):
+              task_source="instance", conflict_rule=None, planning_budget=None, timeout=1800):
+    """One `up` run: (its record or None when it wrote none, (tick times, ticks/s), the hubs'
+    split, seconds from the launch to the first tick or None, peak memory of its processes in
+    MB (their RSS summed, sampled every 2 s), the output's tail)."""
     work = tempfile.mkdtemp(prefix="bench_fleet_")
     record, logs = os.path.join(work, "run.json"), os.path.join(work, "logs")
     cmd = [sys.executable, "-m", "mapf_fleet.cli", "up", "--checkpoint", str(checkpoint),
@@ -114,13 +126,36 @@ def run_fleet(checkpoint, robots, size, per_process, seed, steps, domain,
         cmd += ["--planning-budget", str(planning_budget)]
     cmd += ["--ros-args", "-p", "progress_every:=5"]
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-    done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=1800)
+    launched = time.time()
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True)
+    peak, stop = [0], threading.Event()
+
+    def sample():
+        while not stop.wait(2.0):
+            out = subprocess.run(["ps", "-o", "rss=", "-g", str(proc.pid)], capture_output=True,
+                                 text=True).stdout
+            peak[0] = max(peak[0], sum(int(v) for v in out.split()) // 1024)
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    try:
+        stdout, stderr = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGINT)  # up stops its fleet on SIGINT
+        try:
+            stdout, stderr = proc.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            stdout, stderr = proc.communicate()
+    stop.set()
     try:
         run = json.loads(Path(record).read_text())
     except (OSError, ValueError):
-        sys.exit(f"bench_fleet: no record from {' '.join(cmd)}:\n{done.stdout[-2000:]}"
-                 f"{done.stderr[-2000:]}")
-    return run, tick_times(done.stdout), hub_split(logs)
+        run = None
+    stamps = [float(m[1]) for m in TICK_LINE.finditer(stdout)]
+    ready = stamps[0] - launched if stamps else None
+    return run, tick_times(stdout), hub_split(logs), ready, peak[0], (stdout + stderr)[-2000:]
 
 
 def main():
@@ -141,6 +176,8 @@ def main():
                         help="--conflict-rule lacam: seconds per re-plan (default: up's, 1)")
     parser.add_argument("--domain-id", type=int, default=150,
                         help="first ROS_DOMAIN_ID used (one per run; default: 150)")
+    parser.add_argument("--run-timeout", type=float, default=1800,
+                        help="seconds a run may take before it is stopped (default 1800)")
     args = parser.parse_args()
     from mapf_fleet.grid.instance import generate_instance
 
@@ -156,17 +193,24 @@ def main():
         for algo in args.algos:
             checkpoint = CHECKPOINTS[algo]
             batched = batched_ms_per_step(checkpoint, instance, args.steps)
-            run, ticks, (split, messages, calls) = run_fleet(
+            run, ticks, (split, messages, calls), ready, memory, tail = run_fleet(
                 checkpoint, robots, size, per_process, args.seed, args.steps, domain,
-                args.task_source, args.conflict_rule, args.planning_budget)
+                args.task_source, args.conflict_rule, args.planning_budget, args.run_timeout)
             domain += 1
+            layout = f"{-(-robots // per_process)} x {per_process}, {size}x{size}"
+            ready_text = "never" if ready is None else f"{ready:.0f} s"
+            print(f"{robots:>6} {algo:<4} {layout:<14} ready {ready_text}, peak memory "
+                  f"{memory} MB ({memory / robots:.1f} MB per robot)", flush=True)
+            if run is None:
+                print(f"{'':>6} no record within {args.run_timeout} s; output's tail:\n{tail}",
+                      flush=True)
+                continue
             ticks, rate = ticks
             quarter = max(1, len(ticks) // 4)
             start_ms = 1000 * sum(ticks[:quarter]) / quarter if ticks else 0.0
             end_ms = 1000 * sum(ticks[-quarter:]) / quarter if ticks else 0.0
             per_tick = 1000 / rate if rate else 0.0
             rest = per_tick - sum(split[p] for p in PHASES)
-            layout = f"{-(-robots // per_process)} x {per_process}, {size}x{size}"
             comm = f"{messages:.0f}/{calls:.1f}" if algo == "dcc" else "-"
             print(f"{robots:>6} {algo:<4} {layout:<14} {rate:>7.2f} "
                   f"{f'{start_ms:.0f}->{end_ms:.0f}':>13} {run['missed_decisions']:>6} | "
