@@ -14,7 +14,8 @@ stepped the way `evaluation.lifelong.rollout` steps it:
 
 Conflict rule: the fleet's default for DCC, `pibt` for the heuristic (plain PIBT), or `--rule`.
 Times are wall clock (torch may use more than one thread: `--threads`), medians and means over
-`--steps` steps after `--warmup` steps; the first step (every goal's BFS) is printed apart, and
+`--steps` steps after `--warmup` steps, with the CPU time of a step beside (the process's, less
+sensitive to a shared machine's load); the first step (every goal's BFS) is printed apart, and
 the process's peak memory (cumulative over the cases of one command).
 Printed beside each case: the figures measured before this benchmark existed (`BEFORE`, named
 constants with their source).
@@ -84,23 +85,25 @@ def run_case(case: str, policy_name: str, args) -> dict:
     policy.reset(1, agents)
     observation = getattr(policy, "observation", "paper")
     parts = {"observations": [], "inference": [], "conflict_rule": [], "goal_changes": []}
+    cpu = []
     first = None
     for step in range(args.warmup + args.steps):
         goals_before = run.goals.copy()
-        t0 = time.perf_counter()
+        c0, t0 = time.process_time(), time.perf_counter()
         obs = observe_runs([run], observation)
         t1 = time.perf_counter()
         prefs = policy.rank(obs, run.positions[None], run.tick)
         t2 = time.perf_counter()
         result, _ = run.step(Decisions.complete(run.tick, prefs[0]))
         policy.executed(result.actions[None])
-        t3 = time.perf_counter()
+        t3, c3 = time.perf_counter(), time.process_time()
         split = {"observations": t1 - t0, "inference": t2 - t1, "conflict_rule": t3 - t2}
         if step == 0:
             first = split
         if step >= args.warmup:
             for key, value in split.items():
                 parts[key].append(value)
+            cpu.append(c3 - c0)
             parts["goal_changes"].append(int((run.goals != goals_before).any(axis=1).sum()))
     total = [sum(v) for v in zip(parts["observations"], parts["inference"],
                                  parts["conflict_rule"])]
@@ -114,6 +117,7 @@ def run_case(case: str, policy_name: str, args) -> dict:
                       if k != "goal_changes"},
            "step_median_s": round(statistics.median(total), 4),
            "step_mean_s": round(statistics.fmean(total), 4),
+           "step_cpu_median_s": round(statistics.median(cpu), 4),
            "goal_changes_per_step": round(statistics.fmean(parts["goal_changes"]), 1),
            "goals_reached": run.goals_reached,
            "max_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024),
@@ -144,7 +148,7 @@ def main(argv=None) -> int:
     torch.set_num_threads(args.threads)
     rows = []
     print(f"{'case':15s} {'policy':9s} {'rule':17s} {'obs ms':>8s} {'infer ms':>9s} {'rule ms':>8s} "
-          f"{'step ms':>8s} {'mean ms':>8s} {'first s':>8s} {'new goals':>9s} {'before ms':>9s}")
+          f"{'step ms':>8s} {'mean ms':>8s} {'cpu ms':>7s} {'first s':>8s} {'new goals':>9s} {'before ms':>9s}")
     for case in args.case:
         for policy_name in args.policy:
             row = run_case(case, policy_name, args)
@@ -154,6 +158,7 @@ def main(argv=None) -> int:
             print(f"{case:15s} {policy_name:9s} {row['rule']:17s} {1e3 * m['observations']:8.1f} "
                   f"{1e3 * m['inference']:9.1f} {1e3 * m['conflict_rule']:8.1f} "
                   f"{1e3 * row['step_median_s']:8.1f} {1e3 * row['step_mean_s']:8.1f} "
+                  f"{1e3 * row['step_cpu_median_s']:7.1f} "
                   f"{row['first_step_s']:8.2f} {row['goal_changes_per_step']:9.1f} "
                   f"{before:>9s} {row['max_rss_mb']:7d}", flush=True)
     print(f"before: {BEFORE_SOURCE}")
