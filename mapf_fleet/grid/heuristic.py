@@ -16,6 +16,7 @@ Conventions:
 
 from __future__ import annotations
 
+import threading
 from collections import OrderedDict
 
 import numpy as np
@@ -62,6 +63,7 @@ def _adjacency(blocked: np.ndarray) -> csr_matrix:
 
 _MAPS: OrderedDict[tuple, tuple[csr_matrix, OrderedDict]] = OrderedDict()
 _MAX_MAPS = 8
+_LOCK = threading.Lock()  # fleet processes decide in threads
 # the last searches of a map, kept up to this many bytes: the observations and the conflict rule
 # ask for the same new goals within a tick
 RECENT_BYTES = 64 << 20
@@ -72,13 +74,16 @@ def _map_entry(blocked: np.ndarray) -> tuple[csr_matrix, OrderedDict]:
     callers that search one goal at a time (the conflict rules' distance tables, a fleet's goal
     checks, the observations of a lifelong run) neither rebuild the graph nor search twice."""
     key = (blocked.shape, np.packbits(blocked).tobytes())
-    entry = _MAPS.get(key)
-    if entry is None:
-        entry = _MAPS[key] = (_adjacency(blocked), OrderedDict())
+    with _LOCK:
+        entry = _MAPS.get(key)
+        if entry is not None:
+            _MAPS.move_to_end(key)
+            return entry
+    entry = (_adjacency(blocked), OrderedDict())
+    with _LOCK:
+        entry = _MAPS.setdefault(key, entry)
         while len(_MAPS) > _MAX_MAPS:
             _MAPS.popitem(last=False)
-    else:
-        _MAPS.move_to_end(key)
     return entry
 
 
@@ -114,13 +119,16 @@ def _distances(blocked: np.ndarray, goals: np.ndarray, graph: csr_matrix | None 
             dist[k] = UNREACHABLE
             continue
         cell = int(r) * w + int(c)
-        found = recent.get(cell)
+        with _LOCK:
+            found = recent.get(cell)
+            if found is not None:
+                recent.move_to_end(cell)
         if found is None:
-            found = recent[cell] = _bfs_steps(graph, cell, h * w)
-            while len(recent) > keep:
-                recent.popitem(last=False)
-        else:
-            recent.move_to_end(cell)
+            found = _bfs_steps(graph, cell, h * w)
+            with _LOCK:
+                recent[cell] = found
+                while len(recent) > keep:
+                    recent.popitem(last=False)
         dist[k] = found.reshape(h, w)  # a copy: callers own what they get
     return dist
 
