@@ -19,7 +19,7 @@ DCC message counts: requests + replies to other processes per tick, and the serv
 carried them (one DccBatch per pair of processes and phase).
 
 Each run also prints its ready time (launch to the first tick) and the peak memory of its
-processes (RSS summed over `up`'s process group, sampled every 2 s); a run stopped by
+processes (RSS summed over `up` and its descendants, sampled every 2 s); a run stopped by
 --run-timeout prints the tail of its output instead of figures.
 
     python benchmarks/bench_fleet.py [--robots 32 64 128 256 512] [--algos dcc dhc] [--steps 60]
@@ -131,11 +131,16 @@ def run_fleet(checkpoint, robots, size, per_process, seed, steps, domain,
                             text=True, start_new_session=True)
     peak, stop = [0], threading.Event()
 
-    def sample():
+    def sample():  # up's children run in their own sessions: walk the process tree
         while not stop.wait(2.0):
-            out = subprocess.run(["ps", "-o", "rss=", "-g", str(proc.pid)], capture_output=True,
+            out = subprocess.run(["ps", "-e", "-o", "pid=,ppid=,rss="], capture_output=True,
                                  text=True).stdout
-            peak[0] = max(peak[0], sum(int(v) for v in out.split()) // 1024)
+            rows = [tuple(map(int, line.split())) for line in out.splitlines() if line.strip()]
+            tree, total = {proc.pid}, 0
+            for _ in range(4):  # up -> launcher/ros2 -> nodes: a few generations
+                tree |= {pid for pid, parent, _ in rows if parent in tree}
+            total = sum(rss for pid, _, rss in rows if pid in tree)
+            peak[0] = max(peak[0], total // 1024)
 
     sampler = threading.Thread(target=sample, daemon=True)
     sampler.start()
