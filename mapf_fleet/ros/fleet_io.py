@@ -142,7 +142,6 @@ class FleetChannels:
 
 
 IDLE_STATE_PERIOD_S = 1.0  # an idle fleet republishes its state this often
-RECORD_CHECKPOINT_S = 5.0  # a running fleet rewrites its record at most this often
 
 
 def run_lockstep(node, channels: FleetChannels, run, step, publish_state, *, lock,
@@ -155,8 +154,9 @@ def run_lockstep(node, channels: FleetChannels, run, step, publish_state, *, loc
     Each tick: `publish_state(done=False)`, collect the moves, then `step(decisions) ->
     (events, overridden robot ids)` makes the next tick (it must call `ticker.advance()` and
     `run.advance`, under `lock`); the goal events go to `goals` (`ros.goals.GoalServer`, also
-    the action feedback), progress is published and logged every `progress_every` ticks, and
-    the record is rewritten every RECORD_CHECKPOINT_S (a killed process leaves what it ran). A continuous fleet with nothing
+    the action feedback), progress is published and logged every `progress_every` ticks; the
+    record is written once at the first tick (marked incomplete) and every tick goes to its
+    journal as it ends (a killed process leaves what it ran). A continuous fleet with nothing
     to do (`run.waiting`: every robot idle) does not tick: it waits for a goal. At the end: the
     final state, the outcome (published, latched; `summary_extra()` is appended to its summary)
     and the record. `ticker.stop()` (a signal, a failed callback) ends the run before the next
@@ -165,7 +165,7 @@ def run_lockstep(node, channels: FleetChannels, run, step, publish_state, *, loc
     logger = node.get_logger()
     ticker = channels.ticker
     published, published_at = None, 0.0  # the tick whose state is out, and when
-    checkpointed = -float("inf")  # the first tick is written at once
+    checkpointed = False  # the record is written (incomplete) at the first tick only
     run.recorder.started = time.monotonic()  # run_seconds count from the first tick, not start-up
     if record_file:  # every tick kept as it ends, whatever happens to this process
         run.recorder.open_journal(record_file)
@@ -210,11 +210,12 @@ def run_lockstep(node, channels: FleetChannels, run, step, publish_state, *, loc
         channels.progress_pub.publish(FleetProgress(**progress))
         if run.steps % progress_every == 0:
             logger.info(run.progress_text())
-        # the record so far, for a process that dies before the end; it is rewritten whole, so
-        # not more often than every RECORD_CHECKPOINT_S (a cost that grows with the run)
-        if record_file and time.monotonic() - checkpointed > RECORD_CHECKPOINT_S:
+        # the record's head for a process that dies before the end, written once: the journal
+        # holds every tick after it and `read_record` joins them, where rewriting the whole
+        # record would cost more each time as the run grows
+        if record_file and not checkpointed:
             run.recorder.checkpoint(record_file, run.tick)
-            checkpointed = time.monotonic()
+            checkpointed = True
         if tick_period > 0:
             time.sleep(max(0.0, tick_period - (time.monotonic() - started)))
     publish_state(done=True)
