@@ -24,12 +24,17 @@ apart:
                  context (`--no-messages`: skipped)
     gc           the garbage collector's own time within the tick (`gc.callbacks`)
 
+With `--ros` (rclpy in this process, its ROS_DOMAIN_ID): the moves come through DDS, published
+by a second node of the process before the tick's clock starts, and "take moves" is the wait
+until the simulator's subscription (`fleet_io.FleetChannels`, spun in its own thread as the
+node does) has them all; "messages" publishes for real through the simulator's publishers.
+
 Printed: ms per tick (mean over the first and the last `--window` ticks) in all and per part,
 the checkpoint's cost per call (first and last), the final write, the record's size, the
 process's peak memory.
 
     .venv/bin/python benchmarks/bench_world.py [--robots 512] [--size 80] [--ticks 500]
-        [--window 50] [--checkpoint-every N] [--no-messages] [--json OUT]
+        [--window 50] [--checkpoint-every N] [--no-messages | --ros] [--json OUT]
 """
 
 from __future__ import annotations
@@ -183,6 +188,65 @@ class Publisher:
         del fleet_io  # imported for what the node imports (rclpy) only
 
 
+class RosPublisher:
+    """`--ros`: the simulator's own publishers (`fleet_io.FleetChannels`, the robots' pose
+    publishers) on a node of this process, publishing for real (nobody subscribes but the
+    process's own mover node), and the moves taken through the channels' subscription."""
+
+    def __init__(self, episode: int, goals, ticker, num_robots: int):
+        import rclpy
+        from geometry_msgs.msg import PoseStamped
+        from mapf_fleet_interfaces.msg import RobotMove
+        from rclpy.executors import SingleThreadedExecutor
+
+        from mapf_fleet.ros import common, fleet_io
+
+        common.prepare_environment()
+        rclpy.init()
+        self.node = rclpy.create_node("mapf_simulator")
+        self.geometry = common.MapGeometry(1.0)
+        self.ticker = ticker
+        self.channels = fleet_io.FleetChannels(self.node, ticker, self.geometry)
+        quiet = common.quiet_publisher_events()
+        self.pose_pubs = [self.node.create_publisher(
+            PoseStamped, common.rel(common.pose_topic(i)), common.reliable_qos(10),
+            event_callbacks=quiet) for i in range(num_robots)]
+        self.channels._goals_sent = np.array(goals, dtype=np.int64)
+        self.mover = rclpy.create_node("bench_world_mover")
+        self.moves_pub = self.mover.create_publisher(RobotMove, common.rel(common.MOVES_TOPIC),
+                                                     common.reliable_qos(1000))
+        executor = SingleThreadedExecutor()
+        executor.add_node(self.node)
+        self.spinner = common.SpinThread(executor).start()
+        deadline = time.monotonic() + 30
+        while self.moves_pub.get_subscription_count() < 1 and time.monotonic() < deadline:
+            time.sleep(0.1)
+
+    def send_moves(self, msgs) -> None:
+        for msg in msgs:
+            self.moves_pub.publish(msg)
+
+    def tick(self, run, events, done: bool = False) -> None:
+        from mapf_fleet_interfaces.msg import FleetProgress
+
+        from mapf_fleet.ros import common
+
+        self.channels.publish_waypoints(run.positions)
+        self.channels.publish_goal_changes(run.goals, events)
+        self.channels.progress_pub.publish(FleetProgress(**run.progress([])))
+        stamp = self.channels.publish_state(run.positions, run.goals, run.last_actions, done)
+        for i, pub in enumerate(self.pose_pubs):
+            pub.publish(common.cell_pose(*run.positions[i], self.geometry, stamp))
+
+    def close(self) -> None:
+        import rclpy
+
+        self.spinner.stop()
+        self.mover.destroy_node()
+        self.node.destroy_node()
+        rclpy.try_shutdown()
+
+
 def run(args) -> dict:
     inst = generate_instance(args.size, args.robots, args.density, args.seed)
     tasks = LifelongTasks(grid=inst.grid, seed=args.seed)
@@ -191,8 +255,9 @@ def run(args) -> dict:
                      max_steps=args.ticks, episode=episode, series=SIM_SERIES)
     ticker = FleetTicker(args.robots, episode)
     moves = Moves(inst.grid, args.noise, args.seed)
-    publisher = None if args.no_messages else Publisher(episode, fleet.goals)
-    if publisher is not None:  # the imports, before the first tick
+    ros = RosPublisher(episode, fleet.goals, ticker, args.robots) if args.ros else None
+    publisher = ros or (None if args.no_messages else Publisher(episode, fleet.goals))
+    if publisher is not None and ros is None:  # the imports, before the first tick
         Publisher(episode, fleet.goals).tick(fleet, [])
     clock = Clock()
     clock.wrap(fleet, "resolve", "arbitrate")
@@ -218,11 +283,14 @@ def run(args) -> dict:
             rankings = moves.rankings(fleet.positions, fleet.goals)  # the policies: untimed
             msgs = moves.messages(episode, ticker.tick, rankings)
             clock.tick = {}
+            if ros is not None:  # through DDS: the wait for the last move is timed
+                ros.send_moves(msgs)
             started = time.perf_counter()
             t0 = time.perf_counter()
-            for msg in msgs:
-                ticker.on_move(msg)
-            decisions = ticker.collect(0.0)
+            if ros is None:
+                for msg in msgs:
+                    ticker.on_move(msg)
+            decisions = ticker.collect(10.0 if ros is not None else 0.0)
             clock.add("take moves", time.perf_counter() - t0)
             result, events = fleet.step(decisions, requested=decisions.requested,
                                         messages=decisions.messages)
@@ -253,6 +321,8 @@ def run(args) -> dict:
         os.rmdir(work)
     finally:
         gc.callbacks.remove(on_gc)
+        if ros is not None:
+            ros.close()
 
     def window(rows):
         keys = ("total",) + PARTS
@@ -266,7 +336,9 @@ def run(args) -> dict:
             "checkpoint_last_ms": 1000 * checkpoints[-1][1] if checkpoints else None,
             "final_write_ms": 1000 * final_write, "record_mb": record_bytes / 1e6,
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-            "message_mb_per_tick": (publisher.bytes / len(ticks) / 1e6) if publisher else None}
+            "missed": fleet.recorder.missed,
+            "message_mb_per_tick": (publisher.bytes / len(ticks) / 1e6)
+            if publisher is not None and ros is None else None}
 
 
 def main(argv=None) -> int:
@@ -285,11 +357,15 @@ def main(argv=None) -> int:
                          "the node)")
     ap.add_argument("--progress-every", type=int, default=10)
     ap.add_argument("--no-messages", action="store_true")
+    ap.add_argument("--ros", action="store_true",
+                    help="publish for real on a node of this process (rclpy, ROS_DOMAIN_ID of "
+                         "the environment) and take the moves through DDS")
     ap.add_argument("--json", default="")
     args = ap.parse_args(argv)
     out = run(args)
     print(f"{out['robots']} robots, {out['size']}x{out['size']}, {out['ticks']} ticks, "
-          f"{out['rule']}, {out['goals_reached']} goals reached")
+          f"{out['rule']}, {out['goals_reached']} goals reached, {out['missed']} missed"
+          + (" (ROS: published, moves through DDS)" if args.ros else ""))
     header = f"{'ms per tick':<18}" + "".join(f"{k:>12}" for k in ("total",) + PARTS)
     print(header)
     for name in ("first", "last"):
