@@ -97,7 +97,6 @@ class Moves:
         self.noise = noise
         self.rng = np.random.default_rng(seed)
         self.maps: dict[tuple, np.ndarray] = {}
-        h, w = self.grid.shape
         self.deltas = np.asarray(ACTION_DELTAS, dtype=np.int64)  # (5, 2), 0 = stay
 
     def distances(self, goal) -> np.ndarray:
@@ -152,7 +151,7 @@ class Publisher:
         from mapf_fleet_interfaces.msg import GoalEvent as GoalEventMsg
         from rclpy.serialization import serialize_message
 
-        from mapf_fleet.ros import common, fleet_io
+        from mapf_fleet.ros import common
 
         now = time.time()
         stamp = Time(sec=int(now), nanosec=int((now % 1) * 1e9))
@@ -185,7 +184,6 @@ class Publisher:
                 for i in range(len(positions))]
         for msg in out:
             self.bytes += len(serialize_message(msg))
-        del fleet_io  # imported for what the node imports (rclpy) only
 
 
 class RosPublisher:
