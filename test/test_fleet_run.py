@@ -284,9 +284,9 @@ def test_a_submitted_task_no_robot_can_reach_is_rejected_at_once():
 
 
 def test_a_killed_run_keeps_every_tick_in_its_journal(tmp_path):
-    """The record is rewritten whole only every few seconds; the journal beside it gets every
-    tick as it ends, so a simulator killed (-9) between two rewrites loses none, and the rate
-    read back is the journal's (ticks over the time of the last one)."""
+    """The record is written whole only at the first tick and at the end; the journal beside
+    it gets every tick as it ends, so a simulator killed (-9) in between loses none, and the
+    rate read back is the journal's (ticks over the time of the last one)."""
     import os
 
     from mapf_fleet.fleet.record import journal_path, read_record
