@@ -19,6 +19,7 @@ from mapf_fleet_interfaces.msg import (FleetOutcome, FleetProgress, FleetState, 
 from nav_msgs.msg import OccupancyGrid
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.exceptions import InvalidHandle
 from visualization_msgs.msg import Marker, MarkerArray
 
 from mapf_fleet.fleet import parameters
@@ -81,12 +82,28 @@ class FleetChannels:
                                                     common.rel(common.waypoint_topic(i)),
                                                     common.latched_qos(1), event_callbacks=quiet)
                               for i in range(n)]
-        node.create_subscription(RobotMove, common.rel(common.MOVES_TOPIC), self._on_move,
-                                 common.reliable_qos(1000))
+        self._moves_sub = node.create_subscription(RobotMove, common.rel(common.MOVES_TOPIC),
+                                                   self._on_move, common.reliable_qos(1000))
         node.create_subscription(RobotStatus, common.rel(common.STATUS_TOPIC), ticker.on_status,
                                  common.reliable_qos(1000))
 
     def _on_move(self, msg: RobotMove):  # executor thread: store and notify only
+        self._take_move(msg)
+        # the executor takes one message per wait and rebuilds its wait set in Python for each
+        # (about 0.2 ms a move, 100 ms a tick at 512 robots): the moves already queued behind
+        # this one are taken here, in the order the executor would take them (at most a tick's)
+        sub = self._moves_sub
+        for _ in range(self.ticker.num_robots):
+            try:
+                with sub.handle:
+                    taken = sub.handle.take_message(sub.msg_type, sub.raw)
+            except InvalidHandle:  # destroyed under us: the node is shutting down
+                return
+            if taken is None:
+                return
+            self._take_move(taken[0])
+
+    def _take_move(self, msg: RobotMove) -> None:
         warning = self.ticker.on_move(msg)
         if warning:
             self.node.get_logger().warning(warning)
