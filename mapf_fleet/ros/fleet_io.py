@@ -91,9 +91,10 @@ class FleetChannels:
         self._take_move(msg)
         # the executor takes one message per wait and rebuilds its wait set in Python for each
         # (about 0.2 ms a move, 100 ms a tick at 512 robots): the moves already queued behind
-        # this one are taken here, in the order the executor would take them (at most a tick's)
+        # this one are taken here, in the order the executor would take them (at most two
+        # ticks' worth: a tick's moves and as many stale ones; the rest waits for the next wait)
         sub = self._moves_sub
-        for _ in range(self.ticker.num_robots):
+        for _ in range(2 * self.ticker.num_robots):
             try:
                 with sub.handle:
                     taken = sub.handle.take_message(sub.msg_type, sub.raw)
