@@ -4,7 +4,7 @@ the recommended layouts (32: 24x24, 4 processes x 8 robots; 64: 32x32, 4 x 16; 1
 thread) on the same instance and checkpoint.
 
 Per run: ticks/s from the first progress line to the last (the simulator logs one every 5 ticks
-here, `progress_every`: each also rewrites the run's record, a cost that grows with the run;
+here, `progress_every`;
 start-up excluded), the time per tick over the first and the last quarter of the run (flat or
 growing), missed decisions, and the split of a tick from the hubs' own timing
 (`models.exchange.TickTiming`, logged by every policy process, kept with --log-dir), averaged

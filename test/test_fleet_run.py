@@ -284,9 +284,9 @@ def test_a_submitted_task_no_robot_can_reach_is_rejected_at_once():
 
 
 def test_a_killed_run_keeps_every_tick_in_its_journal(tmp_path):
-    """The record is rewritten whole only every few seconds; the journal beside it gets every
-    tick as it ends, so a simulator killed (-9) between two rewrites loses none, and the rate
-    read back is the journal's (ticks over the time of the last one)."""
+    """The record is written whole only at the first tick and at the end; the journal beside
+    it gets every tick as it ends, so a simulator killed (-9) in between loses none, and the
+    rate read back is the journal's (ticks over the time of the last one)."""
     import os
 
     from mapf_fleet.fleet.record import journal_path, read_record
@@ -315,6 +315,27 @@ def test_a_killed_run_keeps_every_tick_in_its_journal(tmp_path):
     run.recorder.write(path)
     run.recorder.close_journal(path)
     assert not os.path.exists(journal_path(path)) and read_record(path)["steps"] == 7
+
+
+def test_a_record_written_at_the_first_tick_and_its_journal_rebuild_the_whole_run(tmp_path):
+    """As the simulator records: the record written once at the first tick, then only the
+    journal; a killed run reads back every tick and goal event the run itself holds."""
+    from mapf_fleet.fleet.record import read_record
+
+    path = tmp_path / "run.json"
+    inst = generate_instance(12, 10, 0.2, 3)
+    run = FleetRun(inst.grid, inst.starts, LifelongTasks(grid=inst.grid, seed=3), inst.goals,
+                   max_steps=0, series=("executed", "overridden"))
+    run.recorder.open_journal(path)
+    run.step(distance_decisions(run))
+    run.recorder.checkpoint(path, run.tick)
+    for _ in range(40):
+        run.step(distance_decisions(run))
+    run.recorder._journal.close()  # killed: no final write
+    record, whole = read_record(path), run.recorder.record
+    assert record["incomplete"] and record["steps"] == 41 and run.goals_reached > 0
+    for name in ("positions", "actions", "missed", "executed", "overridden", "goal_events"):
+        assert record[name] == whole[name], name
 
 
 @pytest.mark.slow

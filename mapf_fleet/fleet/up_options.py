@@ -23,7 +23,9 @@ DESCRIPTION = """`mapf-fleet up`: start a simulated fleet (simulator + one polic
 progress, print the outcome and exit 0 on success.
 
 Process layout: by default each policy node runs in its own process; `--nodes-per-process K`
-hosts K robots' nodes per process (needed past ~32 processes: Fast DDS discovery on loopback);
+hosts K robots' nodes per process (needed past ~32 processes: Fast DDS discovery on loopback;
+from 256 robots at most 8 processes, K = ceil(robots / 8), e.g. 64 for 512: the layouts measured
+to get ready, `up` warns otherwise);
 `--single-process` runs the simulator and every policy node in this process. The policy nodes of
 one process share one hub (one subscription per shared topic, batched inference). With
 `--real-robots` the aggregator replaces the simulator: the robots publish their own poses on
@@ -51,6 +53,13 @@ MAX_NODES_PER_PROCESS = 512
 # handle (docs/fleet.md, Process layouts: about 32 are discovered; with 64 half never see
 # each other and the shared-memory transport can deadlock). Above it `up` warns, not refuses.
 MAX_DISCOVERED_PROCESSES = 32
+# A fleet of LARGE_FLEET_ROBOTS robots or more in at most LARGE_FLEET_PROCESSES policy processes:
+# the layouts measured to get ready at that size (docs/fleet.md, Process layouts: 256 robots as
+# 8 x 32, 512 as 8 x 64; 512 as 16 x 32 never did). Every process discovers the per-robot
+# endpoints of every other, so discovery grows with processes times robots, and every process
+# starts its nodes on its own on a machine that runs them all.
+LARGE_FLEET_ROBOTS = 256
+LARGE_FLEET_PROCESSES = 8
 
 
 class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
@@ -472,14 +481,36 @@ def policy_processes(num_robots: int, single_process: bool, nodes_per_process: i
     return 1 if single_process else -(-num_robots // max(1, nodes_per_process))
 
 
+def recommended_nodes_per_process(num_robots: int, recorder: bool = False) -> int:
+    """The `--nodes-per-process` `up` recommends for `num_robots`: a large fleet (at least
+    LARGE_FLEET_ROBOTS) in LARGE_FLEET_PROCESSES processes (at most MAX_NODES_PER_PROCESS nodes
+    each); a smaller one in as few as keep every ROS process within MAX_DISCOVERED_PROCESSES
+    (1: a process per robot)."""
+    if num_robots >= LARGE_FLEET_ROBOTS:
+        return min(-(-num_robots // LARGE_FLEET_PROCESSES), MAX_NODES_PER_PROCESS)
+    return max(1, -(-num_robots // max(1, MAX_DISCOVERED_PROCESSES - 1 - int(recorder))))
+
+
 def layout_warning(num_robots: int, single_process: bool, nodes_per_process: int,
                    recorder: bool = False) -> str:
-    """A warning ("" when none) when the layout needs more ROS processes (the simulator or
-    aggregator, one per group of robots' nodes, the recorder) than MAX_DISCOVERED_PROCESSES."""
-    processes = 1 + policy_processes(num_robots, single_process, nodes_per_process) + int(recorder)
+    """A warning ("" when none) when the layout has more policy processes than a large fleet
+    was measured to get ready with (LARGE_FLEET_PROCESSES from LARGE_FLEET_ROBOTS robots), or
+    needs more ROS processes (the simulator or aggregator, one per group of robots' nodes, the
+    recorder) than MAX_DISCOVERED_PROCESSES."""
+    hubs = policy_processes(num_robots, single_process, nodes_per_process)
+    if num_robots >= LARGE_FLEET_ROBOTS and hubs > LARGE_FLEET_PROCESSES:
+        suggest = recommended_nodes_per_process(num_robots, recorder)
+        if nodes_per_process < suggest:
+            return (f"warning: {num_robots} robots in {hubs} policy processes; fleets of "
+                    f"{LARGE_FLEET_ROBOTS}+ robots were measured to get ready only in "
+                    f"{LARGE_FLEET_PROCESSES} or fewer (512 robots: 8 x 64 ready in 149 s, "
+                    f"16 x 32 never), since DDS discovery grows with processes times robots "
+                    f"and each process starts its nodes on its own. Use --nodes-per-process "
+                    f"{suggest} ({policy_processes(num_robots, False, suggest)} processes).")
+    processes = 1 + hubs + int(recorder)
     if processes <= MAX_DISCOVERED_PROCESSES:
         return ""
-    suggest = -(-num_robots // max(1, MAX_DISCOVERED_PROCESSES - 1 - int(recorder)))
+    suggest = recommended_nodes_per_process(num_robots, recorder)
     return (f"warning: this layout starts {processes} ROS processes on one domain; Fast DDS "
             f"discovery on loopback was measured reliable up to about "
             f"{MAX_DISCOVERED_PROCESSES} (above it processes may never see each other and robots "

@@ -185,8 +185,8 @@ def test_a_killed_simulator_leaves_the_ticks_it_ran_in_the_record(tmp_path, ros_
                           env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                           text=True)
     try:
-        # killed at once: the record was last rewritten whole at the first tick (it is
-        # rewritten every fleet_io.RECORD_CHECKPOINT_S), the journal has every tick since
+        # killed at once: the record was written whole at the first tick only, the journal
+        # has every tick since
         _wait_for_line(up, "tick 20:", 240)
         # this run's simulator only (a child of this `up`), never another test's
         sim = subprocess.run(["pgrep", "-P", str(up.pid), "-f", "mapf_fleet.ros.run simulator"],
