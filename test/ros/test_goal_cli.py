@@ -42,6 +42,7 @@ def test_no_answer_gives_up_at_the_timeout_and_stop_ends_the_asking():
 def test_goal_for_a_robot_the_fleet_does_not_have_is_refused_at_once(ros_env):
     """The fleet state names 8 robots: `goal 42` says so in seconds (exit 2), instead of
     waiting out --timeout for an action server that will never come."""
+    import os
     import subprocess
     import sys
     import threading
@@ -52,6 +53,10 @@ def test_goal_for_a_robot_the_fleet_does_not_have_is_refused_at_once(ros_env):
     rclpy = pytest.importorskip("rclpy")
     from mapf_fleet_interfaces.msg import FleetState
 
+    # both ROS processes stay on loopback: this one's rclpy reads os.environ and the CLI gets
+    # env=ros_env, each with the test's own domain (`ros_env`, test/conftest.py)
+    assert os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
+    assert ros_env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
     context = rclpy.Context()
     rclpy.init(context=context)
     node = rclpy.create_node("fake_fleet", context=context)
