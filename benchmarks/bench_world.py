@@ -147,11 +147,12 @@ class Publisher:
 
     def tick(self, run, events, done: bool = False) -> None:
         from builtin_interfaces.msg import Time
-        from mapf_fleet_interfaces.msg import FleetProgress, FleetState
-        from mapf_fleet_interfaces.msg import GoalEvent as GoalEventMsg
+        from mapf_fleet_interfaces.msg import FleetProgress
         from rclpy.serialization import serialize_message
 
         from mapf_fleet.ros import common
+        from mapf_fleet.ros.fleet_io import fleet_state_msg
+        from mapf_fleet.ros.goals import goal_event_msg
 
         now = time.time()
         stamp = Time(sec=int(now), nanosec=int((now % 1) * 1e9))
@@ -163,23 +164,12 @@ class Publisher:
         changed = np.flatnonzero((goals != self.goals_sent).any(axis=1)).tolist()
         out += [common.cell_pose(*goals[i], self.geometry) for i in changed]
         self.goals_sent = goals.copy()
-        for e in events:
-            msg = GoalEventMsg(episode=self.episode, tick=int(e.tick), robot_id=int(e.robot),
-                               event=e.event, source=e.source, goal_id=e.goal_id,
-                               reason=e.reason, has_cell=e.cell is not None)
-            if e.cell is not None:
-                msg.row, msg.col = int(e.cell[0]), int(e.cell[1])
-            out.append(msg)
+        out += [goal_event_msg(self.episode, e) for e in events]
         out.append(FleetProgress(**run.progress([])))
         # _publish_state: the state, then every robot's pose
         positions = run.positions
-        state = FleetState(episode=self.episode, tick=run.tick, done=done,
-                           rows=positions[:, 0].tolist(), cols=positions[:, 1].tolist(),
-                           goal_rows=goals[:, 0].tolist(), goal_cols=goals[:, 1].tolist(),
-                           last_actions=np.asarray(run.last_actions).tolist())
-        state.header.stamp = stamp
-        state.header.frame_id = common.FRAME_ID
-        out.append(state)
+        out.append(fleet_state_msg(self.episode, run.tick, positions, goals, run.last_actions,
+                                   done, stamp))
         out += [common.cell_pose(*positions[i], self.geometry, stamp)
                 for i in range(len(positions))]
         for msg in out:

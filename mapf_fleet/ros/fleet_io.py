@@ -54,6 +54,20 @@ def set_parameters_result(params: dict, parameters, table: dict, logger=None):
     return SetParametersResult(successful=True)
 
 
+
+def fleet_state_msg(episode: int, tick: int, positions, goals, last_actions, done: bool,
+                    stamp) -> FleetState:
+    """The FleetState of a tick: (N, 2) cells and goals, the last actions, stamped in the map
+    frame."""
+    msg = FleetState(episode=episode, tick=tick, done=done,
+                     rows=positions[:, 0].tolist(), cols=positions[:, 1].tolist(),
+                     goal_rows=goals[:, 0].tolist(), goal_cols=goals[:, 1].tolist(),
+                     last_actions=np.asarray(last_actions).tolist())
+    msg.header.stamp = stamp
+    msg.header.frame_id = common.FRAME_ID
+    return msg
+
+
 class FleetChannels:
     """The fleet-level publishers and the move/heartbeat subscriptions (feeding `ticker`)."""
 
@@ -147,13 +161,8 @@ class FleetChannels:
     def publish_state(self, positions, goals, last_actions, done: bool):
         """FleetState of the ticker's tick and the markers; returns the stamp used."""
         stamp = self.node.get_clock().now().to_msg()
-        msg = FleetState(episode=self.ticker.episode, tick=self.ticker.tick, done=done,
-                         rows=positions[:, 0].tolist(), cols=positions[:, 1].tolist(),
-                         goal_rows=goals[:, 0].tolist(), goal_cols=goals[:, 1].tolist(),
-                         last_actions=np.asarray(last_actions).tolist())
-        msg.header.stamp = stamp
-        msg.header.frame_id = common.FRAME_ID
-        self.state_pub.publish(msg)
+        self.state_pub.publish(fleet_state_msg(self.ticker.episode, self.ticker.tick, positions,
+                                               goals, last_actions, done, stamp))
         if self.markers_pub.get_subscription_count():  # built only for a viewer (RViz)
             self.markers_pub.publish(fleet_markers(positions, goals, self.geometry, stamp))
         return stamp

@@ -79,6 +79,16 @@ class _ActionGoal:
         self.recoveries = 0
 
 
+def goal_event_msg(episode: int, e: GoalEvent) -> GoalEventMsg:
+    """The GoalEvent message of a goal event of the core (fleet.record.GoalEvent)."""
+    msg = GoalEventMsg(episode=episode, tick=int(e.tick), robot_id=int(e.robot), event=e.event,
+                       source=e.source, goal_id=e.goal_id, reason=e.reason,
+                       has_cell=e.cell is not None)
+    if e.cell is not None:
+        msg.row, msg.col = int(e.cell[0]), int(e.cell[1])
+    return msg
+
+
 class GoalServer:
     """ROS goal inputs for `run` (a FleetRun guarded by `lock`). Every accepted request sets
     `request_signal`, on which an idle fleet's tick thread waits."""
@@ -222,12 +232,7 @@ class GoalServer:
     # ---- from the tick thread --------------------------------------------------------------------
     def publish(self, events) -> None:
         for e in events:
-            msg = GoalEventMsg(episode=self.episode, tick=int(e.tick), robot_id=int(e.robot),
-                               event=e.event, source=e.source, goal_id=e.goal_id,
-                               reason=e.reason, has_cell=e.cell is not None)
-            if e.cell is not None:
-                msg.row, msg.col = int(e.cell[0]), int(e.cell[1])
-            self.events_pub.publish(msg)
+            self.events_pub.publish(goal_event_msg(self.episode, e))
 
     def on_tick(self, events, overridden=(), tick_seconds: float | None = None) -> None:
         """After a tick (and after `apply_requests`): publish the goal events, end the action
