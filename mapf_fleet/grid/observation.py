@@ -182,20 +182,29 @@ class ObservationBuilder:
         return self._gather(occupancy, own, 0)
 
     def _gather(self, occupancy: np.ndarray, positions: np.ndarray, map_base) -> np.ndarray:
-        n = positions.shape[0]
-        s = self.size
         corners = self.corners(positions)
         own_windows = (corners + self.agent_base)[:, None] + self.window  # (N, S*S)
-        static = self.static[own_windows]
-        obs = np.empty((n, self.channels, s * s), dtype=np.float32)
-        obs[:, 0] = occupancy[(corners + map_base)[:, None] + self.window]
-        obs[:, 0, (s * s) // 2] = 0.0  # the agent itself is not in its agent channel
-        for bit in range(5):
-            obs[:, 1 + bit] = (static >> bit) & 1
-        if self.distances is not None:
-            obs[:, COST_TO_GO_CHANNEL] = cost_to_go_channel(
-                cost_to_go_steps(self.distances[own_windows], self.radius), self.radius)
-        return obs.reshape(n, self.channels, s, s)
+        return _assemble(occupancy[(corners + map_base)[:, None] + self.window],
+                         self.static[own_windows],
+                         None if self.distances is None else self.distances[own_windows],
+                         self.channels, self.radius)
+
+
+def _assemble(agents, static, distances, channels: int, radius: int) -> np.ndarray:
+    """float32 (N, C, S, S) from each agent's gathered window (N, S*S): the agents' occupancy,
+    the static bytes (obstacle bit, then the heuristic bits) and the padded distances (None
+    without the cost-to-go channel)."""
+    n, cells = agents.shape
+    s = 2 * radius + 1
+    obs = np.empty((n, channels, cells), dtype=np.float32)
+    obs[:, 0] = agents
+    obs[:, 0, cells // 2] = 0.0  # the agent itself is not in its agent channel
+    for bit in range(5):
+        obs[:, 1 + bit] = (static >> bit) & 1
+    if distances is not None:
+        obs[:, COST_TO_GO_CHANNEL] = cost_to_go_channel(cost_to_go_steps(distances, radius),
+                                                        radius)
+    return obs.reshape(n, channels, s, s)
 
 
 class GoalObserver:
@@ -297,23 +306,14 @@ class GoalObserver:
         if goals.shape != (len(own), 2):
             raise ValueError(f"goals must have shape ({len(own)}, 2), got {goals.shape}")
         slots = self.slots(goals)
-        s = self.size
-        n = len(own)
         occupancy = np.zeros(self.hp * self.wp, dtype=np.uint8)
         occupancy[positions[:, 0] * self.wp + positions[:, 1] + self.centre] = 1
         corners = own[:, 0] * self.wp + own[:, 1]
         windows = corners[:, None] + self.window  # (M, S*S)
-        static = self._static[slots[:, None], windows]
-        obs = np.empty((n, self.channels, s * s), dtype=np.float32)
-        obs[:, 0] = occupancy[windows]
-        obs[:, 0, (s * s) // 2] = 0.0  # the agent itself is not in its agent channel
-        for bit in range(5):
-            obs[:, 1 + bit] = (static >> bit) & 1
-        if self._distances is not None:
-            obs[:, COST_TO_GO_CHANNEL] = cost_to_go_channel(
-                cost_to_go_steps(self._distances[slots[:, None], windows], self.radius),
-                self.radius)
-        return obs.reshape(n, self.channels, s, s)
+        return _assemble(occupancy[windows], self._static[slots[:, None], windows],
+                         None if self._distances is None
+                         else self._distances[slots[:, None], windows],
+                         self.channels, self.radius)
 
 
 def observe(grid, positions, goals, channels, radius: int = 4, distances=None) -> np.ndarray:
