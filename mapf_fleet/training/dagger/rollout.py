@@ -219,25 +219,22 @@ def play_lifelong(instance, steps: int, conflict_rule: str, goal_seed: int,
     from mapf_fleet.fleet.record import Decisions
     from mapf_fleet.fleet.run import FleetRun
     from mapf_fleet.fleet.tasks import LifelongTasks
-    from mapf_fleet.grid.heuristic import bfs_distances
-    from mapf_fleet.grid.observation import ObservationBuilder
+    from mapf_fleet.grid.heuristic import bfs_distances_many
+    from mapf_fleet.grid.observation import GoalObserver
 
     run = FleetRun(instance.grid, instance.starts, LifelongTasks(grid=instance.grid,
                                                                  seed=int(goal_seed)),
                    instance.goals, rule=conflict_rule, max_steps=steps)
     agents = np.arange(run.num_robots)
-    maps: dict = {}  # BFS distance map per goal cell (goals come back)
+    observer = GoalObserver(run.grid)  # searches a goal once, however often it comes back
     label_seconds, label_cpu, calls = 0.0, 0.0, 0
     while not run.finished():
         goals = np.asarray(run.goals, np.int64)
-        obs = ObservationBuilder.for_goals(run.grid, goals).observe(run.positions)
+        obs = observer.observe(run.positions, goals)
         ties = tie_breakers(agents, run.tick)
         rankings = rank_actions(obs, mode="distance", ties=ties)
         if labeller is not None:
-            for g in map(tuple, goals.tolist()):
-                if g not in maps:
-                    maps[g] = bfs_distances(run.grid, g)
-            distances = np.stack([maps[g] for g in map(tuple, goals.tolist())])
+            distances = bfs_distances_many(run.grid, goals)  # the map's recent searches
             began, began_cpu = time.perf_counter(), time.process_time()
             expert = labeller.label(LabelState(run.grid, np.asarray(run.positions), goals,
                                                distances, run.tick, steps)).actions
