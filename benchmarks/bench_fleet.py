@@ -24,6 +24,7 @@ processes (RSS summed over `up` and its descendants, sampled every 2 s); a run s
 
     python benchmarks/bench_fleet.py [--robots 32 64 128 256 512] [--algos dcc dhc] [--steps 60]
         [--task-source lifelong]   (a continuous run: a new goal on arrival, every tick played)
+        [--window 50]              (ms per tick over the first and the last 50 ticks)
         [--run-timeout 600]
         [--conflict-rule lacam --planning-budget 0.2]
 
@@ -50,7 +51,9 @@ CHECKPOINTS = {"dcc": REPO / "models" / "default.pt",
 # robots -> (map side, robots per process)
 # 512: 8 processes x 64, the layout measured to become ready (16 x 32 never did: discovery and
 # start-up of 17 processes on a loaded 2-core machine)
-LAYOUTS = {32: (24, 8), 64: (32, 16), 128: (40, 32), 256: (56, 32), 512: (80, 64)}
+# 1,024: 112x112 (the same robots per free cell), 8 x 128, the layout `up` recommends
+LAYOUTS = {32: (24, 8), 64: (32, 16), 128: (40, 32), 256: (56, 32), 512: (80, 64),
+           1024: (112, 128)}
 PHASES = ("latency", "wake", "observe", "network", "send", "wait", "moves")
 TICK_LINE = re.compile(r"\[(\d+\.\d+)\] \[[^\]]*mapf_simulator\]: tick (\d+): ")
 HUB_LINE = re.compile(r"hub timing over (\d+) ticks, ms per tick: (.*?); last")
@@ -171,6 +174,10 @@ def main():
     parser.add_argument("--algos", nargs="+", default=["dcc", "dhc"], choices=sorted(CHECKPOINTS))
     parser.add_argument("--steps", type=int, default=60, help="ticks per run (default: 60)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--window", type=int, default=0,
+                        help="ticks compared at the start and the end of the run (ms per tick "
+                             "over the first and the last WINDOW ticks, from the progress lines "
+                             "every 5 ticks); default: a quarter of the run each")
     parser.add_argument("--task-source", choices=["instance", "lifelong"], default="instance",
                         help="instance: the one-shot episode (ends when all are on goal); "
                              "lifelong: a continuous run, a new goal on arrival, all --steps "
@@ -211,7 +218,8 @@ def main():
                       flush=True)
                 continue
             ticks, rate = ticks
-            quarter = max(1, len(ticks) // 4)
+            # ticks holds one mean per 5 ticks (progress_every)
+            quarter = max(1, args.window // 5 if args.window else len(ticks) // 4)
             start_ms = 1000 * sum(ticks[:quarter]) / quarter if ticks else 0.0
             end_ms = 1000 * sum(ticks[-quarter:]) / quarter if ticks else 0.0
             per_tick = 1000 / rate if rate else 0.0

@@ -141,6 +141,10 @@ _RUN = {
                                   "fleet state has this many matched subscribers (`up --bag`: "
                                   "the policy processes and the recorder, so the bag misses no "
                                   "tick); 0: no wait", lambda v: v >= 0, ">= 0"),
+    "robot_actions": Param(True, "serve Nav2's per-robot action robot_<i>/navigate_to_pose for "
+                                 "every robot (fleet/navigate_to_pose, the robot in the goal, "
+                                 "is always served); `up` leaves them out from 256 robots "
+                                 "(docs/fleet.md, Large fleets)"),
     "state_recorder": Param("", "before tick 0, also wait (up to startup_timeout) until the "
                                 "node of this name (`up --bag`: mapf_fleet_recorder) has a "
                                 "subscription matched to the fleet state, so the bag has every "

@@ -353,6 +353,15 @@ def plan_policy_parameters(plan: Plan, args, ros_argv: list[str], num_robots: in
         plan.values[name] = values[name]
         plan.origin[name] = origin[name]
     plan.warnings += [w for w in warnings if w not in plan.warnings]
+    if num_robots >= LARGE_FLEET_ROBOTS and plan.origin[plan.sim_name].get(
+            "robot_actions") == "default":
+        # 512 per-robot action servers (4,096 endpoints) took a fleet from ready in 55 s and
+        # 1.96 ticks/s to 129 s and 0.87 (docs/results.md): large fleets leave them out
+        plan.sim["robot_actions"] = False
+        plan.warnings.append(
+            f"note: {num_robots} robots: no per-robot robot_<i>/navigate_to_pose action servers "
+            f"(goals: fleet/navigate_to_pose with the robot in the goal, `mapf-fleet goal`, "
+            f"robot_<i>/goal_pose, fleet/submit_tasks); -p robot_actions:=true serves them")
 
 
 def options_not_applying(args) -> str:

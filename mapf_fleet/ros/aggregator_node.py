@@ -102,7 +102,8 @@ class FleetStateAggregator(Node):
                                      common.reliable_qos(10))
         self.channels.publish_map_and_goals(self.grid, self.instance_goals)
         # goals at run time; bound to the run once the robots have posed
-        self.goals = GoalServer(self, None, self.lock, self.geometry, self.num_robots)
+        self.goals = GoalServer(self, None, self.lock, self.geometry, self.num_robots,
+                                robot_actions=bool(self.params["robot_actions"]))
         # decision_timeout, arrival_timeout, progress_every apply from the next tick
         self._thread = fleet_io.tick_thread(self, "aggregator", PARAMETERS)
 

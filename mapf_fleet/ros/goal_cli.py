@@ -1,12 +1,13 @@
 """`mapf-fleet goal`: send a running fleet's robots somewhere (PyPI has no `ros2 action
 send_goal` and no `ros2 topic pub`).
 
-    mapf-fleet goal 3 --cell 5 7 --wait          # navigate_to_pose; feedback per tick
+    mapf-fleet goal 3 --cell 5 7 --wait          # fleet/navigate_to_pose; feedback per tick
     mapf-fleet goal 3 --xy 5.5 7.5               # metres in the map frame; returns once accepted
     mapf-fleet goal 3 --cell 5 7 --topic         # publish on /robot_3/goal_pose (RViz's way)
     mapf-fleet goal any --cell 5 7               # the nearest idle robot (fleet/submit_tasks)
     mapf-fleet goal --tasks tasks.yaml           # many goals / pickup-dropoff tasks at once
-    mapf-fleet goal 3 --cancel                   # hold robot 3 on its cell (cancels its goal)
+    mapf-fleet goal 3 --cancel                   # hold robot 3 on its cell (cancels its
+                                                 # robot_3/navigate_to_pose goals)
 
 Exit codes: 0 accepted (with --wait: reached), 1 aborted or cancelled (--wait), 2 rejected (the
 reason printed, from fleet/goal_events) or bad input, 3 no fleet answered within --timeout.
@@ -238,16 +239,17 @@ class GoalClient:
         return 0
 
     def _navigate(self, robot, pose, where, signals) -> int:
-        from mapf_fleet_interfaces.action import NavigateToPose
+        # the fleet's own action (the robot named in the goal): served whatever the fleet's size,
+        # one server to discover (large fleets leave out the per-robot ones: robot_actions)
+        from mapf_fleet_interfaces.action import NavigateRobotToPose
         from rclpy.action import ActionClient
 
-        from mapf_fleet.ros.goals import navigate_action
+        from mapf_fleet.ros.goals import FLEET_NAVIGATE_ACTION
 
-        client = ActionClient(self.node, NavigateToPose, common.rel(navigate_action(robot)))
+        client = ActionClient(self.node, NavigateRobotToPose, common.rel(FLEET_NAVIGATE_ACTION))
         if not client.wait_for_server(timeout_sec=self.args.timeout):
-            print(f"mapf-fleet goal: no action server {navigate_action(robot)} within "
-                  f"{self.args.timeout} s (is the fleet up, does robot {robot} exist?)",
-                  file=sys.stderr)
+            print(f"mapf-fleet goal: no action server {FLEET_NAVIGATE_ACTION} within "
+                  f"{self.args.timeout} s (is the fleet up, in this namespace?)", file=sys.stderr)
             return 3
         since = len(self.events)
 
@@ -261,7 +263,7 @@ class GoalClient:
         # a reply can be lost while the server has not matched this client's reply reader yet
         # (discovery on a loaded machine): ask again; a goal sent twice preempts its twin
         sent = _ask(lambda: client.send_goal_async(
-            NavigateToPose.Goal(pose=pose),
+            NavigateRobotToPose.Goal(robot_id=robot, pose=pose),
             feedback_callback=feedback if self.args.wait else None), self.args.timeout, signals)
         if sent is None:
             print(f"mapf-fleet goal: the goal was not answered within {self.args.timeout:g} s",
@@ -298,7 +300,10 @@ class GoalClient:
         client = self.node.create_client(
             CancelGoal, common.rel(navigate_action(robot)) + "/_action/cancel_goal")
         if not client.wait_for_service(timeout_sec=self.args.timeout):
-            print(f"mapf-fleet goal: no action server {navigate_action(robot)}", file=sys.stderr)
+            print(f"mapf-fleet goal: no action server {navigate_action(robot)} within "
+                  f"{self.args.timeout:g} s (fleets of 256+ robots serve none unless started "
+                  f"with -p robot_actions:=true; a new goal replaces the robot's goal)",
+                  file=sys.stderr)
             return 3
         future = _ask(lambda: client.call_async(CancelGoal.Request()), self.args.timeout,
                       signals)

@@ -8,7 +8,10 @@ simulator, or the real-robot aggregator) and what ROS users send goals with.
   NavigateToPose`, Nav2's shape): feedback once per tick (current pose, distance remaining along
   the shortest path in metres, navigation time, estimated time = remaining cells x the measured
   seconds per tick, overridden moves as "recoveries"); result reached / aborted (preempted by a
-  new goal, the run ended) / cancelled; cancel holds the robot on its cell;
+  new goal, the run ended) / cancelled; cancel holds the robot on its cell (with
+  `robot_actions`, which large fleets leave out: each server is 8 DDS endpoints);
+- the fleet's action `fleet/navigate_to_pose` (`NavigateRobotToPose`): the same with the robot
+  named in the goal, one server whatever the fleet's size;
 - `fleet/submit_tasks` (`SubmitTasks.srv`): many goals or pick-up/drop-off tasks at once, for a
   named robot or the nearest idle one (the task file format, `fleet.tasks.parse_tasks`);
 - `fleet/goal_events` (`GoalEvent`): every goal change, with the reason of each rejection.
@@ -29,7 +32,7 @@ import threading
 import time
 
 from geometry_msgs.msg import PoseStamped
-from mapf_fleet_interfaces.action import NavigateToPose
+from mapf_fleet_interfaces.action import NavigateRobotToPose, NavigateToPose
 from mapf_fleet_interfaces.msg import GoalEvent as GoalEventMsg
 from mapf_fleet_interfaces.srv import SubmitTasks
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
@@ -42,6 +45,7 @@ from mapf_fleet.ros import common
 
 GOAL_EVENTS_TOPIC = common.GOAL_EVENTS_TOPIC
 SUBMIT_TASKS_SERVICE = "/fleet/submit_tasks"
+FLEET_NAVIGATE_ACTION = "/fleet/navigate_to_pose"  # NavigateRobotToPose: the robot in the goal
 ACCEPTED_FRAMES = ("", common.FRAME_ID)  # an empty frame is read as the map frame (RViz sets it)
 
 
@@ -69,8 +73,9 @@ def pose_goal_cell(msg: PoseStamped, geometry) -> tuple[tuple[int, int] | None, 
 class _ActionGoal:
     """One accepted navigate_to_pose goal and the future its execute coroutine awaits."""
 
-    def __init__(self, handle, robot: int, cell, started_tick: int):
+    def __init__(self, handle, robot: int, cell, started_tick: int, action=NavigateToPose):
         self.handle = handle
+        self.action = action  # NavigateToPose or NavigateRobotToPose: its Result and Feedback
         self.robot = robot
         self.cell = cell
         self.started_tick = started_tick
@@ -93,7 +98,8 @@ class GoalServer:
     """ROS goal inputs for `run` (a FleetRun guarded by `lock`). Every accepted request sets
     `request_signal`, on which an idle fleet's tick thread waits."""
 
-    def __init__(self, owner: Node, run, lock, geometry, num_robots: int | None = None):
+    def __init__(self, owner: Node, run, lock, geometry, num_robots: int | None = None,
+                 robot_actions: bool = True):
         self.run = run  # None until `bind` (the aggregator builds its run from the first poses)
         self.lock = lock
         self.geometry = geometry
@@ -111,13 +117,21 @@ class GoalServer:
             self.node.create_subscription(PoseStamped, common.rel(goal_pose_topic(i)),
                                           lambda msg, i=i: self._on_goal_pose(i, msg),
                                           common.reliable_qos(5))
+        # one action for the whole fleet, the robot named in the goal; and, with robot_actions,
+        # Nav2's per-robot name for each robot (8 DDS endpoints and a Python waitable each, which
+        # every process discovers and the goal executor rebuilds per wake: docs/fleet.md)
+        self.fleet_server = ActionServer(
+            self.node, NavigateRobotToPose, common.rel(FLEET_NAVIGATE_ACTION),
+            execute_callback=self._execute_fleet,  # a coroutine function, as below
+            goal_callback=lambda req: self._on_action_goal(int(req.robot_id), req),
+            cancel_callback=lambda h: self._on_cancel(int(h.request.robot_id), h))
         self.servers = [ActionServer(self.node, NavigateToPose, common.rel(navigate_action(i)),
                                      # a coroutine function (rclpy awaits it): the result
                                      # comes when the tick thread ends the goal
                                      execute_callback=functools.partial(self._execute, i),
                                      goal_callback=lambda req, i=i: self._on_action_goal(i, req),
                                      cancel_callback=lambda h, i=i: self._on_cancel(i, h))
-                        for i in range(n)]
+                        for i in range(n if robot_actions else 0)]
         self.node.create_service(SubmitTasks, common.rel(SUBMIT_TASKS_SERVICE), self._on_submit)
 
     def bind(self, run) -> None:
@@ -170,11 +184,11 @@ class GoalServer:
             return GoalResponse.REJECT
         return GoalResponse.ACCEPT
 
-    async def _execute(self, robot: int, handle):
+    async def _execute(self, robot: int, handle, action=NavigateToPose):
         cell, _ = pose_goal_cell(handle.request.pose, self.geometry)
         goal_id = bytes(handle.goal_id.uuid).hex()
         with self.lock:
-            goal = _ActionGoal(handle, robot, cell, self.run.tick)
+            goal = _ActionGoal(handle, robot, cell, self.run.tick, action)
             self._goals[goal_id] = goal
             event = self.run.request_goal(robot, cell, "navigate_to_pose", goal_id)
             if event.event == "rejected":  # the fleet changed since the goal was accepted
@@ -182,6 +196,9 @@ class GoalServer:
         if event.event != "rejected":
             self.on_request()
         return await goal.future
+
+    async def _execute_fleet(self, handle):
+        return await self._execute(int(handle.request.robot_id), handle, NavigateRobotToPose)
 
     def _on_cancel(self, robot: int, handle) -> CancelResponse:
         if self.run is None:
@@ -259,7 +276,7 @@ class GoalServer:
         run = self.run
         here = run.positions[goal.robot]
         cells = int(run.distance_to(goal.cell)[here[0], here[1]])
-        fb = NavigateToPose.Feedback()
+        fb = goal.action.Feedback()
         fb.current_pose = common.cell_pose(int(here[0]), int(here[1]), self.geometry)
         fb.distance_remaining = float(max(cells, 0) * self.geometry.resolution)
         fb.navigation_time = _duration(time.monotonic() - goal.started)
@@ -271,20 +288,20 @@ class GoalServer:
         goal = self._goals.pop(goal_id, None)
         if goal is None:
             return
-        result = NavigateToPose.Result()
+        result = goal.action.Result()
         here = self.run.positions[goal.robot]
         result.final_pose = common.cell_pose(int(here[0]), int(here[1]), self.geometry)
         result.ticks = max(0, int(self.run.tick - goal.started_tick))
         result.reached = how == "reached"
         result.error_msg = "" if result.reached else reason
         if how == "reached":
-            result.error_code = NavigateToPose.Result.NONE
+            result.error_code = goal.action.Result.NONE
             goal.handle.succeed()
         elif how == "cancelled":
-            result.error_code = NavigateToPose.Result.CANCELED
+            result.error_code = goal.action.Result.CANCELED
             goal.handle.canceled()
         else:
-            result.error_code = NavigateToPose.Result.ABORTED
+            result.error_code = goal.action.Result.ABORTED
             goal.handle.abort()
         goal.future.set_result(result)
 

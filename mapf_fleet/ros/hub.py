@@ -93,7 +93,7 @@ class PolicyHub:
     its clients, the decision thread; the numbers are its `models.exchange.PolicyExchange`'s."""
 
     def __init__(self, nodes, model):
-        from mapf_fleet_interfaces.msg import (DccAnnounce, DhcHidden, FleetState,
+        from mapf_fleet_interfaces.msg import (DccAnnounce, DhcHidden, FleetState, RobotMove,
                                                RobotStatus)
         from mapf_fleet_interfaces.srv import DccBatch
         from nav_msgs.msg import OccupancyGrid
@@ -145,6 +145,13 @@ class PolicyHub:
                                       self._on_status,
                                       common.reliable_qos(1000), callback_group=group)
         quiet = common.quiet_publisher_events()
+        # every hosted robot's moves and heartbeats (one publisher each for the process)
+        self.move_pub = self.node.create_publisher(RobotMove, common.rel(common.MOVES_TOPIC),
+                                                   common.reliable_qos(1000),
+                                                   event_callbacks=quiet)
+        self.status_pub = self.node.create_publisher(
+            RobotStatus, common.rel(common.STATUS_TOPIC), common.reliable_qos(1000),
+            event_callbacks=quiet)
         if self.algo == "dhc":
             self.peer_pub = self.node.create_publisher(
                 DhcHidden, common.rel(common.DHC_HIDDEN_TOPIC), common.reliable_qos(100),
@@ -283,7 +290,7 @@ class PolicyHub:
         self._last_beat = (ready, episode)
         peers = self.peers_reachable()
         for node in self.nodes:
-            node.status_pub.publish(RobotStatus(
+            self.status_pub.publish(RobotStatus(
                 episode=episode, robot_id=node.robot_id, tick=max(self.exchange.tick, 0),
                 ready=ready, peers=peers, host=self.host,
                 detail=f"{self.algo}, {len(self.nodes)} robots on this host, "
@@ -346,7 +353,7 @@ class PolicyHub:
         tick = exchange.tick
         for m, node in enumerate(self.nodes):
             ranking = rankings[m].tolist()
-            node.move_pub.publish(RobotMove(
+            self.move_pub.publish(RobotMove(
                 episode=state.episode, tick=tick, robot_id=node.robot_id, action=ranking[0],
                 preferences=ranking, missing_peers=sorted(missing[m]), requested=requested[m],
                 messages_received=received[m]))

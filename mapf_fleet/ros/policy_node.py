@@ -53,7 +53,7 @@ class PolicyNode(Node):
     first node's); without `metadata` the checkpoint records no ranking."""
 
     def __init__(self, robot_id: int | None = None, checkpoint: str | None = None, model=None,
-                 metadata=None, **node_kwargs):
+                 metadata=None, hosted: bool = False, **node_kwargs):
         overrides = list(node_kwargs.pop("parameter_overrides", None) or [])
         if robot_id is not None or checkpoint is not None:
             from rclpy.parameter import Parameter
@@ -101,20 +101,19 @@ class PolicyNode(Node):
         self.algo = model.config.algo
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.hub = None  # set by PolicyHub
-        quiet = common.quiet_publisher_events()
-        self.move_pub = self.create_publisher(RobotMove, common.rel(common.MOVES_TOPIC),
-                                              common.reliable_qos(100),
-                                              event_callbacks=quiet)
-        self.status_pub = self.create_publisher(RobotStatus, common.rel(common.STATUS_TOPIC),
-                                                common.reliable_qos(100), event_callbacks=quiet)
-        # the peer messages (DHC vectors, DCC announcements) are published by the process's hub,
-        # one message for all the robots it hosts
-        if self.algo == "dcc":
+        # the moves and heartbeats of every robot of the process go out through its hub's two
+        # publishers (one endpoint each per process, not per robot: DDS discovery grows with the
+        # endpoints of every process), as do the peer messages (DHC vectors, DCC announcements)
+        if self.algo == "dcc" and not hosted:
+            # a robot alone in its process also takes DCC messages from senders that are not
+            # hubs (hubs send each other one `DccBatch` per tick); hosted robots leave these
+            # out (4 endpoints a robot)
             group = ReentrantCallbackGroup()
             self.create_service(DccMessage, common.rel(common.dcc_request_service(self.robot_id)),
                                 self._on_dcc_request, callback_group=group)
             self.create_service(DccMessage, common.rel(common.dcc_reply_service(self.robot_id)),
                                 self._on_dcc_reply, callback_group=group)
+        self.has_robot_services = self.algo == "dcc" and not hosted
 
     def _on_set_parameters(self, parameters):
         """Policy node parameters are read once, when the node (and its process's hub) starts:
@@ -144,14 +143,22 @@ def needs_spinning(node: PolicyNode) -> bool:
     per-robot request and reply services (for senders that are not hubs; hubs send each other
     one `DccBatch` per tick). Every robot node is spun by a second executor, apart from the
     decision path (`spin_policy_nodes`)."""
-    return node.algo == "dcc"
+    return node.has_robot_services
 
 
 def host_kwargs(count: int) -> dict:
     """Node options when `count` robots share a process. Every robot keeps its parameter
     services (each robot's parameters can be read, and set, whatever the process layout); they
-    are spun apart from the decision path (`spin_policy_nodes`)."""
-    return {}
+    are spun apart from the decision path (`spin_policy_nodes`). Robots hosted several per
+    process leave out what the hub serves for them (`hosted`: the per-robot DCC services) and
+    the type description service (its own `~/get_type_description`: the hub's node answers
+    for the same message types): every endpoint is discovered by every process."""
+    if count <= 1:
+        return {}
+    from rclpy.parameter import Parameter
+
+    return {"hosted": True,
+            "parameter_overrides": [Parameter("start_type_description_service", value=False)]}
 
 
 def spin_policy_nodes(nodes: list[PolicyNode], until=None, extra_nodes=(), on_started=None,

@@ -68,7 +68,8 @@ class SimulatorNode(Node):
                                                 common.reliable_qos(10), event_callbacks=quiet)
                           for i in range(self.num_robots)]
         self.channels.publish_map_and_goals(self.instance.grid, self.run.goals)
-        self.goals = GoalServer(self, self.run, self.lock, self.geometry)
+        self.goals = GoalServer(self, self.run, self.lock, self.geometry,
+                                robot_actions=bool(p["robot_actions"]))
         self.get_logger().info(
             f"instance {self.instance.size[0]}x{self.instance.size[1]} with {self.num_robots} "
             f"robots, conflict rule {self.conflict_rule}, task source {p['task_source']}, "

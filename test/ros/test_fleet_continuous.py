@@ -82,12 +82,13 @@ def test_lifelong_fleet_equals_the_evaluators_lifelong_rollout(tmp_path, ros_env
 
 class FleetClient:
     """An rclpy client of a running fleet in this test process: goal_pose publishers, the
-    navigate_to_pose action, goal events."""
+    navigate_to_pose action (each robot's, or with `fleet_action` the fleet's, the robot in the
+    goal), goal events."""
 
-    def __init__(self, num_robots):
+    def __init__(self, num_robots, fleet_action=False):
         import rclpy
         from geometry_msgs.msg import PoseStamped
-        from mapf_fleet_interfaces.action import NavigateToPose
+        from mapf_fleet_interfaces.action import NavigateRobotToPose, NavigateToPose
         from mapf_fleet_interfaces.msg import FleetState, GoalEvent
         from rclpy.action import ActionClient
         from rclpy.executors import SingleThreadedExecutor
@@ -107,8 +108,14 @@ class FleetClient:
         self.goal_pubs = [self.node.create_publisher(PoseStamped, f"robot_{i}/goal_pose",
                                                      common.reliable_qos(5))
                           for i in range(num_robots)]
-        self.actions = [ActionClient(self.node, NavigateToPose, f"robot_{i}/navigate_to_pose")
-                        for i in range(num_robots)]
+        self.fleet_action = fleet_action
+        if fleet_action:
+            fleet = ActionClient(self.node, NavigateRobotToPose, "fleet/navigate_to_pose")
+            self.actions = [fleet] * num_robots
+        else:
+            self.actions = [ActionClient(self.node, NavigateToPose,
+                                         f"robot_{i}/navigate_to_pose")
+                            for i in range(num_robots)]
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self.spinner = common.SpinThread(self.executor).start()
@@ -146,14 +153,15 @@ class FleetClient:
         return [e for e in self.events if e.robot_id == robot and e.event == kind]
 
     def send(self, robot, row, col, feedback=None):
-        from mapf_fleet_interfaces.action import NavigateToPose
+        from mapf_fleet_interfaces.action import NavigateRobotToPose, NavigateToPose
 
         assert self.actions[robot].wait_for_server(timeout_sec=60.0)
+        goal = (NavigateRobotToPose.Goal(robot_id=robot, pose=self.pose(row, col))
+                if self.fleet_action else NavigateToPose.Goal(pose=self.pose(row, col)))
         # a service response can be lost while the server has not matched the client's reply
         # reader yet (discovery on a loaded machine): ask again, as a user would
         for attempt in range(3):
-            future = self.actions[robot].send_goal_async(
-                NavigateToPose.Goal(pose=self.pose(row, col)), feedback_callback=feedback)
+            future = self.actions[robot].send_goal_async(goal, feedback_callback=feedback)
             try:
                 self.wait(future.done, 30.0, "the goal response")
                 return future.result()
@@ -239,12 +247,29 @@ def _exercise_goals(client, instance, robots):
     client.wait(lambda: client.event(r1, "cancelled"), 30, "the cancelled event")
 
 
-def _exercise_then_stop(proc, record_path, log, instance, robots, stop=()):
+def _exercise_then_stop(proc, record_path, log, instance, robots, stop=(), fleet_action=False):
     """`_exercise_goals` on the running fleet `proc`, then Ctrl-C (and `stop`'s processes):
     the fleet exits 130; its record."""
-    client = FleetClient(len(instance.starts))
+    client = FleetClient(len(instance.starts), fleet_action)
     try:
         _exercise_goals(client, instance, robots)
+        if fleet_action:  # robot_actions false: no per-robot server, nor goals for no robot
+            # what the fleet's goal node serves (the graph's own list also names the services
+            # of clients, in this process too)
+            client.wait(lambda: "mapf_goals" in client.node.get_node_names(), 30, "mapf_goals")
+            services = {name for name, _ in
+                        client.node.get_service_names_and_types_by_node("mapf_goals", "/")}
+            assert "/fleet/navigate_to_pose/_action/send_goal" in services, sorted(services)
+            assert not [n for n in services if "navigate_to_pose" in n and "robot_" in n]
+            from mapf_fleet_interfaces.action import NavigateRobotToPose
+
+            unknown = len(instance.starts)
+            future = client.actions[0].send_goal_async(
+                NavigateRobotToPose.Goal(robot_id=unknown, pose=client.pose(*robots)))
+            client.wait(future.done, 30, "the unknown robot's goal response")
+            assert not future.result().accepted
+            client.wait(lambda: client.event(unknown, "rejected"), 30, "its rejection event")
+            assert "unknown robot" in client.event(unknown, "rejected")[-1].reason
     finally:
         client.close()
         proc.send_signal(signal.SIGINT)
@@ -289,8 +314,10 @@ def test_real_robot_mode_takes_goals_at_run_time_and_robots_never_share_a_cell(
                                  stderr=subprocess.DEVNULL)
     proc, record_path, log = _start_fleet(
         tmp_path, ros_env, checkpoints["dcc"],
-        ["--instance", str(path), "--real-robots", "--nodes-per-process", "2"], "real")
-    record = _exercise_then_stop(proc, record_path, log, instance, (2, 3), stop=[stand_ins])
+        ["--instance", str(path), "--real-robots", "--nodes-per-process", "2",
+         "--ros-args", "-p", "robot_actions:=false"], "real")
+    record = _exercise_then_stop(proc, record_path, log, instance, (2, 3), stop=[stand_ins],
+                                 fleet_action=True)
     assert record["goal_events"] and record["steps"] > 0
     for tick, cells in enumerate(record["positions"]):
         assert len({tuple(c) for c in cells}) == len(cells), f"two robots in one cell at {tick}"

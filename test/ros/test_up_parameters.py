@@ -90,6 +90,23 @@ def test_precedence_defaults_file_options_command_line(tmp_path, checkpoints):
     assert plan.sim["max_steps"] == 0
 
 
+def test_a_large_fleet_leaves_out_the_per_robot_action_servers_unless_asked(checkpoints):
+    """From 256 robots `up` gives the simulator robot_actions false (one line says so and how to
+    keep them); below, or set by the user in any way, the value stands."""
+    size = ["--size", "40", "--nodes-per-process", "32"]
+    _, plan, _ = _prepare(["--num-robots", "256"] + size, checkpoints["dcc"])
+    assert plan.sim["robot_actions"] is False
+    notes = [w for w in plan.warnings if "robot_actions" in w]
+    assert len(notes) == 1 and "fleet/navigate_to_pose" in notes[0] and "\n" not in notes[0]
+    _, plan, _ = _prepare(["--num-robots", "255"] + size, checkpoints["dcc"])
+    assert plan.sim["robot_actions"] is True
+    assert not [w for w in plan.warnings if "robot_actions" in w]
+    for given in (["--ros-args", "-p", "robot_actions:=true"],
+                  ["--ros-args", "-p", "mapf_simulator:robot_actions:=true"]):
+        _, plan, _ = _prepare(["--num-robots", "256"] + size + given, checkpoints["dcc"])
+        assert plan.sim["robot_actions"] is True, given
+
+
 def test_preference_mode_is_a_deprecated_alias_of_ranking(tmp_path, checkpoints, capsys):
     path = tmp_path / "old.yaml"
     path.write_text("/**:\n  ros__parameters:\n    preference_mode: distance\n")
