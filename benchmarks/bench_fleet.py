@@ -1,6 +1,6 @@
-"""Fleet throughput and where a tick goes: `mapf-fleet up` at 32 / 64 / 128 / 256 / 512 robots in
+"""Fleet throughput and where a tick goes: `mapf-fleet up` at 32 / 64 / 128 / 256 / 512 / 1,024 robots in
 the recommended layouts (32: 24x24, 4 processes x 8 robots; 64: 32x32, 4 x 16; 128: 40x40, 4 x 32;
-256: 56x56, 8 x 32; 512: 80x80, 8 x 64), DHC and DCC, beside the batched evaluator (MAPFEnv + network.step, one
+256: 56x56, 8 x 32; 512: 80x80, 8 x 64; 1,024: 112x112, 8 x 128), DHC and DCC, beside the batched evaluator (MAPFEnv + network.step, one
 thread) on the same instance and checkpoint.
 
 Per run: ticks/s from the first progress line to the last (the simulator logs one every 5 ticks
@@ -19,7 +19,8 @@ DCC message counts: requests + replies to other processes per tick, and the serv
 carried them (one DccBatch per pair of processes and phase).
 
 Each run also prints its ready time (launch to the first tick) and the peak memory of its
-processes (RSS summed over `up` and its descendants, sampled every 2 s); a run stopped by
+processes (RSS summed over `up` and its descendants, sampled every 2 s), and the largest sample
+over the first and over the last fifth of the ticks (bounded or growing); a run stopped by
 --run-timeout prints the tail of its output instead of figures.
 
     python benchmarks/bench_fleet.py [--robots 32 64 128 256 512] [--algos dcc dhc] [--steps 60]
@@ -132,7 +133,7 @@ def run_fleet(checkpoint, robots, size, per_process, seed, steps, domain,
     launched = time.time()
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, start_new_session=True)
-    peak, stop = [0], threading.Event()
+    peak, stop, series = [0], threading.Event(), []  # series: (seconds since launch, MB)
 
     def sample():  # up's children run in their own sessions: walk the process tree
         while not stop.wait(2.0):
@@ -144,6 +145,7 @@ def run_fleet(checkpoint, robots, size, per_process, seed, steps, domain,
                 tree |= {pid for pid, parent, _ in rows if parent in tree}
             total = sum(rss for pid, _, rss in rows if pid in tree)
             peak[0] = max(peak[0], total // 1024)
+            series.append((time.time() - launched, total // 1024))
 
     sampler = threading.Thread(target=sample, daemon=True)
     sampler.start()
@@ -163,7 +165,14 @@ def run_fleet(checkpoint, robots, size, per_process, seed, steps, domain,
         run = None
     stamps = [float(m[1]) for m in TICK_LINE.finditer(stdout)]
     ready = stamps[0] - launched if stamps else None
-    return run, tick_times(stdout), hub_split(logs), ready, peak[0], (stdout + stderr)[-2000:]
+    # memory once the fleet runs: over the first and the last fifth of the ticks (bounded or
+    # growing with the run)
+    running = [mb for at, mb in series if stamps and stamps[0] - launched <= at
+               <= stamps[-1] - launched]
+    fifth = max(1, len(running) // 5)
+    memory = (peak[0], (max(running[:fifth]) if running else 0,
+                        max(running[-fifth:]) if running else 0))
+    return run, tick_times(stdout), hub_split(logs), ready, memory, (stdout + stderr)[-2000:]
 
 
 def main():
@@ -211,8 +220,10 @@ def main():
             domain += 1
             layout = f"{-(-robots // per_process)} x {per_process}, {size}x{size}"
             ready_text = "never" if ready is None else f"{ready:.0f} s"
+            memory, (early, late) = memory
             print(f"{robots:>6} {algo:<4} {layout:<14} ready {ready_text}, peak memory "
-                  f"{memory} MB ({memory / robots:.1f} MB per robot)", flush=True)
+                  f"{memory} MB ({memory / robots:.1f} MB per robot); running: {early} MB over "
+                  f"the first fifth of the ticks, {late} MB over the last", flush=True)
             if run is None:
                 print(f"{'':>6} no record within {args.run_timeout} s; output's tail:\n{tail}",
                       flush=True)

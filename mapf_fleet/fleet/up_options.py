@@ -512,7 +512,7 @@ def layout_warning(num_robots: int, single_process: bool, nodes_per_process: int
         if nodes_per_process < suggest:
             return (f"warning: {num_robots} robots in {hubs} policy processes; fleets of "
                     f"{LARGE_FLEET_ROBOTS}+ robots were measured to get ready only in "
-                    f"{LARGE_FLEET_PROCESSES} or fewer (512 robots: 8 x 64 ready in 149 s, "
+                    f"{LARGE_FLEET_PROCESSES} or fewer (512 robots: 8 x 64 ready in 53 s, "
                     f"16 x 32 never), since DDS discovery grows with processes times robots "
                     f"and each process starts its nodes on its own. Use --nodes-per-process "
                     f"{suggest} ({policy_processes(num_robots, False, suggest)} processes).")
