@@ -338,6 +338,42 @@ def test_a_record_written_at_the_first_tick_and_its_journal_rebuild_the_whole_ru
         assert record[name] == whole[name], name
 
 
+def test_a_streamed_record_holds_no_tick_in_memory_and_writes_the_same_record(tmp_path):
+    """The fleet's nodes journal with keep_ticks False: a tick leaves memory once journaled, and
+    the record written at the end (streamed from the journal), or read back after a kill, is the
+    record of a run that kept every tick in memory."""
+    import json
+
+    from mapf_fleet.fleet.record import read_record
+
+    inst = generate_instance(12, 10, 0.2, 3)
+    records = []
+    for keep in (True, False):
+        path = tmp_path / f"run_{keep}.json"
+        run = FleetRun(inst.grid, inst.starts, LifelongTasks(grid=inst.grid, seed=3), inst.goals,
+                       max_steps=0, series=("executed", "overridden"))
+        run.recorder.open_journal(path, keep_ticks=keep)
+        run.step(distance_decisions(run))
+        run.recorder.checkpoint(path, run.tick)
+        for _ in range(30):
+            run.step(distance_decisions(run))
+        if not keep:  # nothing of the 31 ticks is held, and a kill loses none of them
+            assert all(run.recorder.record[k] == [] for k in run.recorder.tick_keys)
+            killed = read_record(path)
+            assert killed["incomplete"] and len(killed["positions"]) == 32
+        run.abort_active("the run ended")  # events after the last tick
+        run.finish()
+        run.recorder.write(path)
+        run.recorder.close_journal(path)
+        records.append(json.loads(path.read_text()))
+    kept, streamed = records
+    assert run.goals_reached > 0 and len(kept["positions"]) == 32
+    for record in records:
+        record.pop("run_seconds")
+    assert kept == streamed
+    assert killed["positions"] == kept["positions"] and killed["actions"] == kept["actions"]
+
+
 @pytest.mark.slow
 def test_the_readmes_32_robot_example_is_solved_by_the_fleet_core():
     """README's second example (`up --num-robots 32 --size 24 ...`): its generated instance is

@@ -94,6 +94,8 @@ class RunRecorder:
             self.record["conflict_rule"] = conflict_rule
         self.started = time.monotonic()
         self._journal = None  # open file of the per-tick journal (open_journal)
+        self._journal_file = ""
+        self.keep_ticks = True  # per-tick entries kept in memory (open_journal)
         self._journaled_events = 0
 
     def start(self, positions, goals) -> None:
@@ -127,11 +129,15 @@ class RunRecorder:
         self._tick_after = int(decisions.tick) + 1
 
     # ---- the per-tick journal ----
-    def open_journal(self, record_path) -> None:
+    def open_journal(self, record_path, keep_ticks: bool = True) -> None:
         """Start the journal of `record_path` (`journal_path`): the record so far, then one line
-        per tick from here on, each flushed as its tick ends."""
+        per tick from here on, each flushed as its tick ends. `keep_ticks` False: a tick's
+        entries leave memory once journaled and `write` streams them from the journal, so a
+        fleet that runs for days holds no history (a 128-robot record grew ~30 kB a tick)."""
         path = journal_path(record_path)
         self._journal = open(path, "w", encoding="utf-8")
+        self._journal_file = path
+        self.keep_ticks = keep_ticks
         header = {k: v for k, v in self.record.items()}
         self._journaled_events = len(self.record["goal_events"])
         self._journal.write(json.dumps({"record": header}) + "\n")
@@ -152,6 +158,15 @@ class RunRecorder:
                 "series": {name: self.record[name][-1] for name in series}}
         self._journal.write(json.dumps(line) + "\n")
         self._journal.flush()
+        if not self.keep_ticks:
+            for name in self.tick_keys:
+                self.record[name] = []
+            self._journaled_events = 0
+
+    @property
+    def tick_keys(self) -> tuple:
+        """The record's per-tick entries (lists growing with the run)."""
+        return ("positions", "actions", "missed", "goal_events", *self.series)
 
     def close_journal(self, record_path=None) -> None:
         """Stop journaling; with `record_path` (its record written whole), remove the journal."""
@@ -177,10 +192,48 @@ class RunRecorder:
         self.write(path)
 
     def write(self, path) -> None:
-        """The record as JSON, atomically (a reader never sees half a file)."""
+        """The record as JSON, atomically (a reader never sees half a file); with the ticks kept
+        only in the journal (`open_journal(keep_ticks=False)`), each per-tick entry streamed
+        from it, one line at a time."""
         from mapf_fleet.files import atomic_write
 
-        atomic_write(path, json.dumps(self.record).encode())
+        if self._journal is None or self.keep_ticks:
+            atomic_write(path, json.dumps(self.record).encode())
+            return
+        self._journal.flush()
+        atomic_write(path, self._stream_record)
+
+    def _stream_record(self, handle) -> None:
+        keys = self.tick_keys
+        with open(self._journal_file, encoding="utf-8") as journal:
+            header = json.loads(journal.readline())["record"]
+        fields = {k: v for k, v in {**header, **self.record}.items() if k not in keys}
+        handle.write(("{" + ", ".join(f"{json.dumps(k)}: {json.dumps(v)}"
+                                      for k, v in fields.items())).encode())
+        for key in keys:
+            handle.write(f", {json.dumps(key)}: [".encode())  # after "episode" and the rest
+            first = True
+
+            def put(item):
+                nonlocal first
+                handle.write(((", " if not first else "") + json.dumps(item)).encode())
+                first = False
+
+            for item in header.get(key, []):
+                put(item)
+            with open(self._journal_file, encoding="utf-8") as journal:
+                journal.readline()
+                for text in journal:
+                    tick = json.loads(text)
+                    if key == "goal_events":
+                        for event in tick["goal_events"]:
+                            put(event)
+                    else:
+                        put(tick["series"][key] if key in self.series else tick[key])
+            for item in self.record.get(key, []):  # recorded after the last journaled tick
+                put(item)
+            handle.write(b"]")
+        handle.write(b"}")
 
 
 def journal_path(record_path) -> str:
@@ -214,8 +267,8 @@ def read_record(path) -> dict:
             ticks.append(json.loads(text))
         except ValueError:
             break  # the line being written when the process died
-    if record is not None and int(record.get("steps", 0)) >= len(ticks):
-        return record
+    if record is not None and len(record.get("actions") or []) >= len(ticks):
+        return record  # it holds every tick the journal has (a streamed record holds none)
     out = dict(header)
     series = [k for k in ticks[0]["series"]] if ticks else []
     for name in ("positions", "actions", "missed", "goal_events", *series):

@@ -195,7 +195,8 @@ def run_lockstep(node, channels: FleetChannels, run, step, publish_state, *, loc
     checkpointed = False  # the record is written (incomplete) at the first tick only
     run.recorder.started = time.monotonic()  # run_seconds count from the first tick, not start-up
     if record_file:  # every tick kept as it ends, whatever happens to this process
-        run.recorder.open_journal(record_file)
+        # a tick leaves memory once in the journal: the record is streamed from it at the end
+        run.recorder.open_journal(record_file, keep_ticks=False)
     while not run.finished() and rclpy.ok() and not ticker.stopped:
         if run.waiting and goals is not None:
             if published != run.tick or time.monotonic() - published_at > IDLE_STATE_PERIOD_S:
