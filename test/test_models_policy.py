@@ -139,3 +139,27 @@ def test_bad_shapes_name_the_argument():
         net.step(obs[..., :7, :7], positions)
     with pytest.raises(ValueError, match="last_action"):
         net.step(obs, positions, last_action=np.zeros((2, 3), dtype=np.int64))
+
+
+def test_inference_batches_are_padded_to_few_shapes_with_the_same_numbers():
+    """Without autograd DCC encodes its rows padded to `padded_rows` (a bounded set of shapes,
+    so oneDNN's per-shape kernels stop piling up in a long-running fleet); the rows themselves
+    are encoded as without padding."""
+    from mapf_fleet.models.common import padded_rows
+
+    sizes = {padded_rows(n) for n in range(1, 20000)}
+    assert len(sizes) <= 8 * 15
+    for n in range(1, 5000):
+        assert n <= padded_rows(n) <= n + n // 8 and (n >= 16 or padded_rows(n) == n)
+    torch.manual_seed(0)
+    model = DCCNetwork(ModelConfig.preset("dcc", "small")).eval()
+    c, fov = model.config.obs_shape[0], model.config.fov
+    for rows in (5, 17, 37, 130):
+        obs = torch.rand(rows, c, fov, fov)
+        last = torch.randint(-1, 5, (rows,))
+        hidden = torch.rand(rows, model.hidden_dim)
+        plain = model.encode_batch(obs, last, hidden)  # autograd on: never padded
+        with torch.no_grad():
+            padded = model.encode_batch(obs, last, hidden)
+        assert padded.shape == plain.shape
+        torch.testing.assert_close(padded, plain.detach(), rtol=1e-5, atol=1e-5)

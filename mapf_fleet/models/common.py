@@ -50,6 +50,28 @@ class DuelingHead(nn.Module):
         return self.state(hidden) + adv - adv.mean(-1, keepdim=True)
 
 
+def padded_rows(rows: int) -> int:
+    """`rows` rounded up to one of 8 sizes per power of two (at most 1/8 more rows; exact below
+    16). Inference batches whose size changes every step (DCC's variants) then take a bounded
+    set of shapes: oneDNN compiles and keeps a kernel per input shape, and with a new shape
+    nearly every tick a fleet's policy process grew ~60 kB a tick (docs/results.md)."""
+    step = 1 << max(0, int(rows).bit_length() - 4)
+    return -(-int(rows) // step) * step
+
+
+def pad_rows(rows: int, *tensors: torch.Tensor) -> tuple:
+    """Each tensor with its first dimension padded to `rows` (zeros; integer tensors with -1),
+    for rows computed independently of one another (no batch statistics)."""
+    out = []
+    for t in tensors:
+        missing = rows - len(t)
+        if missing > 0:
+            fill = -1 if not t.is_floating_point() else 0
+            t = torch.cat([t, t.new_full((missing, *t.shape[1:]), fill)])
+        out.append(t)
+    return tuple(out)
+
+
 def module_device(module: nn.Module) -> torch.device:
     return next(module.parameters()).device
 

@@ -36,7 +36,8 @@ from torch import nn
 from mapf_fleet.grid.actions import NUM_ACTIONS
 
 from .comm import fov_neighbour_table, relative_position_index
-from .common import DuelingHead, StepOutput, as_float, as_long, check_batch_inputs, module_device
+from .common import (DuelingHead, StepOutput, as_float, as_long, check_batch_inputs,
+                     module_device, pad_rows, padded_rows)
 from .config import ModelConfig
 
 
@@ -114,11 +115,14 @@ class DCCNetwork(nn.Module):
                 hidden: torch.Tensor) -> torch.Tensor:
         """obs (M, C, fov, fov) (C = config.obs_shape[0]), last_action (M,) long in -1..4 (-1:
         none), hidden (M, H)."""
+        rows = len(obs)
+        if not torch.is_grad_enabled():
+            obs, last_action, hidden = pad_rows(padded_rows(rows), obs, last_action, hidden)
         one_hot = F.one_hot(last_action.clamp(min=0), NUM_ACTIONS).to(obs.dtype)
         one_hot = one_hot * (last_action >= 0)[:, None].to(obs.dtype)
         features = self.obs_encoder(obs.contiguous(memory_format=torch.channels_last))
         latent = torch.cat([features, one_hot], dim=1)
-        return self.recurrent(latent, hidden)
+        return self.recurrent(latent, hidden)[:rows]
 
     def greedy_actions(self, h: torch.Tensor) -> torch.Tensor:
         return self.head(h).argmax(-1)
