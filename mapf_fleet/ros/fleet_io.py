@@ -54,7 +54,6 @@ def set_parameters_result(params: dict, parameters, table: dict, logger=None):
     return SetParametersResult(successful=True)
 
 
-
 def fleet_state_msg(episode: int, tick: int, positions, goals, last_actions, done: bool,
                     stamp) -> FleetState:
     """The FleetState of a tick: (N, 2) cells and goals, the last actions, stamped in the map

@@ -20,7 +20,6 @@ import sys
 import time
 
 import rclpy
-from mapf_fleet_interfaces.msg import RobotMove, RobotStatus
 from mapf_fleet_interfaces.srv import DccMessage
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.callback_groups import ReentrantCallbackGroup
