@@ -31,14 +31,15 @@ def small_instance(draw):
     return grid, starts, goals, rankings
 
 
-@settings(max_examples=150, deadline=None)
-@given(small_instance(), st.booleans())
-def test_every_plan_is_valid(instance, ranked):
-    """Any small map, any agents, with or without given rankings: a plan found is one move or
-    wait per step, no vertex or swap conflict, no obstacle, from the starts to the goals."""
+@settings(max_examples=200, deadline=None)
+@given(small_instance(), st.booleans(), st.booleans())
+def test_every_plan_is_valid(instance, ranked, swap):
+    """Any small map, any agents, with or without given rankings, successors with or without
+    swap: a plan found is one move or wait per step, no vertex or swap conflict, no obstacle,
+    from the starts to the goals."""
     grid, starts, goals, rankings = instance
-    result = LaCAM(grid, seed=3).plan(starts, goals, rankings=rankings if ranked else None,
-                                      time_limit=0.5, max_nodes=5000)
+    result = LaCAM(grid, seed=3, swap=swap).plan(
+        starts, goals, rankings=rankings if ranked else None, time_limit=0.5, max_nodes=5000)
     if result.solved:
         assert check_plan(grid, result.positions, starts, goals) == []
         positions_to_actions(result.positions)  # one grid move per step
@@ -155,6 +156,24 @@ def test_fixed_agents_stay_and_reserved_cells_stay_free_on_the_first_step():
     assert check_plan(grid, result.positions, starts, goals) == []
     assert (result.positions[1, 1] == starts[1]).all()
     assert not (result.positions[1] == [1, 0]).all(axis=1).any()
+
+
+def test_swap_solves_the_dense_maps_plain_successors_do_not():
+    """The ceiling's dense maps (21 cells, density 0.25, 64 agents; the instances of
+    docs/results.md "The expert ceiling"): with the same node budget, swap's successors solve
+    every one of the first 5, plain PIBT's fewer."""
+    from mapf_fleet.training.dagger.ceiling import ceiling_instances
+
+    instances = ceiling_instances({"kind": "dense", "size": 21, "max_steps": 128}, 64, 5, 0)
+    solved = {False: 0, True: 0}
+    for inst in instances:
+        for swap in (False, True):
+            result = LaCAM(inst.grid, swap=swap).plan(inst.starts, inst.goals, time_limit=60,
+                                                      max_nodes=2000)
+            if result.solved:
+                assert check_plan(inst.grid, result.positions, inst.starts, inst.goals) == []
+                solved[swap] += 1
+    assert solved[True] == 5 and solved[False] < 5
 
 
 def test_deterministic_for_a_seed():

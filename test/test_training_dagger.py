@@ -305,3 +305,27 @@ def test_a_round_on_two_ray_workers(small_checkpoint, tmp_path):
     assert sorted(manifest["shards"]) == [f"r000_e00{i}.npz" for i in range(4)]
     assert result["counters"]["labels"] > 0
     assert {m["job"]["episode"] for m in manifest["shards"].values()} == {0, 1, 2, 3}
+
+
+def test_wait_labels_are_capped_at_random_and_the_same_every_load():
+    """cap_wait_labels keeps at most `cap` of the kept labels as waits, drops only waits, and
+    the aggregate applies it per shard with the shard's name as seed (the same labels on
+    every load; the shard itself keeps them all)."""
+    from mapf_fleet.training.dagger.data import cap_wait_labels
+
+    rng = np.random.default_rng(0)
+    labels = rng.choice([-1, 0, 0, 0, 1, 2, 3, 4], size=(40, 16)).astype(np.int8)
+    capped = cap_wait_labels(labels, 0.2, seed=7)
+    kept = capped >= 0
+    assert (capped == 0).sum() <= 0.2 * kept.sum() + 1e-9
+    assert (capped[capped != labels] == -1).all() and (labels[capped != labels] == 0).all()
+    assert ((labels > 0) == (capped > 0)).all()  # every move label kept
+    np.testing.assert_array_equal(capped, cap_wait_labels(labels, 0.2, seed=7))
+    assert cap_wait_labels(labels, 1.0, seed=7) is labels
+    assert (cap_wait_labels(labels, 0.0, seed=7) != 0).all()
+    arrays = {"labels": labels, "hidden_starts": np.arange(0, 40, 6)}
+    a, b = dagger.LabelledData(6, 3, wait_cap=0.2), dagger.LabelledData(6, 3, wait_cap=0.2)
+    a.add("r000_e001.npz", arrays)
+    b.add("r000_e001.npz", arrays)
+    np.testing.assert_array_equal(a.episodes[0]["labels"], b.episodes[0]["labels"])
+    assert (arrays["labels"] == labels).all()  # the shard's arrays untouched

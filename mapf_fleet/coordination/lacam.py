@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 # (importing pibt also raises the recursion limit: a push chain recurses once per agent)
-from .pibt import move_targets, validate_rankings
+from .pibt import move_targets, swap_partner, validate_rankings
 
 # distance maps kept per planner (one per goal cell)
 MAX_DISTANCE_MAPS = 4096
@@ -81,20 +81,25 @@ class LaCAM:
     """LaCAM for one map. `plan(starts, goals, ...)` returns a `LaCAMResult`.
 
     grid: (H, W), nonzero = obstacle. seed: the tie-breaking seed (plans are deterministic for
-    a seed)."""
+    a seed). swap: the successor generator is lacam3's PIBT with swap (`pibt.swap_partner`):
+    two agents meeting head-on in a corridor back out to a branch and pass there, where plain
+    PIBT's successors only push the one in front ahead (lacam3 measured it the largest single
+    gain on dense instances; docs/results.md, "The expert ceiling")."""
 
-    def __init__(self, grid, seed: int = 0):
+    def __init__(self, grid, seed: int = 0, swap: bool = False):
         grid = np.asarray(grid)
         if grid.ndim != 2:
             raise ValueError(f"grid must be 2-D, got shape {grid.shape}")
         self.grid = grid != 0
         self.height, self.width = self.grid.shape
         self.seed = int(seed)
+        self.swap = bool(swap)
         # _targets[cell, action]: the flat cell an action leads to, -1 off the map / obstacle
         self._targets = move_targets(self.grid)
         # per cell: its free neighbours then itself (the candidates deeper in the search)
         self._moves = [[c for c in row[1:] if c >= 0] + [int(row[0])]
                        for row in self._targets.tolist()]
+        self._neighbors = [m[:-1] for m in self._moves]
         self._distances: dict[int, list] = {}
         self._regions = None  # free-region labels, computed when first needed
 
@@ -268,9 +273,9 @@ class LaCAM:
                 for cell in options:
                     node.tree.append((who + (i,), where + (cell,)))
             if node is root:
-                nxt = self._generate(node, who, where, dist, rng, root_candidates, blocked)
+                nxt = self._generate(node, who, where, dist, goal, rng, root_candidates, blocked)
             else:
-                nxt = self._generate(node, who, where, dist, rng, None, None)
+                nxt = self._generate(node, who, where, dist, goal, rng, None, None)
             if nxt is None:
                 continue
             known = explored.get(nxt)
@@ -289,7 +294,7 @@ class LaCAM:
                            "no plan exists (search space exhausted)")
 
     # ------------------------------------------------------------------------------------------
-    def _generate(self, node, who, where, dist, rng, root_candidates, blocked):
+    def _generate(self, node, who, where, dist, goal, rng, root_candidates, blocked):
         """PIBT's next configuration from `node` under the constraint (who, where), or None."""
         now = node.config
         occ_now = node.occupied
@@ -339,9 +344,19 @@ class LaCAM:
                 if occ_next.get(cell) == i:
                     del occ_next[cell]
 
+        swap = self.swap
+        neighbors = self._neighbors
+
         def funnel(i: int, caller: int) -> bool:
             here = now[i]
-            for cell in candidates(i):
+            ranked = candidates(i)
+            partner = -1
+            if swap and ranked:
+                partner = swap_partner(i, ranked[0], here, occ_now, nxt, neighbors, goal,
+                                       dist.__getitem__)
+                if partner >= 0:
+                    ranked = ranked[::-1]  # back away, pulling the partner behind
+            for k, cell in enumerate(ranked):
                 if cell in occ_next:
                     continue
                 if caller >= 0 and cell == now[caller]:
@@ -357,6 +372,12 @@ class LaCAM:
                     if not funnel(other, i):
                         rollback(mark)
                         continue
+                if (k == 0 and partner >= 0 and nxt[partner] < 0 and cell != here
+                        and here not in occ_next):
+                    # the pull: the partner takes the cell we leave (as the shield's swap)
+                    occ_next[here] = partner
+                    nxt[partner] = here
+                    journal.append(partner)
                 return True
             return False
 

@@ -59,11 +59,12 @@ class PlanKeeper:
     grid: (H, W), nonzero = obstacle. goals: (N, 2). planning_budget: seconds per re-plan.
     replan_every: re-plan every k ticks even when the plan holds (0: only when it breaks).
     max_nodes: LaCAM's node budget per call. seed: LaCAM's tie-breaking seed.
-    max_retry_interval: the longest wait (ticks) between tries after failed calls."""
+    max_retry_interval: the longest wait (ticks) between tries after failed calls.
+    swap: LaCAM's successors by PIBT with swap (`LaCAM(swap=True)`)."""
 
     def __init__(self, grid, goals, planning_budget: float = DEFAULT_PLANNING_BUDGET,
                  replan_every: int = 0, max_nodes: int = 1_000_000, seed: int = 0,
-                 max_retry_interval: int = DEFAULT_MAX_RETRY_INTERVAL):
+                 max_retry_interval: int = DEFAULT_MAX_RETRY_INTERVAL, swap: bool = False):
         if not planning_budget > 0:
             raise ValueError(f"planning_budget must be a positive number of seconds, got "
                              f"{planning_budget!r}")
@@ -73,7 +74,7 @@ class PlanKeeper:
         self.grid = self.fallback.grid
         self.height, self.width = self.grid.shape
         self.num_agents = self.fallback.num_agents
-        self.planner = LaCAM(self.grid, seed=seed)
+        self.planner = LaCAM(self.grid, seed=seed, swap=swap)
         self.planning_budget = float(planning_budget)
         self.replan_every = int(replan_every)
         self.max_nodes = int(max_nodes)
@@ -373,9 +374,10 @@ class CommittedExpert:
     the one the last labels lead to is off the plan)."""
 
     def __init__(self, grid, goals, planning_budget: float = 5.0, replan_every: int = 0,
-                 max_nodes: int = 1_000_000, seed: int = 0):
+                 max_nodes: int = 1_000_000, seed: int = 0, swap: bool = False):
         self.keeper = PlanKeeper(grid, goals, planning_budget=planning_budget,
-                                 replan_every=replan_every, max_nodes=max_nodes, seed=seed)
+                                 replan_every=replan_every, max_nodes=max_nodes, seed=seed,
+                                 swap=swap)
         self.last: dict = {}
         self._expect: int | None = None  # the plan index the next state should be at
 

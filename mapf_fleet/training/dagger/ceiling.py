@@ -152,6 +152,8 @@ def labeller_config(cfg: DaggerConfig) -> dict:
     if cfg.labeller in ("committed", "stuck"):
         out = {"committed_planner": cfg.committed_planner, "committed_budget": cfg.committed_budget,
                "committed_replan_every": cfg.committed_replan_every,
+               "committed_swap": cfg.committed_swap,
+               "committed_max_nodes": cfg.committed_max_nodes,
                "planner_seed": cfg.planner_seed}
         return {**out, "stuck_window": cfg.stuck_window} if cfg.labeller == "stuck" else out
     return {"label_time_limit": cfg.label_time_limit, "max_plan_factor": cfg.max_plan_factor,

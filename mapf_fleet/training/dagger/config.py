@@ -93,6 +93,12 @@ class DaggerConfig:
     # coordination.plan.CommittedExpert); "pymapf" = the per-step labeller's (no periodic
     # re-plan; `committed_budget` seconds per region)
     committed_planner: str = "lacam"
+    # "committed" / "stuck" over the project's LaCAM: successors by PIBT with swap (lacam3's;
+    # it lifts the expert's ceiling above plain PIBT under `pibt_anchor_swap`, docs/results.md)
+    committed_swap: bool = False
+    # ... and LaCAM's node budget per re-plan: with a generous `committed_budget` the labels
+    # then do not depend on the machine's load
+    committed_max_nodes: int = 1_000_000
     # "stuck": the committed expert's labels from the first state after `stuck_window` labelled
     # states without a new low of the agents' summed distance to their goals
     stuck_window: int = 8
@@ -112,6 +118,9 @@ class DaggerConfig:
     # (docs/results.md, "DAgger behind the arbiter")
     loss: str = "margin"
     margin: float = 0.8  # the large margin of loss "margin"
+    # the largest fraction of wait labels trained on per episode (data.cap_wait_labels; the
+    # shards keep every label); 1.0 = no cap, MAPF-GPT's is 0.2
+    wait_label_cap: float = 1.0
     lr: float = 5e-5
     grad_clip: float = 40.0
     seq_len: int = 16  # trained steps per window
@@ -173,6 +182,7 @@ class DaggerConfig:
         for name in ("rounds", "episodes_per_round", "label_interval", "label_backoff_max",
                      "num_cpus", "num_workers",
                      "seq_len", "batch_windows", "threads", "heldout_count", "ceiling_count", "stuck_window",
+                     "committed_max_nodes",
                      "ceiling_lifelong_count"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -190,6 +200,8 @@ class DaggerConfig:
                      "state_interval_seconds"):
             if not float(getattr(self, name)) > 0:
                 raise bad(name, "must be > 0")
+        if not 0.0 <= float(self.wait_label_cap) <= 1.0:
+            raise bad("wait_label_cap", "must be in [0, 1]")
         if float(self.margin) < 0:
             raise bad("margin", "must be >= 0")
         if self.device not in ("auto", "cpu", "cuda") and not str(self.device).startswith("cuda:"):

@@ -8,12 +8,14 @@ and scores it against the labels."""
 from __future__ import annotations
 
 import json
+import zlib
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from mapf_fleet.files import atomic_write
+from mapf_fleet.grid.actions import STAY
 
 from ..modelio import model_step
 from ..replay import unpack_obs
@@ -45,11 +47,31 @@ def write_json(path: Path, data) -> None:
     atomic_write(path, lambda f: f.write((json.dumps(data, indent=1) + "\n").encode()))
 
 
-class LabelledData:
-    """The aggregate: every shard's arrays in memory, and an index of labelled windows."""
+def cap_wait_labels(labels: np.ndarray, cap: float, seed: int) -> np.ndarray:
+    """`labels` (-1 = none) with wait labels dropped at random (seeded) until waits are at most
+    `cap` of the labels left (MAPF-GPT keeps 20 %: a crowd's experts wait most of the time, and
+    a policy trained on every wait learns to stand). cap >= 1 keeps every label."""
+    if cap >= 1.0:
+        return labels
+    waits = np.flatnonzero(labels.ravel() == STAY)
+    moves = int((labels >= 0).sum()) - len(waits)
+    keep = int(np.floor(cap * moves / (1.0 - cap))) if cap > 0 else 0
+    if len(waits) <= keep:
+        return labels
+    out = labels.copy()
+    drop = np.random.default_rng(seed).choice(waits, size=len(waits) - keep, replace=False)
+    out.reshape(-1)[drop] = -1
+    return out
 
-    def __init__(self, seq_len: int, burn_in: int):
+
+class LabelledData:
+    """The aggregate: every shard's arrays in memory, and an index of labelled windows.
+    wait_cap: the largest fraction of wait labels kept per episode (`cap_wait_labels`, seeded by
+    the shard's name: the same labels every time it is loaded); the shards keep every label."""
+
+    def __init__(self, seq_len: int, burn_in: int, wait_cap: float = 1.0):
         self.seq_len, self.burn_in = seq_len, burn_in
+        self.wait_cap = float(wait_cap)
         self.episodes: list[dict] = []
         self.windows: list[tuple[int, int]] = []  # (episode, window j)
         self.names: set[str] = set()
@@ -59,6 +81,9 @@ class LabelledData:
             return
         self.names.add(name)
         e = len(self.episodes)
+        if self.wait_cap < 1.0:
+            arrays = {**arrays, "labels": cap_wait_labels(arrays["labels"], self.wait_cap,
+                                                          zlib.crc32(name.encode()))}
         self.episodes.append(arrays)
         labels = arrays["labels"]
         for j in range(len(arrays["hidden_starts"])):

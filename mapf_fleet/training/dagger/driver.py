@@ -78,7 +78,7 @@ class Dagger:
         else:
             atomic_write(self.run_dir / CONFIG_FILE,
                          lambda f: f.write(yaml.safe_dump(cfg.to_dict(), sort_keys=False).encode()))
-        self.data = LabelledData(cfg.seq_len, cfg.burn_in)
+        self.data = LabelledData(cfg.seq_len, cfg.burn_in, cfg.wait_label_cap)
         self.stop_signal = None
         self._cpu_last: dict[int, float] = {}
 

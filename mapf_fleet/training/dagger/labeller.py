@@ -104,12 +104,17 @@ class CommittedLabeller:
     the plan leads, when a goal changed (lifelong), or every `replan_every` states (0: never),
     with `planning_budget` seconds of wall clock per re-plan. Agents the plan leaves out (no plan
     found in the budget for their region) get no label ("unsolved"): the expert's own fallback
-    there is plain PIBT's step, not worth imitating."""
+    there is plain PIBT's step, not worth imitating. swap: LaCAM's successors by PIBT with swap;
+    max_nodes: LaCAM's node budget per re-plan (a budget that does not depend on the machine's
+    load, where the wall-clock budget does)."""
 
-    def __init__(self, planning_budget: float, replan_every: int = 0, seed: int = 0):
+    def __init__(self, planning_budget: float, replan_every: int = 0, seed: int = 0,
+                 swap: bool = False, max_nodes: int = 1_000_000):
         self.planning_budget = float(planning_budget)
         self.replan_every = int(replan_every)
         self.seed = int(seed)
+        self.swap = bool(swap)
+        self.max_nodes = int(max_nodes)
         self.expert = None
         self._grid = None
         self.replans = 0  # re-plans since construction (the ceiling reports them per episode)
@@ -120,7 +125,8 @@ class CommittedLabeller:
         if self.expert is None or state.step == 0 or state.grid is not self._grid:
             self.expert = CommittedExpert(state.grid, state.goals,
                                           planning_budget=self.planning_budget,
-                                          replan_every=self.replan_every, seed=self.seed)
+                                          replan_every=self.replan_every, seed=self.seed,
+                                          swap=self.swap, max_nodes=self.max_nodes)
             self._grid = state.grid
         elif not np.array_equal(self.expert.goals, state.goals):
             self.expert.set_goals(state.goals)
@@ -182,10 +188,10 @@ class StuckLabeller:
     the policy (the ceiling), it is plain PIBT until stuck, then the expert."""
 
     def __init__(self, planning_budget: float, replan_every: int = 0, seed: int = 0,
-                 window: int = 8):
+                 window: int = 8, swap: bool = False, max_nodes: int = 1_000_000):
         if int(window) < 1:
             raise ValueError(f"stuck window must be >= 1 state, got {window!r}")
-        self.committed = CommittedLabeller(planning_budget, replan_every, seed)
+        self.committed = CommittedLabeller(planning_budget, replan_every, seed, swap, max_nodes)
         self.window = int(window)
         self.seed = int(seed)
         self._best, self._since, self.active_from = None, 0, None
@@ -221,8 +227,9 @@ def make_labeller(cfg, seed: int | None = None) -> Labeller:
     if cfg.labeller == "committed" and cfg.committed_planner == "pymapf":
         return KeptPyMAPFLabeller(cfg.committed_budget, seed)
     if cfg.labeller == "committed":
-        return CommittedLabeller(cfg.committed_budget, cfg.committed_replan_every, seed)
+        return CommittedLabeller(cfg.committed_budget, cfg.committed_replan_every, seed,
+                                 cfg.committed_swap, cfg.committed_max_nodes)
     if cfg.labeller == "stuck":
         return StuckLabeller(cfg.committed_budget, cfg.committed_replan_every, seed,
-                             cfg.stuck_window)
+                             cfg.stuck_window, cfg.committed_swap, cfg.committed_max_nodes)
     return LaCAMLabeller(cfg.label_time_limit, cfg.max_plan_factor, cfg.max_plan_slack, seed)
