@@ -172,7 +172,7 @@ class PIBTShield:
     """
 
     def __init__(self, grid, goals, anchor: bool = False, swap: bool = False,
-                 hindrance: bool = False):
+                 hindrance: bool = False, anchor_patience: int = 0):
         grid = np.asarray(grid)
         if grid.ndim != 2:
             raise ValueError(f"grid must be 2-D, got shape {grid.shape}")
@@ -194,6 +194,13 @@ class PIBTShield:
         self.base_priority = np.arange(self.num_agents, dtype=np.float64) / (self.num_agents + 1)
         self.priorities = self.base_priority.copy()
         self.anchor = bool(anchor)
+        if int(anchor_patience) < 0:
+            raise ValueError(f"anchor_patience must be >= 0 ticks, got {anchor_patience!r}")
+        self.anchor_patience = int(anchor_patience)
+        # per agent: its least distance to its goal so far and the ticks since it got there
+        # (the patient anchor's clock; a new goal starts it afresh)
+        self.best_distance = np.full(self.num_agents, np.iinfo(np.int64).max, dtype=np.int64)
+        self.stalled = np.zeros(self.num_agents, dtype=np.int64)
         self.swap = bool(swap)
         self.hindrance = bool(hindrance)
         # valid neighbour cells per flat cell (swap walks corridors, hindrance reads neighbours)
@@ -208,6 +215,32 @@ class PIBTShield:
         """Start a new episode: every priority back to its tie-breaker."""
         self.priorities = self.base_priority.copy()
         self.tick = 0
+        self.best_distance[:] = np.iinfo(np.int64).max
+        self.stalled[:] = 0
+
+    def snapshot(self) -> dict:
+        """The state a step depends on besides its inputs (priorities, tick, the patient
+        anchor's clocks), copied: `restore` puts it back (an expert asking what the rule would
+        do, on a copy of the rule)."""
+        return {"priorities": self.priorities.copy(), "tick": self.tick,
+                "best_distance": self.best_distance.copy(), "stalled": self.stalled.copy()}
+
+    def restore(self, state: dict) -> None:
+        self.priorities = np.asarray(state["priorities"], dtype=np.float64).copy()
+        self.tick = int(state["tick"])
+        self.best_distance = np.asarray(state["best_distance"], dtype=np.int64).copy()
+        self.stalled = np.asarray(state["stalled"], dtype=np.int64).copy()
+
+    def anchored_agent(self, fixed=None) -> int:
+        """The agent the anchor ranks by distance at the next step, -1 when none: the one of
+        highest priority (not fixed), once it has gone `anchor_patience` ticks without getting
+        closer to its goal than before (patience 0: always)."""
+        if not self.anchor or not self.num_agents:
+            return -1
+        top = int(np.argmax(self.priorities))
+        if fixed is not None and fixed[top]:
+            return -1
+        return top if self.stalled[top] >= self.anchor_patience else -1
 
     def set_goals(self, goals) -> np.ndarray:
         """New goals (N, 2) for the next steps, without rebuilding the shield; returns the bool
@@ -226,6 +259,8 @@ class PIBTShield:
             self.goals = goals.copy()
             self._goal_flat = (self.goals[:, 0] * self.width + self.goals[:, 1]).tolist()
             self.priorities = np.where(changed, self.base_priority, self.priorities)
+            self.best_distance[changed] = np.iinfo(np.int64).max
+            self.stalled[changed] = 0
         return changed
 
     def distance_map(self, agent: int) -> np.ndarray:
@@ -317,11 +352,10 @@ class PIBTShield:
         current_flat = positions[:, 0] * w + positions[:, 1]
         current = current_flat.tolist()
         asked = prefs
-        if self.anchor and n:
-            top = int(np.argmax(self.priorities))  # the first taken by the loop below
-            if not fixed[top]:
-                prefs = prefs.copy()
-                prefs[top] = self.anchored_ranking(top, current[top])
+        top = self.anchored_agent(fixed)  # the highest priority: the first the loop takes
+        if top >= 0:
+            prefs = prefs.copy()
+            prefs[top] = self.anchored_ranking(top, current[top])
         candidates = self._candidates(current_flat, prefs)
         occupied_now = {cell: i for i, cell in enumerate(current)}
         if len(occupied_now) != n:
@@ -456,8 +490,16 @@ class PIBTShield:
         """PIBT's dynamic priorities after a step that left the agents at `positions` (N, 2):
         back to the tie-breaker on the goal, one more off it. `step` calls it; a caller that
         holds every agent for a tick (an arbiter refusing a tick) calls it alone."""
-        on_goal = (np.asarray(positions) == self.goals).all(axis=1)
+        positions = np.asarray(positions)
+        on_goal = (positions == self.goals).all(axis=1)
         self.priorities = np.where(on_goal, self.base_priority, self.priorities + 1.0)
+        if self.anchor and self.anchor_patience:
+            flat = (positions[:, 0] * self.width + positions[:, 1]).tolist()
+            dist = np.fromiter((self._distance_list(i)[c] for i, c in enumerate(flat)),
+                               dtype=np.int64, count=len(flat))
+            closer = dist < self.best_distance
+            self.best_distance = np.minimum(self.best_distance, dist)
+            self.stalled = np.where(closer, 0, self.stalled + 1)
 
 
 # --- swap (lacam3), shared by the shield and LaCAM's successor generator --------------------------
@@ -541,7 +583,8 @@ def swap_partner(i: int, target: int, here: int, occupied_now: dict[int, int], d
     return -1
 
 
-def make_shield(rule: str, grid, goals, planning_budget: float | None = None):
+def make_shield(rule: str, grid, goals, planning_budget: float | None = None,
+                anchor_patience: int = 0):
     """The coordination layer of a conflict rule: None for "revert", `PIBTShield` with the options
     a PIBT rule's name carries (`rule_options`), or for "lacam" a `coordination.plan.PlanKeeper`
     (same interface) with `planning_budget` seconds per re-plan (default
@@ -555,4 +598,4 @@ def make_shield(rule: str, grid, goals, planning_budget: float | None = None):
 
         return PlanKeeper(grid, goals, planning_budget=DEFAULT_PLANNING_BUDGET
                           if planning_budget is None else planning_budget)
-    return PIBTShield(grid, goals, **rule_options(rule))
+    return PIBTShield(grid, goals, **rule_options(rule), anchor_patience=anchor_patience)

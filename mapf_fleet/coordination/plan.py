@@ -371,13 +371,30 @@ class CommittedExpert:
 
     The expert does not advance with the executed moves: call `moves` once with each state the
     rollout visits (it follows the plan's index while the agents stay on it; a state that is not
-    the one the last labels lead to is off the plan)."""
+    the one the last labels lead to is off the plan).
+
+    rule: the PIBT rule its labels will run under (`pibt_anchor_swap`, ...; None: not known),
+    anchor_patience: its anchor's patience. Given the rule's state at the visited state
+    (`moves(positions, rule.snapshot())`),
+    the expert first asks a copy of the rule what it would execute for its labels; where that
+    leaves the plan (the anchored top agent's distance order, a swap), it re-plans from the
+    state with the rule's priorities and the top agent's anchored ranking at LaCAM's root, so
+    the new plan's first step is one the rule lets through (`last["rule_replan"]`)."""
 
     def __init__(self, grid, goals, planning_budget: float = 5.0, replan_every: int = 0,
-                 max_nodes: int = 1_000_000, seed: int = 0, swap: bool = False):
+                 max_nodes: int = 1_000_000, seed: int = 0, swap: bool = False,
+                 rule: str | None = None, anchor_patience: int = 0):
         self.keeper = PlanKeeper(grid, goals, planning_budget=planning_budget,
                                  replan_every=replan_every, max_nodes=max_nodes, seed=seed,
                                  swap=swap)
+        self.rule = None
+        if rule is not None:
+            from .pibt import PIBT_RULES, rule_options
+
+            if rule not in PIBT_RULES:
+                raise ValueError(f"rule must be one of {PIBT_RULES}, got {rule!r}")
+            self.rule = PIBTShield(grid, goals, **rule_options(rule),
+                                   anchor_patience=anchor_patience)
         self.last: dict = {}
         self._expect: int | None = None  # the plan index the next state should be at
 
@@ -386,6 +403,8 @@ class CommittedExpert:
         return self.keeper.goals
 
     def set_goals(self, goals) -> np.ndarray:
+        if self.rule is not None:
+            self.rule.set_goals(goals)
         return self.keeper.set_goals(goals)
 
     def reset(self) -> None:
@@ -406,8 +425,55 @@ class CommittedExpert:
         t = keeper.index if self._expect is None else self._expect
         return t if np.array_equal(plan[t][planned], positions[planned]) else -1
 
-    def moves(self, positions) -> np.ndarray:
-        """(N,) every agent's next action (DHC order) at `positions` (N, 2)."""
+    def moves(self, positions, rule_state: dict | None = None) -> np.ndarray:
+        """(N,) every agent's next action (DHC order) at `positions` (N, 2); with the rule's
+        state there (`PIBTShield.snapshot()`, see the class), labels the rule lets through
+        where it can."""
+        informed = self.rule is not None and rule_state is not None
+        if informed:  # a re-plan starts from the rule's priorities (LaCAM's root order)
+            self.keeper.priorities = np.asarray(rule_state["priorities"], np.float64).copy()
+        actions = self._moves(positions)
+        if not informed or self.keeper.plan is None:
+            return actions
+        keeper, rule = self.keeper, self.rule
+        positions = np.asarray(positions, dtype=np.int64)
+        rule.restore(rule_state)
+        rankings = self._label_rankings(positions, actions)
+        if np.array_equal(self._rule_step(positions, rankings), keeper._next_cells()):
+            self.last["rule_replan"] = False
+            return actions
+        # the rule would leave the plan: plan again from here with the rule's priorities and
+        # its anchored top agent's ranking at the root (the first step the rule would take)
+        top = rule.anchored_agent()
+        if top >= 0:
+            flat = int(positions[top, 0] * keeper.width + positions[top, 1])
+            rankings[top] = rule.anchored_ranking(top, flat)
+        old = (keeper.plan, keeper.index, keeper.unplanned)
+        found = keeper.replan(positions, rankings)
+        self.last["rule_replan"] = True
+        if not found and keeper.plan is None:
+            keeper.plan, keeper.index, keeper.unplanned = old  # keep the labels we had
+            return actions
+        self._expect = min(keeper.index + 1, len(keeper.plan) - 1)
+        return self._actions(positions, rankings)
+
+    def _label_rankings(self, positions, actions) -> np.ndarray:
+        """Every agent's label first, then its distance order (as a rollout ranks a label)."""
+        rankings = distance_rankings(self.rule, positions)
+        for i, first in enumerate(np.asarray(actions).tolist()):
+            if rankings[i, 0] != first:
+                rankings[i] = [first] + [a for a in rankings[i].tolist() if a != first]
+        return rankings
+
+    def _rule_step(self, positions, rankings) -> np.ndarray:
+        """The cells the rule would command for these rankings (its state left as it was)."""
+        rule = self.rule
+        state = rule.snapshot()
+        out = rule.step(positions, rankings).positions
+        rule.restore(state)
+        return out
+
+    def _moves(self, positions) -> np.ndarray:
         keeper = self.keeper
         positions = keeper.fallback._check_positions(positions)
         t = self._locate(positions)

@@ -60,7 +60,8 @@ def _plans(labeller, out: dict) -> int:
 def one_shot_row(cfg: DaggerConfig, task: dict, agents: int, count: int, log=None) -> dict:
     instances = ceiling_instances(task, agents, count, cfg.ceiling_seed)
     steps = task["max_steps"]
-    plain = [play_plain_pibt(inst, steps, cfg.conflict_rule) for inst in instances]
+    plain = [play_plain_pibt(inst, steps, cfg.conflict_rule, cfg.anchor_patience)
+             for inst in instances]
     expert, plans, agree, pairs = [], 0, 0, 0
     began = time.process_time()
     for k, inst in enumerate(instances):
@@ -71,7 +72,8 @@ def one_shot_row(cfg: DaggerConfig, task: dict, agents: int, count: int, log=Non
         out = play_episode(None, inst, steps, cfg.conflict_rule, "distance", None, labeller, beta=1.0,
                            label_interval=cfg.label_interval,
                            rng=np.random.default_rng([cfg.ceiling_seed, k]), record=False,
-                           backoff_max=cfg.label_backoff_max, shadow=shadow)
+                           backoff_max=cfg.label_backoff_max, shadow=shadow,
+                           anchor_patience=cfg.anchor_patience)
         plans += _plans(labeller, out) - before
         agree, pairs = agree + out["agree"], pairs + out["agree_pairs"]
         expert.append(out)
@@ -110,8 +112,10 @@ def lifelong_row(cfg: DaggerConfig, task: dict, agents: int, count: int, log=Non
     steps = task["max_steps"]
     seeds = [int(np.random.SeedSequence([cfg.ceiling_seed, k]).generate_state(1)[0])
              for k in range(count)]
-    plain = [play_lifelong(inst, steps, cfg.conflict_rule, s) for inst, s in zip(instances, seeds)]
-    expert = [play_lifelong(inst, steps, cfg.conflict_rule, s, make_labeller(cfg))
+    patience = cfg.anchor_patience
+    plain = [play_lifelong(inst, steps, cfg.conflict_rule, s, anchor_patience=patience)
+             for inst, s in zip(instances, seeds)]
+    expert = [play_lifelong(inst, steps, cfg.conflict_rule, s, make_labeller(cfg), patience)
               for inst, s in zip(instances, seeds)]
     calls = sum(o["label_calls"] for o in expert)
     row = {"suite": _suite_name(task) + " lifelong", "kind": task["kind"], "size": task["size"],
@@ -140,7 +144,8 @@ def expert_ceiling(cfg: DaggerConfig, count: int | None = None, log=None) -> dic
                 for task in cfg.ceiling_lifelong for n in task["agents"]]
     import os
 
-    return {"labeller": cfg.labeller, "rule": cfg.conflict_rule, "count": count,
+    return {"labeller": cfg.labeller, "rule": cfg.conflict_rule,
+            "anchor_patience": cfg.anchor_patience, "count": count,
             # the planners' budgets are wall clock: the machine's load says how much CPU they got
             "loadavg_at_end": list(os.getloadavg()),
             "lifelong_count": lifelong_count,
@@ -154,6 +159,7 @@ def labeller_config(cfg: DaggerConfig) -> dict:
                "committed_replan_every": cfg.committed_replan_every,
                "committed_swap": cfg.committed_swap,
                "committed_max_nodes": cfg.committed_max_nodes,
+               "committed_follow_rule": cfg.committed_follow_rule,
                "planner_seed": cfg.planner_seed}
         return {**out, "stuck_window": cfg.stuck_window} if cfg.labeller == "stuck" else out
     return {"label_time_limit": cfg.label_time_limit, "max_plan_factor": cfg.max_plan_factor,

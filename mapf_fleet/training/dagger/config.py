@@ -57,6 +57,9 @@ class DaggerConfig:
     # the checkpoint DAgger starts from (its network is kept: DCC or DHC as the paper built it)
     init_checkpoint: str = "models/default.pt"
     conflict_rule: str = "pibt_anchor"  # the arbiter the rollouts run under (coordination.pibt)
+    # the anchor's patience (ticks the top agent may go without getting closer before the anchor
+    # ranks it by distance; coordination.pibt.PIBTShield); 0 = the anchor every tick
+    anchor_patience: int = 0
     # how the policy's Q-values become the ranking the rule reads (coordination.ranking);
     # q_then_distance: the best ranking under pibt_anchor (docs/results.md)
     ranking: str = "q_then_distance"
@@ -99,6 +102,10 @@ class DaggerConfig:
     # ... and LaCAM's node budget per re-plan: with a generous `committed_budget` the labels
     # then do not depend on the machine's load
     committed_max_nodes: int = 1_000_000
+    # ... and labels that the rollout's rule (`conflict_rule`) lets through: the expert asks a
+    # copy of the rule what it would execute and re-plans from the rule's priorities and its
+    # anchored top agent where that leaves the plan (coordination.plan.CommittedExpert)
+    committed_follow_rule: bool = False
     # "stuck": the committed expert's labels from the first state after `stuck_window` labelled
     # states without a new low of the agents' summed distance to their goals
     stuck_window: int = 8
@@ -189,6 +196,7 @@ class DaggerConfig:
                 raise bad(name, "must be an integer >= 1")
         for name in ("late_tasks_from", "burn_in", "updates_per_round", "max_plan_slack", "seed",
                      "planner_seed", "heldout_seed", "committed_replan_every", "ceiling_seed",
+                     "anchor_patience",
                      "ceiling_agreement_episodes"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:

@@ -35,6 +35,9 @@ class LabelState:
     distances: np.ndarray  # (N, H, W) BFS distance of every cell to agent i's goal
     step: int  # the episode's step (0 = its first state)
     step_limit: int  # the episode's step limit
+    # the conflict rule's state at this state (`PIBTShield.snapshot()`; None: not a PIBT rule):
+    # an expert that knows it labels moves the rule lets through (CommittedExpert's `rule`)
+    rule_state: dict | None = None
 
 
 class Labels(NamedTuple):
@@ -106,15 +109,20 @@ class CommittedLabeller:
     found in the budget for their region) get no label ("unsolved"): the expert's own fallback
     there is plain PIBT's step, not worth imitating. swap: LaCAM's successors by PIBT with swap;
     max_nodes: LaCAM's node budget per re-plan (a budget that does not depend on the machine's
-    load, where the wall-clock budget does)."""
+    load, where the wall-clock budget does); rule: the rollout's PIBT rule, whose priorities
+    and tick the states carry (`LabelState.rule_priorities`): labels the rule lets through
+    (`CommittedExpert`'s `rule`)."""
 
     def __init__(self, planning_budget: float, replan_every: int = 0, seed: int = 0,
-                 swap: bool = False, max_nodes: int = 1_000_000):
+                 swap: bool = False, max_nodes: int = 1_000_000, rule: str | None = None,
+                 anchor_patience: int = 0):
         self.planning_budget = float(planning_budget)
         self.replan_every = int(replan_every)
         self.seed = int(seed)
         self.swap = bool(swap)
         self.max_nodes = int(max_nodes)
+        self.rule = rule  # the rollout's PIBT rule, when the expert is to label for it
+        self.anchor_patience = int(anchor_patience)
         self.expert = None
         self._grid = None
         self.replans = 0  # re-plans since construction (the ceiling reports them per episode)
@@ -126,11 +134,14 @@ class CommittedLabeller:
             self.expert = CommittedExpert(state.grid, state.goals,
                                           planning_budget=self.planning_budget,
                                           replan_every=self.replan_every, seed=self.seed,
-                                          swap=self.swap, max_nodes=self.max_nodes)
+                                          swap=self.swap, max_nodes=self.max_nodes,
+                                          rule=self.rule,
+                                          anchor_patience=self.anchor_patience)
             self._grid = state.grid
         elif not np.array_equal(self.expert.goals, state.goals):
             self.expert.set_goals(state.goals)
-        actions = np.asarray(self.expert.moves(state.positions), np.int64).copy()
+        actions = np.asarray(self.expert.moves(state.positions, state.rule_state),
+                             np.int64).copy()
         self.replans += bool(self.expert.last.get("replanned"))
         keeper = self.expert.keeper
         if keeper.plan is None:
@@ -188,10 +199,12 @@ class StuckLabeller:
     the policy (the ceiling), it is plain PIBT until stuck, then the expert."""
 
     def __init__(self, planning_budget: float, replan_every: int = 0, seed: int = 0,
-                 window: int = 8, swap: bool = False, max_nodes: int = 1_000_000):
+                 window: int = 8, swap: bool = False, max_nodes: int = 1_000_000,
+                 rule: str | None = None, anchor_patience: int = 0):
         if int(window) < 1:
             raise ValueError(f"stuck window must be >= 1 state, got {window!r}")
-        self.committed = CommittedLabeller(planning_budget, replan_every, seed, swap, max_nodes)
+        self.committed = CommittedLabeller(planning_budget, replan_every, seed, swap, max_nodes,
+                                           rule, anchor_patience)
         self.window = int(window)
         self.seed = int(seed)
         self._best, self._since, self.active_from = None, 0, None
@@ -224,12 +237,15 @@ def make_labeller(cfg, seed: int | None = None) -> Labeller:
     """The labeller a DAgger config asks for (`labeller`); `seed` replaces the planner's seed
     (the ceiling's self-agreement labels the same states with a second seed)."""
     seed = cfg.planner_seed if seed is None else int(seed)
+    rule = cfg.conflict_rule if cfg.committed_follow_rule else None
     if cfg.labeller == "committed" and cfg.committed_planner == "pymapf":
         return KeptPyMAPFLabeller(cfg.committed_budget, seed)
     if cfg.labeller == "committed":
         return CommittedLabeller(cfg.committed_budget, cfg.committed_replan_every, seed,
-                                 cfg.committed_swap, cfg.committed_max_nodes)
+                                 cfg.committed_swap, cfg.committed_max_nodes, rule,
+                                 cfg.anchor_patience)
     if cfg.labeller == "stuck":
         return StuckLabeller(cfg.committed_budget, cfg.committed_replan_every, seed,
-                             cfg.stuck_window, cfg.committed_swap, cfg.committed_max_nodes)
+                             cfg.stuck_window, cfg.committed_swap, cfg.committed_max_nodes, rule,
+                             cfg.anchor_patience)
     return LaCAMLabeller(cfg.label_time_limit, cfg.max_plan_factor, cfg.max_plan_slack, seed)

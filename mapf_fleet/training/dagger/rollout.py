@@ -24,7 +24,8 @@ def play_episode(model, instance, max_steps: int, conflict_rule: str, ranking: s
                  device, labeller: Labeller | None = None, beta: float = 0.0,
                  label_interval: int = 1, rng: np.random.Generator | None = None,
                  seq_len: int = 16, burn_in: int = 8, record: bool = True,
-                 backoff_max: int = 1, shadow: Labeller | None = None) -> dict:
+                 backoff_max: int = 1, shadow: Labeller | None = None,
+                 anchor_patience: int = 0) -> dict:
     """One episode of `model` under `conflict_rule` (its Q-values ranked by `ranking`); with a
     labeller, the visited states are labelled (and the expert's ranking executed with
     probability `beta` at labelled steps). Returns the outcome and, with `record`, the arrays of
@@ -49,7 +50,8 @@ def play_episode(model, instance, max_steps: int, conflict_rule: str, ranking: s
     env = MAPFEnv(instance, EnvConfig(max_steps=max_steps, observation=observation))
     obs = env.reset()
     n = instance.num_agents
-    shield = make_shield(conflict_rule, instance.grid, instance.goals)
+    shield = make_shield(conflict_rule, instance.grid, instance.goals,
+                         anchor_patience=anchor_patience)
     policy = None if model is None else LearnedPolicy(model, device)
     if policy is not None:
         policy.reset(1, n)
@@ -80,7 +82,8 @@ def play_episode(model, instance, max_steps: int, conflict_rule: str, ranking: s
         label = np.full(n, -1, np.int8)
         if labeller is not None and t >= next_label:
             state = LabelState(instance.grid, env.positions, instance.goals, distances, t,
-                               max_steps)
+                               max_steps, shield.snapshot() if hasattr(shield, "snapshot")
+                               else None)
             began, began_cpu = time.perf_counter(), time.process_time()
             expert, status = labeller.label(state)
             stats["label_seconds"] += time.perf_counter() - began
@@ -185,7 +188,8 @@ class DaggerWorker:
                            cfg.ranking, self.device, self.labeller, job["beta"],
                            cfg.label_interval, np.random.default_rng(job["seed_words"] + [1]),
                            cfg.seq_len, cfg.burn_in, record=True,
-                           backoff_max=cfg.label_backoff_max)
+                           backoff_max=cfg.label_backoff_max,
+                           anchor_patience=cfg.anchor_patience)
         return {**out, "job": job, "pid": os.getpid(),
                 "process_cpu_seconds": time.process_time()}
 
@@ -194,22 +198,26 @@ class DaggerWorker:
         cfg = self.cfg
         instance = make_instance(job["task"], job["seed_words"])
         if job.get("heuristic"):
-            out = play_plain_pibt(instance, job["task"]["max_steps"], cfg.conflict_rule)
+            out = play_plain_pibt(instance, job["task"]["max_steps"], cfg.conflict_rule,
+                                  cfg.anchor_patience)
         else:
             out = play_episode(self.model, instance, job["task"]["max_steps"], cfg.conflict_rule,
-                               cfg.ranking, self.device, record=False)
+                               cfg.ranking, self.device, record=False,
+                               anchor_patience=cfg.anchor_patience)
         return {**out, "job": job, "pid": os.getpid(),
                 "process_cpu_seconds": time.process_time()}
 
 
-def play_plain_pibt(instance, max_steps: int, conflict_rule: str) -> dict:
+def play_plain_pibt(instance, max_steps: int, conflict_rule: str,
+                    anchor_patience: int = 0) -> dict:
     """The baseline: the shield over distance rankings (the heuristic checkpoint's rows)."""
-    out = play_episode(None, instance, max_steps, conflict_rule, "distance", None, record=False)
+    out = play_episode(None, instance, max_steps, conflict_rule, "distance", None, record=False,
+                       anchor_patience=anchor_patience)
     return {"success": out["success"], "steps": out["steps"], "num_agents": out["num_agents"]}
 
 
 def play_lifelong(instance, steps: int, conflict_rule: str, goal_seed: int,
-                  labeller: Labeller | None = None) -> dict:
+                  labeller: Labeller | None = None, anchor_patience: int = 0) -> dict:
     """A lifelong run (`fleet.run.FleetRun` with the lifelong task source: a new goal on arrival,
     robot i's goals from (goal_seed, i)) of `steps` ticks under `conflict_rule`, ranked by plain
     PIBT's distance ranking, or, with a labeller, its label first where it labels (the
@@ -225,6 +233,8 @@ def play_lifelong(instance, steps: int, conflict_rule: str, goal_seed: int,
     run = FleetRun(instance.grid, instance.starts, LifelongTasks(grid=instance.grid,
                                                                  seed=int(goal_seed)),
                    instance.goals, rule=conflict_rule, max_steps=steps)
+    if anchor_patience and run.arbiter.shield is not None:
+        run.arbiter.shield.anchor_patience = int(anchor_patience)
     agents = np.arange(run.num_robots)
     observer = GoalObserver(run.grid)  # searches a goal once, however often it comes back
     label_seconds, label_cpu, calls = 0.0, 0.0, 0
@@ -236,8 +246,11 @@ def play_lifelong(instance, steps: int, conflict_rule: str, goal_seed: int,
         if labeller is not None:
             distances = bfs_distances_many(run.grid, goals)  # the map's recent searches
             began, began_cpu = time.perf_counter(), time.process_time()
+            shield = run.arbiter.shield
             expert = labeller.label(LabelState(run.grid, np.asarray(run.positions), goals,
-                                               distances, run.tick, steps)).actions
+                                               distances, run.tick, steps,
+                                               shield.snapshot()
+                                               if hasattr(shield, "snapshot") else None)).actions
             label_seconds += time.perf_counter() - began
             label_cpu += time.process_time() - began_cpu
             calls += 1
