@@ -9,7 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapf_fleet.coordination.pibt import (CONFLICT_RULES, COORDINATED_RULES, PIBT_RULES,
+from mapf_fleet.coordination.pibt import (ANCHOR_PATIENCE, CONFLICT_RULES, COORDINATED_RULES,
+                                          PIBT_RULES,
                                           RULE_OPTIONS, PIBTShield, make_shield, rule_name,
                                           rule_options)
 from mapf_fleet.coordination.ranking import (DEFAULT_RANKING_BY_RULE, Q_RANKINGS,
@@ -18,8 +19,10 @@ from mapf_fleet.grid.actions import ACTION_DELTAS
 from mapf_fleet.grid.env import resolve_moves
 from mapf_fleet.grid.instance import generate_instance
 
-OPTION_SETS = [dict(zip(RULE_OPTIONS, bits)) for bits in
+OPTION_SETS = [dict(zip(RULE_OPTIONS, bits), patient=False) for bits in
                [(a, s, h) for a in (False, True) for s in (False, True) for h in (False, True)]]
+OPTION_SETS += [dict(anchor=True, swap=s, hindrance=h, patient=True)
+                for s in (False, True) for h in (False, True)]
 
 
 def assert_safe(grid, before, after, fixed, reserved=()):
@@ -51,14 +54,18 @@ def distance_rankings(shield, positions):
 def test_rule_names_list_every_option_set_in_suffix_order():
     assert PIBT_RULES == ("pibt", "pibt_anchor", "pibt_swap", "pibt_anchor_swap",
                           "pibt_hindrance", "pibt_anchor_hindrance", "pibt_swap_hindrance",
-                          "pibt_anchor_swap_hindrance")
+                          "pibt_anchor_swap_hindrance", "pibt_patient", "pibt_patient_swap",
+                          "pibt_patient_hindrance", "pibt_patient_swap_hindrance")
     assert COORDINATED_RULES == (*PIBT_RULES, "lacam")  # the planning arbiter besides the PIBT rules
     assert {rule_name(**o) for o in OPTION_SETS} == set(PIBT_RULES)
     for rule in PIBT_RULES:
         assert rule_name(**rule_options(rule)) == rule
     assert rule_options("pibt_anchor_hindrance") == {"anchor": True, "swap": False,
-                                                 "hindrance": True}
-    for bad in ("pibt_swap_anchor", "pibt_hindrance_swap", "pibt_", "swap", "lacam_swap"):
+                                                 "hindrance": True, "patient": False}
+    assert rule_options("pibt_patient_swap") == {"anchor": True, "swap": True,
+                                             "hindrance": False, "patient": True}
+    for bad in ("pibt_swap_anchor", "pibt_hindrance_swap", "pibt_", "swap", "lacam_swap",
+                "pibt_anchor_patient", "pibt_swap_patient"):
         with pytest.raises(ValueError, match=f"PIBT rule .*got '{bad}'"):
             rule_options(bad)
 
@@ -69,7 +76,8 @@ def test_make_shield_builds_each_rule():
     assert make_shield("revert", grid, goals) is None
     for rule in PIBT_RULES:
         shield = make_shield(rule, grid, goals)
-        assert {o: getattr(shield, o) for o in RULE_OPTIONS} == rule_options(rule)
+        assert {o: getattr(shield, o) for o in rule_options(rule)} == rule_options(rule)
+        assert shield.anchor_patience == (ANCHOR_PATIENCE if "patient" in rule else 0)
     with pytest.raises(ValueError, match="'pibt_swapp'"):
         make_shield("pibt_swapp", grid, goals)
 
@@ -370,3 +378,47 @@ def test_trainer_configs_and_checkpoint_rankings_accept_the_variants(tmp_path):
     for rule in ("pibt_swap", "pibt_anchor_swap_hindrance"):
         assert TrainConfig(conflict_rule=rule).conflict_rule == rule  # validated on construction
         assert DaggerConfig(conflict_rule=rule).conflict_rule == rule
+
+
+# --- the anchor's patience ---------------------------------------------------------------------------
+def test_patience_changes_nothing_under_distance_rankings():
+    """Plain PIBT's top agent always takes a step closer, so its clock never runs: any patience
+    gives the every-tick anchor's ticks."""
+    for seed in range(6):
+        inst = generate_instance(10, 30, 0.3, seed)
+        a = PIBTShield(inst.grid, inst.goals, anchor=True, swap=True)
+        b = PIBTShield(inst.grid, inst.goals, anchor=True, swap=True, anchor_patience=8)
+        pa = pb = np.asarray(inst.starts)
+        for _ in range(30):
+            pa = a.step(pa, distance_rankings(a, pa)).positions
+            pb = b.step(pb, distance_rankings(b, pb)).positions
+            np.testing.assert_array_equal(pa, pb)
+
+
+def test_a_patient_anchor_lets_the_top_agent_wait_then_takes_it_closer():
+    """Agent 0 (the top priority) asks to wait: the every-tick anchor moves it at once; with
+    patience 3 it waits three ticks without getting closer, then the anchor moves it. A new
+    goal starts its clock afresh; snapshot / restore give back the same state."""
+    grid = np.zeros((1, 8), dtype=np.uint8)
+    goals = [(0, 7), (0, 0)]
+    wait = np.array([[0, 4, 3, 1, 2], [0, 3, 4, 1, 2]])  # both ask to stay
+    eager = PIBTShield(grid, goals, anchor=True)
+    eager.priorities = np.array([5.0, 0.5])
+    assert tuple(eager.step(np.array([(0, 2), (0, 5)]), wait).positions[0]) == (0, 3)
+    shield = PIBTShield(grid, goals, anchor=True, anchor_patience=3)
+    shield.priorities = np.array([5.0, 0.5])
+    positions = np.array([(0, 2), (0, 5)])
+    shield.advance_priorities(positions)  # its first distance: the clock starts here
+    trail = []
+    for _ in range(5):
+        positions = shield.step(positions, wait).positions
+        trail.append(int(positions[0, 1]))
+    assert trail == [2, 2, 2, 3, 3]  # waits 3 ticks, is moved, then waits again (clock reset)
+    state = shield.snapshot()
+    shield.step(positions, wait)
+    shield.restore(state)
+    assert shield.stalled.tolist() == state["stalled"].tolist() and shield.tick == state["tick"]
+    shield.set_goals([(0, 6), (0, 0)])
+    assert shield.stalled[0] == 0
+    with pytest.raises(ValueError, match="anchor_patience"):
+        PIBTShield(grid, goals, anchor=True, anchor_patience=-1)

@@ -367,3 +367,34 @@ def test_committed_expert_replans_when_the_labels_were_not_executed():
     assert expert.last["replanned"]
     expert.moves(positions)  # the rollout did not advance
     assert expert.last["replanned"] and expert.keeper.stats()["planner_calls"] == 2
+
+
+def test_committed_expert_labels_for_the_rule_it_runs_under():
+    """Told the rule (`pibt_anchor_swap`, anchor every tick) and given its state at every
+    state, the expert's labels are executed by that rule far more often than a plan made
+    without it (which the anchored top agent keeps leaving), and every step stays safe."""
+    from mapf_fleet.grid.actions import ACTION_DELTAS
+    from mapf_fleet.training.dagger.ceiling import ceiling_instances
+
+    instances = ceiling_instances({"kind": "dense", "size": 21, "max_steps": 128}, 48, 3, 0)
+    exact = {False: 0, True: 0}
+    steps = 40
+    for inst in instances:
+        for follow in (False, True):
+            rule = make_shield("pibt_anchor_swap", inst.grid, inst.goals)
+            expert = CommittedExpert(inst.grid, inst.goals, planning_budget=10.0,
+                                     max_nodes=50_000, swap=True,
+                                     rule="pibt_anchor_swap" if follow else None)
+            positions = inst.starts.copy()
+            for _ in range(steps):
+                actions = expert.moves(positions, rule.snapshot() if follow else None)
+                wanted = positions + ACTION_DELTAS[actions]
+                rankings = distance_rankings(rule, positions)
+                for i, a in enumerate(actions.tolist()):
+                    rankings[i] = [a] + [b for b in rankings[i].tolist() if b != a]
+                step = rule.step(positions, rankings)
+                assert len({tuple(p) for p in step.positions.tolist()}) == len(positions)
+                exact[follow] += bool(np.array_equal(step.positions, wanted))
+                positions = step.positions
+    assert exact[True] >= 0.9 * steps * len(instances)
+    assert exact[True] > exact[False]

@@ -383,7 +383,7 @@ class CommittedExpert:
 
     def __init__(self, grid, goals, planning_budget: float = 5.0, replan_every: int = 0,
                  max_nodes: int = 1_000_000, seed: int = 0, swap: bool = False,
-                 rule: str | None = None, anchor_patience: int = 0):
+                 rule: str | None = None, anchor_patience: int | None = None):
         self.keeper = PlanKeeper(grid, goals, planning_budget=planning_budget,
                                  replan_every=replan_every, max_nodes=max_nodes, seed=seed,
                                  swap=swap)

@@ -50,6 +50,8 @@ DEFAULT_RANKING_BY_RULE = {
     "pibt_swap": "q", "pibt_anchor_swap": "confidence",
     "pibt_hindrance": "q", "pibt_anchor_hindrance": "confidence",
     "pibt_swap_hindrance": "q", "pibt_anchor_swap_hindrance": "confidence",
+    "pibt_patient": "confidence", "pibt_patient_swap": "confidence",
+    "pibt_patient_hindrance": "confidence", "pibt_patient_swap_hindrance": "confidence",
 }
 # The planning arbiter ranks its root step and its fallback step (pibt_anchor's) by the robots'
 # rankings: a learned policy ranks as it would under its fallback rule unless it records one.

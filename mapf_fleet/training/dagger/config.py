@@ -58,8 +58,9 @@ class DaggerConfig:
     init_checkpoint: str = "models/default.pt"
     conflict_rule: str = "pibt_anchor"  # the arbiter the rollouts run under (coordination.pibt)
     # the anchor's patience (ticks the top agent may go without getting closer before the anchor
-    # ranks it by distance; coordination.pibt.PIBTShield); 0 = the anchor every tick
-    anchor_patience: int = 0
+    # ranks it by distance; coordination.pibt.PIBTShield): None = the rule's (0, every tick, for
+    # `pibt_anchor...`; ANCHOR_PATIENCE for `pibt_patient...`)
+    anchor_patience: int | None = None
     # how the policy's Q-values become the ranking the rule reads (coordination.ranking);
     # q_then_distance: the best ranking under pibt_anchor (docs/results.md)
     ranking: str = "q_then_distance"
@@ -196,7 +197,6 @@ class DaggerConfig:
                 raise bad(name, "must be an integer >= 1")
         for name in ("late_tasks_from", "burn_in", "updates_per_round", "max_plan_slack", "seed",
                      "planner_seed", "heldout_seed", "committed_replan_every", "ceiling_seed",
-                     "anchor_patience",
                      "ceiling_agreement_episodes"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
@@ -208,6 +208,10 @@ class DaggerConfig:
                      "state_interval_seconds"):
             if not float(getattr(self, name)) > 0:
                 raise bad(name, "must be > 0")
+        if self.anchor_patience is not None and (
+                isinstance(self.anchor_patience, bool) or not isinstance(self.anchor_patience, int)
+                or self.anchor_patience < 0):
+            raise bad("anchor_patience", "must be an integer >= 0 or null (the rule's)")
         if not 0.0 <= float(self.wait_label_cap) <= 1.0:
             raise bad("wait_label_cap", "must be in [0, 1]")
         if float(self.margin) < 0:

@@ -115,14 +115,14 @@ class CommittedLabeller:
 
     def __init__(self, planning_budget: float, replan_every: int = 0, seed: int = 0,
                  swap: bool = False, max_nodes: int = 1_000_000, rule: str | None = None,
-                 anchor_patience: int = 0):
+                 anchor_patience: int | None = None):
         self.planning_budget = float(planning_budget)
         self.replan_every = int(replan_every)
         self.seed = int(seed)
         self.swap = bool(swap)
         self.max_nodes = int(max_nodes)
         self.rule = rule  # the rollout's PIBT rule, when the expert is to label for it
-        self.anchor_patience = int(anchor_patience)
+        self.anchor_patience = anchor_patience  # None: the rule's
         self.expert = None
         self._grid = None
         self.replans = 0  # re-plans since construction (the ceiling reports them per episode)
@@ -200,7 +200,7 @@ class StuckLabeller:
 
     def __init__(self, planning_budget: float, replan_every: int = 0, seed: int = 0,
                  window: int = 8, swap: bool = False, max_nodes: int = 1_000_000,
-                 rule: str | None = None, anchor_patience: int = 0):
+                 rule: str | None = None, anchor_patience: int | None = None):
         if int(window) < 1:
             raise ValueError(f"stuck window must be >= 1 state, got {window!r}")
         self.committed = CommittedLabeller(planning_budget, replan_every, seed, swap, max_nodes,

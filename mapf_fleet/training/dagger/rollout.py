@@ -25,7 +25,7 @@ def play_episode(model, instance, max_steps: int, conflict_rule: str, ranking: s
                  label_interval: int = 1, rng: np.random.Generator | None = None,
                  seq_len: int = 16, burn_in: int = 8, record: bool = True,
                  backoff_max: int = 1, shadow: Labeller | None = None,
-                 anchor_patience: int = 0) -> dict:
+                 anchor_patience: int | None = None) -> dict:
     """One episode of `model` under `conflict_rule` (its Q-values ranked by `ranking`); with a
     labeller, the visited states are labelled (and the expert's ranking executed with
     probability `beta` at labelled steps). Returns the outcome and, with `record`, the arrays of
@@ -209,7 +209,7 @@ class DaggerWorker:
 
 
 def play_plain_pibt(instance, max_steps: int, conflict_rule: str,
-                    anchor_patience: int = 0) -> dict:
+                    anchor_patience: int | None = None) -> dict:
     """The baseline: the shield over distance rankings (the heuristic checkpoint's rows)."""
     out = play_episode(None, instance, max_steps, conflict_rule, "distance", None, record=False,
                        anchor_patience=anchor_patience)
@@ -217,7 +217,7 @@ def play_plain_pibt(instance, max_steps: int, conflict_rule: str,
 
 
 def play_lifelong(instance, steps: int, conflict_rule: str, goal_seed: int,
-                  labeller: Labeller | None = None, anchor_patience: int = 0) -> dict:
+                  labeller: Labeller | None = None, anchor_patience: int | None = None) -> dict:
     """A lifelong run (`fleet.run.FleetRun` with the lifelong task source: a new goal on arrival,
     robot i's goals from (goal_seed, i)) of `steps` ticks under `conflict_rule`, ranked by plain
     PIBT's distance ranking, or, with a labeller, its label first where it labels (the
@@ -233,7 +233,7 @@ def play_lifelong(instance, steps: int, conflict_rule: str, goal_seed: int,
     run = FleetRun(instance.grid, instance.starts, LifelongTasks(grid=instance.grid,
                                                                  seed=int(goal_seed)),
                    instance.goals, rule=conflict_rule, max_steps=steps)
-    if anchor_patience and run.arbiter.shield is not None:
+    if anchor_patience is not None and run.arbiter.shield is not None:
         run.arbiter.shield.anchor_patience = int(anchor_patience)
     agents = np.arange(run.num_robots)
     observer = GoalObserver(run.grid)  # searches a goal once, however often it comes back
