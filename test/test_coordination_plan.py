@@ -398,3 +398,22 @@ def test_committed_expert_labels_for_the_rule_it_runs_under():
                 positions = step.positions
     assert exact[True] >= 0.9 * steps * len(instances)
     assert exact[True] > exact[False]
+
+
+def test_restarts_keep_the_shortest_of_several_searches():
+    """With restarts the keeper runs LaCAM with seeds seed, seed + 1, ... and keeps the plan of
+    least makespan: never longer than any one seed's, and valid."""
+    from mapf_fleet.coordination.lacam import LaCAM
+    from mapf_fleet.training.dagger.ceiling import ceiling_instances
+
+    inst = ceiling_instances({"kind": "maze", "size": 21, "max_steps": 128}, 48, 1, 0)[0]
+    lengths = [len(LaCAM(inst.grid, seed=s, swap=True).plan(
+        inst.starts, inst.goals, time_limit=30, max_nodes=50_000).positions) for s in range(4)]
+    keeper = PlanKeeper(inst.grid, inst.goals, planning_budget=30, max_nodes=50_000, swap=True,
+                        restarts=4)
+    assert keeper.replan(inst.starts)
+    assert len(keeper.plan) == min(lengths) and len(set(lengths)) > 1
+    assert check_plan(inst.grid, keeper.plan, inst.starts, inst.goals) == []
+    assert keeper.planner.seed == 0
+    with pytest.raises(ValueError, match="restarts"):
+        PlanKeeper(inst.grid, inst.goals, restarts=0)

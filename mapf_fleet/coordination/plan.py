@@ -60,11 +60,13 @@ class PlanKeeper:
     replan_every: re-plan every k ticks even when the plan holds (0: only when it breaks).
     max_nodes: LaCAM's node budget per call. seed: LaCAM's tie-breaking seed.
     max_retry_interval: the longest wait (ticks) between tries after failed calls.
-    swap: LaCAM's successors by PIBT with swap (`LaCAM(swap=True)`)."""
+    swap: LaCAM's successors by PIBT with swap (`LaCAM(swap=True)`). restarts: LaCAM searches
+    per re-plan, the shortest plan kept (`_call_planner`)."""
 
     def __init__(self, grid, goals, planning_budget: float = DEFAULT_PLANNING_BUDGET,
                  replan_every: int = 0, max_nodes: int = 1_000_000, seed: int = 0,
-                 max_retry_interval: int = DEFAULT_MAX_RETRY_INTERVAL, swap: bool = False):
+                 max_retry_interval: int = DEFAULT_MAX_RETRY_INTERVAL, swap: bool = False,
+                 restarts: int = 1):
         if not planning_budget > 0:
             raise ValueError(f"planning_budget must be a positive number of seconds, got "
                              f"{planning_budget!r}")
@@ -78,6 +80,9 @@ class PlanKeeper:
         self.planning_budget = float(planning_budget)
         self.replan_every = int(replan_every)
         self.max_nodes = int(max_nodes)
+        if int(restarts) < 1:
+            raise ValueError(f"restarts must be >= 1, got {restarts!r}")
+        self.restarts = int(restarts)
         if int(max_retry_interval) < 1:
             raise ValueError(f"max_retry_interval must be >= 1 tick, got {max_retry_interval!r}")
         self.max_retry_interval = int(max_retry_interval)
@@ -221,11 +226,32 @@ class PlanKeeper:
         return out
 
     def _call_planner(self, positions, goals, rankings, fixed, reserved):
+        """LaCAM from `positions`; with `restarts` > 1, that many searches (tie-breaking seeds
+        seed, seed + 1, ...) each in the whole budget, keeping the shortest whole plan (least
+        makespan, then least sum of costs): LaCAM's first-found plans vary widely in length
+        (mazes: one seed's plan fits 128 steps on 12 of 20 instances, the best of 16 seeds' on
+        16, docs/results.md)."""
         began = time.perf_counter()
-        result = self.planner.plan(positions, goals, rankings=rankings,
-                                   priorities=self.priorities[self._subset], fixed=fixed,
-                                   reserved=reserved, time_limit=self.planning_budget,
-                                   max_nodes=self.max_nodes)
+        result, best = None, None
+        seed = self.planner.seed
+        try:
+            for k in range(self.restarts):
+                self.planner.seed = seed + k
+                found = self.planner.plan(positions, goals, rankings=rankings,
+                                          priorities=self.priorities[self._subset], fixed=fixed,
+                                          reserved=reserved, time_limit=self.planning_budget,
+                                          max_nodes=self.max_nodes)
+                if result is None:
+                    result = found
+                if found.solved:
+                    p = found.positions
+                    key = (len(p), int((p[1:] != p[-1]).any(axis=2).sum()))
+                    if best is None or key < best[0]:
+                        best = (key, found)
+        finally:
+            self.planner.seed = seed
+        if best is not None:
+            result = best[1]
         spent = time.perf_counter() - began
         c = self.counters
         c["planner_calls"] += 1
@@ -383,10 +409,11 @@ class CommittedExpert:
 
     def __init__(self, grid, goals, planning_budget: float = 5.0, replan_every: int = 0,
                  max_nodes: int = 1_000_000, seed: int = 0, swap: bool = False,
-                 rule: str | None = None, anchor_patience: int | None = None):
+                 rule: str | None = None, anchor_patience: int | None = None,
+                 restarts: int = 1):
         self.keeper = PlanKeeper(grid, goals, planning_budget=planning_budget,
                                  replan_every=replan_every, max_nodes=max_nodes, seed=seed,
-                                 swap=swap)
+                                 swap=swap, restarts=restarts)
         self.rule = None
         if rule is not None:
             from .pibt import PIBT_RULES, rule_options

@@ -160,6 +160,7 @@ def labeller_config(cfg: DaggerConfig) -> dict:
                "committed_swap": cfg.committed_swap,
                "committed_max_nodes": cfg.committed_max_nodes,
                "committed_follow_rule": cfg.committed_follow_rule,
+               "committed_restarts": cfg.committed_restarts,
                "planner_seed": cfg.planner_seed}
         return {**out, "stuck_window": cfg.stuck_window} if cfg.labeller == "stuck" else out
     return {"label_time_limit": cfg.label_time_limit, "max_plan_factor": cfg.max_plan_factor,

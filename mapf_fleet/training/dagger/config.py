@@ -107,6 +107,9 @@ class DaggerConfig:
     # copy of the rule what it would execute and re-plans from the rule's priorities and its
     # anchored top agent where that leaves the plan (coordination.plan.CommittedExpert)
     committed_follow_rule: bool = False
+    # ... and LaCAM searches per re-plan (tie-breaking seeds planner_seed, +1, ...), the shortest
+    # plan kept (coordination.plan.PlanKeeper's `restarts`)
+    committed_restarts: int = 1
     # "stuck": the committed expert's labels from the first state after `stuck_window` labelled
     # states without a new low of the agents' summed distance to their goals
     stuck_window: int = 8
@@ -190,7 +193,7 @@ class DaggerConfig:
         for name in ("rounds", "episodes_per_round", "label_interval", "label_backoff_max",
                      "num_cpus", "num_workers",
                      "seq_len", "batch_windows", "threads", "heldout_count", "ceiling_count", "stuck_window",
-                     "committed_max_nodes",
+                     "committed_max_nodes", "committed_restarts",
                      "ceiling_lifelong_count"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:

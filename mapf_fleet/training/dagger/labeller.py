@@ -109,13 +109,14 @@ class CommittedLabeller:
     found in the budget for their region) get no label ("unsolved"): the expert's own fallback
     there is plain PIBT's step, not worth imitating. swap: LaCAM's successors by PIBT with swap;
     max_nodes: LaCAM's node budget per re-plan (a budget that does not depend on the machine's
-    load, where the wall-clock budget does); rule: the rollout's PIBT rule, whose priorities
+    load, where the wall-clock budget does); restarts: LaCAM searches per re-plan (seeds seed,
+    seed + 1, ...), the shortest plan kept; rule: the rollout's PIBT rule, whose priorities
     and tick the states carry (`LabelState.rule_priorities`): labels the rule lets through
     (`CommittedExpert`'s `rule`)."""
 
     def __init__(self, planning_budget: float, replan_every: int = 0, seed: int = 0,
                  swap: bool = False, max_nodes: int = 1_000_000, rule: str | None = None,
-                 anchor_patience: int | None = None):
+                 anchor_patience: int | None = None, restarts: int = 1):
         self.planning_budget = float(planning_budget)
         self.replan_every = int(replan_every)
         self.seed = int(seed)
@@ -123,6 +124,7 @@ class CommittedLabeller:
         self.max_nodes = int(max_nodes)
         self.rule = rule  # the rollout's PIBT rule, when the expert is to label for it
         self.anchor_patience = anchor_patience  # None: the rule's
+        self.restarts = int(restarts)
         self.expert = None
         self._grid = None
         self.replans = 0  # re-plans since construction (the ceiling reports them per episode)
@@ -136,7 +138,8 @@ class CommittedLabeller:
                                           replan_every=self.replan_every, seed=self.seed,
                                           swap=self.swap, max_nodes=self.max_nodes,
                                           rule=self.rule,
-                                          anchor_patience=self.anchor_patience)
+                                          anchor_patience=self.anchor_patience,
+                                          restarts=self.restarts)
             self._grid = state.grid
         elif not np.array_equal(self.expert.goals, state.goals):
             self.expert.set_goals(state.goals)
@@ -200,11 +203,12 @@ class StuckLabeller:
 
     def __init__(self, planning_budget: float, replan_every: int = 0, seed: int = 0,
                  window: int = 8, swap: bool = False, max_nodes: int = 1_000_000,
-                 rule: str | None = None, anchor_patience: int | None = None):
+                 rule: str | None = None, anchor_patience: int | None = None,
+                 restarts: int = 1):
         if int(window) < 1:
             raise ValueError(f"stuck window must be >= 1 state, got {window!r}")
         self.committed = CommittedLabeller(planning_budget, replan_every, seed, swap, max_nodes,
-                                           rule, anchor_patience)
+                                           rule, anchor_patience, restarts)
         self.window = int(window)
         self.seed = int(seed)
         self._best, self._since, self.active_from = None, 0, None
@@ -243,9 +247,9 @@ def make_labeller(cfg, seed: int | None = None) -> Labeller:
     if cfg.labeller == "committed":
         return CommittedLabeller(cfg.committed_budget, cfg.committed_replan_every, seed,
                                  cfg.committed_swap, cfg.committed_max_nodes, rule,
-                                 cfg.anchor_patience)
+                                 cfg.anchor_patience, cfg.committed_restarts)
     if cfg.labeller == "stuck":
         return StuckLabeller(cfg.committed_budget, cfg.committed_replan_every, seed,
                              cfg.stuck_window, cfg.committed_swap, cfg.committed_max_nodes, rule,
-                             cfg.anchor_patience)
+                             cfg.anchor_patience, cfg.committed_restarts)
     return LaCAMLabeller(cfg.label_time_limit, cfg.max_plan_factor, cfg.max_plan_slack, seed)
