@@ -37,7 +37,8 @@ from dataclasses import dataclass
 import numpy as np
 
 # (importing pibt also raises the recursion limit: a push chain recurses once per agent)
-from .pibt import move_targets, swap_partner, validate_rankings
+from .pibt import move_targets, validate_rankings
+from .swap import swap_partner
 
 # distance maps kept per planner (one per goal cell)
 MAX_DISTANCE_MAPS = 4096
@@ -81,7 +82,7 @@ class LaCAM:
     """LaCAM for one map. `plan(starts, goals, ...)` returns a `LaCAMResult`.
 
     grid: (H, W), nonzero = obstacle. seed: the tie-breaking seed (plans are deterministic for
-    a seed). swap: the successor generator is lacam3's PIBT with swap (`pibt.swap_partner`):
+    a seed). swap: the successor generator is lacam3's PIBT with swap (`swap.swap_partner`):
     two agents meeting head-on in a corridor back out to a branch and pass there, where plain
     PIBT's successors only push the one in front ahead (lacam3 measured it the largest single
     gain on dense instances; docs/results.md, "The expert ceiling")."""
