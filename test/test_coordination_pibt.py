@@ -178,6 +178,9 @@ def test_distance_order_follows_the_heuristic_bits():
     classes = distance_classes(obs)[0]
     assert classes.tolist() == [1, 0, 2, 3, 0]  # stay, up closer, down away, left blocked, right closer
     assert rank_actions(obs, mode="distance")[0].tolist() == [UP, RIGHT, STAY, DOWN, LEFT]
+    # distance_q: Q picks between the two closer moves and orders nothing across classes
+    q = np.array([[9.0, 1.0, 5.0, 8.0, 2.0]])  # stay, up, down, left, right
+    assert rank_actions(obs, q, "distance_q")[0].tolist() == [RIGHT, UP, STAY, DOWN, LEFT]
 
 
 def test_q_rankings():
@@ -190,6 +193,8 @@ def test_q_rankings():
     assert rank_actions(obs, q, "q_demote_stay")[0].tolist() == [LEFT, UP, STAY, DOWN, RIGHT]
     # argmax first, then closer (up), then away moves by Q
     assert rank_actions(obs, q, "q_then_distance")[0].tolist() == [STAY, UP, LEFT, DOWN, RIGHT]
+    # the distance order whatever Q says; Q orders only the away moves here
+    assert rank_actions(obs, q, "distance_q")[0].tolist() == [UP, STAY, LEFT, DOWN, RIGHT]
     # on its goal nothing is closer: q_demote_stay keeps the Q order
     on_goal = MAPFEnv(Instance(grid, np.array([[2, 2]]), np.array([[2, 2]]))).reset()
     assert rank_actions(on_goal, q, "q_demote_stay")[0].tolist() == [STAY, LEFT, UP, DOWN, RIGHT]

@@ -21,6 +21,9 @@ Rankings (`RANKINGS`; `Q_RANKINGS` those that read Q-values):
                   `margin` (`CONFIDENCE_MARGIN` unless given), then the distance order; an agent
                   whose Q-values are that close ranks by the distance order alone (ties by `ties`,
                   then Q): the network overrides plain PIBT only where it is sure
+  distance_q      the distance order, its ties broken by Q (then `ties`): a learned tie-breaker
+                  inside plain PIBT; the network only chooses among equally close moves (which
+                  of two closer cells, which way to step aside), never a wait over a closer move
   distance        the distance order, ties by action order: plain PIBT (no learning); also the
                   non-learned heuristic's ranking (it follows a closer move, else stays)
 The learned default is `DEFAULT_RANKING` (chosen by measurement; docs/results.md);
@@ -39,8 +42,8 @@ import numpy as np
 
 from mapf_fleet.grid.actions import ACTION_DELTAS, NUM_ACTIONS, STAY
 
-RANKINGS = ("q", "q_demote_stay", "q_then_distance", "confidence", "distance")
-Q_RANKINGS = ("q", "q_demote_stay", "q_then_distance", "confidence")
+RANKINGS = ("q", "q_demote_stay", "q_then_distance", "confidence", "distance_q", "distance")
+Q_RANKINGS = ("q", "q_demote_stay", "q_then_distance", "confidence", "distance_q")
 DEFAULT_RANKING = "q"
 # The ranking each conflict rule uses by default, chosen by measurement (docs/results.md, "Ranking
 # modes under the anchored shield"): `confidence` where the anchor is on, `q` otherwise; the swap
@@ -159,6 +162,8 @@ def rank_actions(obs, q=None, mode: str = DEFAULT_RANKING, ties=None,
         raise ValueError(f"Q-values must have shape {classes.shape}, got {q.shape}")
     if mode == "q":
         return _rank([-q, *tail])
+    if mode == "distance_q":
+        return _rank([classes, -q, *tail])
     if mode in ("q_then_distance", "confidence"):
         best = np.argmax(q, axis=-1)[..., None] == np.arange(NUM_ACTIONS)
         if mode == "confidence":
