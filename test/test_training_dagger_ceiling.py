@@ -205,3 +205,21 @@ def test_the_shipped_ceiling_configs_load():
     assert (cfg.labeller, cfg.conflict_rule) == ("committed", "pibt_anchor_swap")
     dense = dagger.load_config(configs / "experiments" / "dagger_ceiling_dense_pymapf.yaml")
     assert (dense.labeller, dense.committed_planner) == ("committed", "pymapf")
+
+
+def test_self_agreement_labeller_shares_no_search_seed(monkeypatch):
+    # with k searches per re-plan the labeller uses seeds s .. s + k - 1; a second labeller at
+    # s + 1 would repeat k - 1 of its searches and agree with it by construction
+    cfg = dagger.config_from_dict({
+        "conflict_rule": "pibt_anchor_swap", "labeller": "committed", "committed_budget": 1.0,
+        "committed_restarts": 3, "planner_seed": 5, "ceiling_agreement_episodes": 1})
+    seeds = []
+    real = ceiling.make_labeller
+
+    def spy(config, seed=None):
+        seeds.append(config.planner_seed if seed is None else seed)
+        return real(config, seed=seed)
+
+    monkeypatch.setattr(ceiling, "make_labeller", spy)
+    row = ceiling.one_shot_row(cfg, {"kind": "random", "size": 9, "max_steps": 32}, 3, 1)
+    assert seeds == [5, 8] and row["agreement_labels"] > 0

@@ -18,7 +18,8 @@ It reports success, average steps (the step limit for a failure), the labeller's
 (all its calls) per labelled state and per agent label, the fraction of labels the rule executed
 unchanged, the fraction of calls that left agents unlabelled, plans per episode, and its
 self-agreement: on the first `ceiling_agreement_episodes` episodes a second labeller (planner
-seed + 1) labels the same states, and the agreement is the fraction of agents both label whose
+seed + the searches per re-plan, `committed_restarts`: no search seed shared with the first's)
+labels the same states, and the agreement is the fraction of agents both label whose
 labels match. For each lifelong suite (`ceiling_lifelong`) it reports goals
 reached per tick over `max_steps` ticks on the first `ceiling_lifelong_count` instances
 (`rollout.play_lifelong`, the fleet's lifelong source, goals seeded per episode).
@@ -66,7 +67,8 @@ def one_shot_row(cfg: DaggerConfig, task: dict, agents: int, count: int, log=Non
     began = time.process_time()
     for k, inst in enumerate(instances):
         labeller = make_labeller(cfg)
-        shadow = (make_labeller(cfg, seed=cfg.planner_seed + 1)
+        # the first labeller's searches use seeds seed .. seed + restarts - 1: none shared
+        shadow = (make_labeller(cfg, seed=cfg.planner_seed + max(1, cfg.committed_restarts))
                   if k < cfg.ceiling_agreement_episodes else None)
         before = _plans(labeller, {"label_calls": 0})
         out = play_episode(None, inst, steps, cfg.conflict_rule, "distance", None, labeller, beta=1.0,
