@@ -20,23 +20,9 @@ import torch
 
 from mapf_fleet.coordination.ranking import distance_classes
 from mapf_fleet.models.checkpoint import load_checkpoint
-from mapf_fleet.training.dagger.data import LabelledData, read_shard
-from mapf_fleet.training.modelio import model_step
+from mapf_fleet.training.dagger.data import LabelledData, read_shard, unroll_window
 
 CLASSES = ("closer", "stay", "away", "blocked")
-
-
-def unroll(model, algo: str, win: dict) -> np.ndarray:
-    """(L, N, 5) Q-values on the window's trained steps."""
-    t = torch.as_tensor
-    obs, pos, last = t(win["obs"]), t(win["positions"]), t(win["last"])
-    h = t(win["hidden"])[None]
-    qs = []
-    for s in range(len(obs)):
-        out = model_step(model, algo, obs[s][None], pos[s][None], h, last[s][None])
-        h = out.hidden
-        qs.append(out.q[0].numpy())
-    return np.stack(qs)[win["burn"]:]
 
 
 def main() -> None:
@@ -64,7 +50,7 @@ def main() -> None:
     with torch.no_grad():
         for e, j in data.windows:
             win = data.window(e, j)
-            q = unroll(model, algo, win)
+            q = unroll_window(model, algo, win).numpy()
             labels = win["labels"][win["burn"]:]
             classes = distance_classes(win["obs"][win["burn"]:])
             have = labels >= 0

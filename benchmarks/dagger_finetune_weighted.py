@@ -20,35 +20,23 @@ import torch
 
 from mapf_fleet.coordination.ranking import distance_classes
 from mapf_fleet.models.checkpoint import OPTIONAL_FIELDS, REQUIRED_FIELDS, load_checkpoint, save_checkpoint
-from mapf_fleet.training.dagger.data import LabelledData, read_shard
-from mapf_fleet.training.modelio import model_step
+from mapf_fleet.training.dagger.data import LabelledData, read_shard, unroll_window
+from mapf_fleet.training.demos import margin_loss
 
 MARGIN, LR, BATCH, CLIP, WAIT_CAP = 0.8, 1e-4, 8, 40.0, 0.2
 
 
 def weighted_window_loss(model, algo, win, weights):
-    t = torch.as_tensor
-    obs, pos, last = t(win["obs"]), t(win["positions"]), t(win["last"])
-    h, burn = t(win["hidden"])[None], win["burn"]
-    with torch.no_grad():
-        for s in range(burn):
-            h = model_step(model, algo, obs[s][None], pos[s][None], h, last[s][None]).hidden
-    qs = []
-    for s in range(burn, len(obs)):
-        out = model_step(model, algo, obs[s][None], pos[s][None], h, last[s][None])
-        h = out.hidden
-        qs.append(out.q[0])
-    q = torch.stack(qs)
-    labels = t(win["labels"][burn:]).long()
+    """(the window's summed weighted margin loss, its weight, agreements, labels)."""
+    q = unroll_window(model, algo, win)
+    labels = torch.as_tensor(win["labels"][win["burn"]:]).long()
     have = (labels >= 0).float()
     target = labels.clamp(min=0)
-    label_class = t(distance_classes(win["obs"][burn:])).gather(-1, target[..., None])[..., 0]
-    w = weights[label_class] * have
-    penalty = torch.full_like(q, MARGIN)
-    penalty.scatter_(-1, target[..., None], 0.0)
-    per_item = (q + penalty).max(-1).values - q.gather(-1, target[..., None])[..., 0]
+    classes = torch.as_tensor(distance_classes(win["obs"][win["burn"]:]))
+    w = weights[classes.gather(-1, target[..., None])[..., 0]] * have
     agree = float(((q.argmax(-1) == target).float() * have).sum())
-    return (per_item * w).sum(), float(w.sum()), agree, float(have.sum())
+    # margin_loss is the mean over its mask: weights as the mask give the weighted mean
+    return margin_loss(q, target, w, MARGIN) * w.sum(), float(w.sum()), agree, float(have.sum())
 
 
 def main() -> None:

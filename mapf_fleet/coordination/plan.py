@@ -307,6 +307,10 @@ class PlanKeeper:
         if not unplanned.any():
             self._retry_interval = 1
 
+    def waiting_to_retry(self) -> bool:
+        """True while the back-off after a failed call (`_failed`) has not yet run out."""
+        return self.counters["ticks"] < self._retry_at
+
     def _failed(self) -> None:
         """No (whole) plan: the next try waits 1, 2, 4, ... ticks (up to `max_retry_interval`),
         so an instance the planner cannot solve does not spend the budget every tick."""
@@ -334,7 +338,7 @@ class PlanKeeper:
             fixed |= np.isin(now, list(reserved_flat))  # standing on a reserved cell: held
         reason = self.why_replan(positions, fixed, reserved_flat)
         c = self.counters
-        if reason in ("no plan", "unplanned") and c["ticks"] < self._retry_at:
+        if reason in ("no plan", "unplanned") and self.waiting_to_retry():
             reason = ""  # the last try failed: wait for the next one
         if reason == "unplanned":
             self._plan_unplanned(positions, prefs, fixed, reserved)
@@ -532,7 +536,7 @@ class CommittedExpert:
                 first = int(keeper.fallback._action_of_delta[
                     (nxt[i, 0] - positions[i, 0]) * w + nxt[i, 1] - positions[i, 1] + w])
                 rankings[i] = [first] + [a for a in rankings[i].tolist() if a != first]
-        if keeper.plan is None and keeper.counters["ticks"] < keeper._retry_at:
+        if keeper.plan is None and keeper.waiting_to_retry():
             # no plan since the last failed search: wait for the retry state (PlanKeeper's
             # back-off, 1, 2, 4, ... states), so a crowd the planner cannot solve does not cost
             # the whole budget at every state

@@ -103,11 +103,9 @@ class LabelledData:
                 "burn": j * self.seq_len - start, "hidden": ep["hidden"][j].astype(np.float32)}
 
 
-def window_loss(model, algo: str, win: dict, device, loss: str, margin: float):
-    """(summed loss over the labelled (step, agent) pairs, their count, agreements): the unroll
-    from the stored hidden state, `burn` steps without gradient, then the trained steps."""
-    from ..demos import cross_entropy_loss, margin_loss
-
+def unroll_window(model, algo: str, win: dict, device=None) -> torch.Tensor:
+    """(L, N, 5) Q-values on the window's trained steps: the unroll from the stored hidden
+    state, `burn` steps without gradient, then the trained steps."""
     t = lambda x: torch.as_tensor(x, device=device)  # noqa: E731
     obs, pos, last = t(win["obs"]), t(win["positions"]), t(win["last"])
     h = t(win["hidden"])[None]
@@ -120,8 +118,16 @@ def window_loss(model, algo: str, win: dict, device, loss: str, margin: float):
         out = model_step(model, algo, obs[s][None], pos[s][None], h, last[s][None])
         h = out.hidden
         qs.append(out.q[0])
-    q = torch.stack(qs)  # (L, N, 5)
-    labels = t(win["labels"][burn:])
+    return torch.stack(qs)
+
+
+def window_loss(model, algo: str, win: dict, device, loss: str, margin: float):
+    """(summed loss over the labelled (step, agent) pairs, their count, agreements) of
+    `unroll_window`'s Q-values against the window's labels."""
+    from ..demos import cross_entropy_loss, margin_loss
+
+    q = unroll_window(model, algo, win, device)  # (L, N, 5)
+    labels = torch.as_tensor(win["labels"][win["burn"]:], device=device)
     mask = (labels >= 0).float()
     target = labels.clamp(min=0)
     count = mask.sum()
