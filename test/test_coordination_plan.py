@@ -417,27 +417,3 @@ def test_restarts_keep_the_shortest_of_several_searches():
     assert keeper.planner.seed == 0
     with pytest.raises(ValueError, match="restarts"):
         PlanKeeper(inst.grid, inst.goals, restarts=0)
-
-
-def test_committed_expert_backs_off_where_no_plan_exists():
-    """Two robots that must trade ends of a corridor: no plan exists. The expert searches at
-    visited states 0, 1, 3 and 7 of 10 (the keeper's back-off), not at every one, and labels
-    with the anchored PIBT step meanwhile."""
-    grid = np.zeros((1, 5), dtype=bool)
-    starts, goals = np.array([[0, 0], [0, 4]]), np.array([[0, 4], [0, 0]])
-    expert = CommittedExpert(grid, goals, planning_budget=1.0)
-    searched = []
-    replan = expert.keeper.replan
-
-    def spy(*args, **kwargs):
-        searched.append(expert.keeper.counters["ticks"])
-        return replan(*args, **kwargs)
-
-    expert.keeper.replan = spy
-    for _ in range(10):
-        actions = expert.moves(starts)
-        assert expert.last["fallback"] and actions.shape == (2,)
-    assert searched == [0, 1, 3, 7]
-    expert.reset()  # a new episode searches at once
-    expert.moves(starts)
-    assert searched[-1] == 10

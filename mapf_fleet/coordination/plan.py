@@ -307,10 +307,6 @@ class PlanKeeper:
         if not unplanned.any():
             self._retry_interval = 1
 
-    def waiting_to_retry(self) -> bool:
-        """True while the back-off after a failed call (`_failed`) has not yet run out."""
-        return self.counters["ticks"] < self._retry_at
-
     def _failed(self) -> None:
         """No (whole) plan: the next try waits 1, 2, 4, ... ticks (up to `max_retry_interval`),
         so an instance the planner cannot solve does not spend the budget every tick."""
@@ -338,7 +334,7 @@ class PlanKeeper:
             fixed |= np.isin(now, list(reserved_flat))  # standing on a reserved cell: held
         reason = self.why_replan(positions, fixed, reserved_flat)
         c = self.counters
-        if reason in ("no plan", "unplanned") and self.waiting_to_retry():
+        if reason in ("no plan", "unplanned") and c["ticks"] < self._retry_at:
             reason = ""  # the last try failed: wait for the next one
         if reason == "unplanned":
             self._plan_unplanned(positions, prefs, fixed, reserved)
@@ -397,8 +393,7 @@ class CommittedExpert:
     root for the agents still on it (distance order for the others), so their labels stay on
     the plan where LaCAM's first step can keep them; it also re-plans every `replan_every`
     steps (0: never). When no plan is found in the budget, the labels are the anchored PIBT
-    step's (`fallback` is True in `last`), and the next search waits 1, 2, 4, ... visited
-    states (up to the keeper's `max_retry_interval`), as the planning arbiter's does.
+    step's (`fallback` is True in `last`).
 
     The expert does not advance with the executed moves: call `moves` once with each state the
     rollout visits (it follows the plan's index while the agents stay on it; a state that is not
@@ -461,12 +456,6 @@ class CommittedExpert:
         """(N,) every agent's next action (DHC order) at `positions` (N, 2); with the rule's
         state there (`PIBTShield.snapshot()`, see the class), labels the rule lets through
         where it can."""
-        try:
-            return self._moves_informed(positions, rule_state)
-        finally:  # one visited state, one tick of the keeper's retry clock
-            self.keeper.counters["ticks"] += 1
-
-    def _moves_informed(self, positions, rule_state) -> np.ndarray:
         informed = self.rule is not None and rule_state is not None
         if informed:  # a re-plan starts from the rule's priorities (LaCAM's root order)
             self.keeper.priorities = np.asarray(rule_state["priorities"], np.float64).copy()
@@ -536,13 +525,6 @@ class CommittedExpert:
                 first = int(keeper.fallback._action_of_delta[
                     (nxt[i, 0] - positions[i, 0]) * w + nxt[i, 1] - positions[i, 1] + w])
                 rankings[i] = [first] + [a for a in rankings[i].tolist() if a != first]
-        if keeper.plan is None and keeper.waiting_to_retry():
-            # no plan since the last failed search: wait for the retry state (PlanKeeper's
-            # back-off, 1, 2, 4, ... states), so a crowd the planner cannot solve does not cost
-            # the whole budget at every state
-            self._expect = None
-            self.last = {"replanned": False, "fallback": True, "on_plan": 0}
-            return keeper.fallback.step(positions, rankings).actions
         old = (keeper.plan, keeper.index, keeper.unplanned)
         found = keeper.replan(positions, rankings)
         if not found and periodic:
