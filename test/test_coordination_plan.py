@@ -157,6 +157,14 @@ def test_no_plan_in_the_budget_falls_back_to_the_anchored_pibt_step():
     assert keeper.stats()["fallback_ticks"] == 5 and keeper.stats()["fallback_rate"] == 1.0
 
 
+def test_the_fallback_rule_must_be_anchored():
+    inst = generate_instance(10, 4, 0.1, np.random.default_rng(2))
+    assert PlanKeeper(inst.grid, inst.goals, fallback_rule="pibt_anchor_swap").fallback.swap
+    for rule in ("pibt_swap", "lacam"):
+        with pytest.raises(ValueError, match=rule):
+            PlanKeeper(inst.grid, inst.goals, fallback_rule=rule)
+
+
 def test_periodic_replanning_keeps_the_plan_valid():
     inst = generate_instance(12, 16, 0.2, np.random.default_rng(9))
     keeper = PlanKeeper(inst.grid, inst.goals, planning_budget=5.0, replan_every=3)
@@ -169,6 +177,8 @@ def test_the_lacam_rule_everywhere_a_shield_runs():
     inst = generate_instance(10, 8, 0.1, np.random.default_rng(1))
     keeper = make_shield("lacam", inst.grid, inst.goals, planning_budget=0.5)
     assert isinstance(keeper, PlanKeeper) and keeper.planning_budget == 0.5
+    # the fleet's rule's swap in the search's successors and in the fallback step
+    assert keeper.planner.swap and keeper.fallback.swap and keeper.fallback.anchor
     arbiter = TickArbiter(inst.grid, inst.goals, "lacam", planning_budget=0.25)
     assert arbiter.shield.planning_budget == 0.25
     positions = inst.starts.copy()

@@ -115,6 +115,10 @@ PIBT_RULES = ("pibt", "pibt_anchor", "pibt_swap", "pibt_anchor_swap", "pibt_hind
 # ceiling, docs/results.md)
 ANCHOR_PATIENCE = 32
 COORDINATED_RULES = (*PIBT_RULES, "lacam")
+# the planning arbiter's LaCAM and fallback (`PlanKeeper`): successors by PIBT with swap, as the
+# fleet's rule (lacam3's; from the starts it solves dense 21x21 maps with 48 agents 20 of 20 in
+# 0.3 s where plain PIBT successors solve 15 in 121 s, docs/results.md)
+LACAM_OPTIONS = {"swap": True, "fallback_rule": "pibt_anchor_swap"}
 REVERT = "revert"
 CONFLICT_RULES = (*COORDINATED_RULES, REVERT)
 
@@ -547,5 +551,5 @@ def make_shield(rule: str, grid, goals, planning_budget: float | None = None,
         from .plan import DEFAULT_PLANNING_BUDGET, PlanKeeper
 
         return PlanKeeper(grid, goals, planning_budget=DEFAULT_PLANNING_BUDGET
-                          if planning_budget is None else planning_budget)
+                          if planning_budget is None else planning_budget, **LACAM_OPTIONS)
     return PIBTShield(grid, goals, **rule_options(rule), anchor_patience=anchor_patience)

@@ -44,7 +44,7 @@ import numpy as np
 from mapf_fleet.grid.actions import NUM_ACTIONS
 
 from .lacam import LaCAM
-from .pibt import PIBTShield, ShieldStep, validate_rankings
+from .pibt import PIBTShield, ShieldStep, rule_options, validate_rankings
 
 # The planning arbiter's default per-tick planning budget (seconds of wall clock)
 DEFAULT_PLANNING_BUDGET = 1.0
@@ -61,18 +61,23 @@ class PlanKeeper:
     max_nodes: LaCAM's node budget per call. seed: LaCAM's tie-breaking seed.
     max_retry_interval: the longest wait (ticks) between tries after failed calls.
     swap: LaCAM's successors by PIBT with swap (`LaCAM(swap=True)`). restarts: LaCAM searches
-    per re-plan, the shortest plan kept (`_call_planner`)."""
+    per re-plan, the shortest plan kept (`_call_planner`). fallback_rule: the PIBT rule of the
+    ticks without a plan (`pibt_anchor`; the `lacam` conflict rule: `pibt_anchor_swap`)."""
 
     def __init__(self, grid, goals, planning_budget: float = DEFAULT_PLANNING_BUDGET,
                  replan_every: int = 0, max_nodes: int = 1_000_000, seed: int = 0,
                  max_retry_interval: int = DEFAULT_MAX_RETRY_INTERVAL, swap: bool = False,
-                 restarts: int = 1):
+                 restarts: int = 1, fallback_rule: str = "pibt_anchor"):
         if not planning_budget > 0:
             raise ValueError(f"planning_budget must be a positive number of seconds, got "
                              f"{planning_budget!r}")
         if int(replan_every) < 0:
             raise ValueError(f"replan_every must be >= 0 (0: never), got {replan_every!r}")
-        self.fallback = PIBTShield(grid, goals, anchor=True)
+        options = rule_options(fallback_rule)
+        if not options["anchor"]:
+            # the anchor is what makes the fallback reach every goal (coordination.pibt)
+            raise ValueError(f"fallback_rule must be an anchored PIBT rule, got {fallback_rule!r}")
+        self.fallback = PIBTShield(grid, goals, **options)
         self.grid = self.fallback.grid
         self.height, self.width = self.grid.shape
         self.num_agents = self.fallback.num_agents
