@@ -427,3 +427,33 @@ def test_restarts_keep_the_shortest_of_several_searches():
     assert keeper.planner.seed == 0
     with pytest.raises(ValueError, match="restarts"):
         PlanKeeper(inst.grid, inst.goals, restarts=0)
+
+
+def test_shared_budget_restarts_stop_when_the_budget_is_spent():
+    """With `shared_budget` the restarts run in what the earlier searches left of one
+    `planning_budget` (the arbiter's re-plan costs at most about the budget); without it each
+    search has the whole budget and all of them run."""
+    import time as clock
+
+    inst = generate_instance(10, 6, 0.1, np.random.default_rng(4))
+    calls = {}
+
+    def counted(keeper, name):
+        original = keeper.planner.plan
+
+        def plan(*args, **kwargs):
+            calls[name] = calls.get(name, 0) + 1
+            calls.setdefault(name + "_limits", []).append(kwargs["time_limit"])
+            clock.sleep(0.04)
+            return original(*args, **kwargs)
+        keeper.planner.plan = plan
+        return keeper
+
+    shared = counted(PlanKeeper(inst.grid, inst.goals, planning_budget=0.1, restarts=8,
+                                shared_budget=True, swap=True), "shared")
+    each = counted(PlanKeeper(inst.grid, inst.goals, planning_budget=0.1, restarts=8,
+                              swap=True), "each")
+    assert shared.replan(inst.starts) and each.replan(inst.starts)
+    assert 2 <= calls["shared"] <= 3 and calls["each"] == 8
+    assert all(b < a for a, b in zip(calls["shared_limits"], calls["shared_limits"][1:]))
+    assert calls["each_limits"] == [0.1] * 8

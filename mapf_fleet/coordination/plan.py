@@ -61,13 +61,17 @@ class PlanKeeper:
     max_nodes: LaCAM's node budget per call. seed: LaCAM's tie-breaking seed.
     max_retry_interval: the longest wait (ticks) between tries after failed calls.
     swap: LaCAM's successors by PIBT with swap (`LaCAM(swap=True)`). restarts: LaCAM searches
-    per re-plan, the shortest plan kept (`_call_planner`). fallback_rule: the PIBT rule of the
-    ticks without a plan (`pibt_anchor`; the `lacam` conflict rule: `pibt_anchor_swap`)."""
+    per re-plan, the shortest plan kept (`_call_planner`). shared_budget: the restarts share one
+    `planning_budget` (a re-plan costs at most about the budget: the arbiter) instead of one
+    each (the committed expert, whose labels a node budget bounds). fallback_rule: the PIBT
+    rule of the ticks without a plan (`pibt_anchor`; the `lacam` conflict rule:
+    `pibt_anchor_swap`)."""
 
     def __init__(self, grid, goals, planning_budget: float = DEFAULT_PLANNING_BUDGET,
                  replan_every: int = 0, max_nodes: int = 1_000_000, seed: int = 0,
                  max_retry_interval: int = DEFAULT_MAX_RETRY_INTERVAL, swap: bool = False,
-                 restarts: int = 1, fallback_rule: str = "pibt_anchor"):
+                 restarts: int = 1, shared_budget: bool = False,
+                 fallback_rule: str = "pibt_anchor"):
         if not planning_budget > 0:
             raise ValueError(f"planning_budget must be a positive number of seconds, got "
                              f"{planning_budget!r}")
@@ -88,6 +92,7 @@ class PlanKeeper:
         if int(restarts) < 1:
             raise ValueError(f"restarts must be >= 1, got {restarts!r}")
         self.restarts = int(restarts)
+        self.shared_budget = bool(shared_budget)
         if int(max_retry_interval) < 1:
             raise ValueError(f"max_retry_interval must be >= 1 tick, got {max_retry_interval!r}")
         self.max_retry_interval = int(max_retry_interval)
@@ -232,19 +237,24 @@ class PlanKeeper:
 
     def _call_planner(self, positions, goals, rankings, fixed, reserved):
         """LaCAM from `positions`; with `restarts` > 1, that many searches (tie-breaking seeds
-        seed, seed + 1, ...) each in the whole budget, keeping the shortest whole plan (least
-        makespan, then least sum of costs): LaCAM's first-found plans vary widely in length
-        (mazes: one seed's plan fits 128 steps on 12 of 20 instances, the best of 16 seeds' on
-        16, docs/results.md)."""
+        seed, seed + 1, ...) each in the whole budget (`shared_budget`: in what the earlier ones
+        left of it), keeping the shortest whole plan (least makespan, then least sum of costs):
+        LaCAM's first-found plans vary widely in length (mazes: one seed's plan fits 128 steps
+        on 12 of 20 instances, the best of 16 seeds' on 16, docs/results.md)."""
         began = time.perf_counter()
         result, best = None, None
         seed = self.planner.seed
         try:
             for k in range(self.restarts):
+                budget = self.planning_budget
+                if self.shared_budget:
+                    budget -= time.perf_counter() - began
+                    if k and budget <= 0:
+                        break
                 self.planner.seed = seed + k
                 found = self.planner.plan(positions, goals, rankings=rankings,
                                           priorities=self.priorities[self._subset], fixed=fixed,
-                                          reserved=reserved, time_limit=self.planning_budget,
+                                          reserved=reserved, time_limit=max(budget, 0.0),
                                           max_nodes=self.max_nodes)
                 if result is None:
                     result = found
