@@ -21,24 +21,9 @@ import argparse
 import json
 import time
 
-from mapf_fleet.coordination.lacam import LaCAM, check_plan
+from mapf_fleet.coordination.lacam import solvability
 from mapf_fleet.evaluation.cli import dense_scenarios
 from mapf_fleet.evaluation.protocol import ProtocolConfig, family_scenarios
-
-EXHAUSTED = "search space exhausted"  # LaCAM's reason when a region has no plan
-
-
-def classify(inst, max_nodes: int) -> tuple[str, int | None]:
-    """("unsolvable" | "solved" | "undecided", makespan of the plan found or None)."""
-    result = LaCAM(inst.grid, seed=0, swap=True).plan(inst.starts, inst.goals,
-                                                      time_limit=3600.0, max_nodes=max_nodes)
-    if result.solved:
-        assert check_plan(inst.grid, result.positions, inst.starts, inst.goals) == []
-        return "solved", len(result.positions) - 1
-    # one region proven without a plan settles the instance, whatever the others' budget did
-    if EXHAUSTED in result.reason:
-        return "unsolvable", None
-    return "undecided", None
 
 
 def suites(args):
@@ -71,7 +56,8 @@ def main(argv=None) -> dict:
         kinds = {"unsolvable": [], "solved": [], "undecided": []}
         fits = 0
         for k in range(len(instances)):
-            kind, makespan = classify(instances.instance(k), args.max_nodes)
+            inst = instances.instance(k)
+            kind, makespan = solvability(inst.grid, inst.starts, inst.goals, args.max_nodes)
             kinds[kind].append(k)
             fits += makespan is not None and makespan <= scenario.max_steps
         n = len(instances)

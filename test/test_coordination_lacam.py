@@ -96,6 +96,23 @@ def test_unsolvable_instance_exhausts_the_search():
     assert result.seconds < 1.0
 
 
+def test_solvability_tells_proven_unsolvable_from_solved_and_undecided():
+    """A pocket where two agents must pass each other (the generated maps' unsolvable case)
+    beside a region that is solvable: the instance is proven unsolvable; with room to pass it is
+    solved (with its makespan); a budget too small to decide says so."""
+    from mapf_fleet.coordination.lacam import solvability
+
+    grid = np.ones((4, 6), dtype=bool)
+    grid[0, 0:3] = False  # a 3-cell corridor
+    grid[2:4, 2:6] = False  # an open 2x4 room
+    starts, goals = [[0, 0], [0, 1], [2, 2]], [[0, 1], [0, 0], [3, 5]]
+    assert solvability(grid, starts, goals) == ("unsolvable", None)
+    kind, makespan = solvability(grid, [[2, 2], [2, 3]], [[2, 3], [2, 2]])
+    assert kind == "solved" and makespan >= 3  # the swap takes 3 steps at least
+    big = generate_instance(20, 60, 0.1, np.random.default_rng(0))
+    assert solvability(big.grid, big.starts, big.goals, max_nodes=1)[0] == "undecided"
+
+
 def test_unreachable_goal_is_refused_at_once():
     grid = np.array([[0, 1, 0]], dtype=bool)
     result = LaCAM(grid).plan([[0, 0]], [[0, 2]])

@@ -85,7 +85,7 @@ def test_expert_ceiling_command(tmp_path, capsys, labeller):
                       "--count", "2", "--json", str(out)])
     assert rc == 0
     printed = capsys.readouterr().out
-    assert "| random 9x9 | 5 |" in printed and "lifelong" in printed
+    assert "| random 9x9 | 5 | 1.00 |" in printed and "lifelong" in printed
     result = json.loads(out.read_text())
     assert result["labeller"] == labeller and result["rule"] == "pibt_anchor_swap"
     rows = result["one_shot"]
@@ -93,6 +93,7 @@ def test_expert_ceiling_command(tmp_path, capsys, labeller):
     for row in rows:
         # a few agents on a 9x9 map: both solve every instance, and the labeller labels
         assert row["pibt_success"] == 1.0 and row["expert_success"] == 1.0
+        assert row["success_at_most"] == 1.0 and row["unsolvable"] == []
         assert 0.0 <= row["self_agreement"] <= 1.0 and row["agreement_labels"] > 0
         assert row["label_cpu_s_per_state"] > 0 and row["plans_per_episode"] >= 1
     # plain PIBT's column is the held-out baseline's rollout on the same instances

@@ -292,7 +292,7 @@ class LaCAM:
             stack.append(child)
             nodes += 1
         return LaCAMResult(None, nodes, time.perf_counter() - began,
-                           "no plan exists (search space exhausted)")
+                           f"no plan exists ({EXHAUSTED})")
 
     # ------------------------------------------------------------------------------------------
     def _generate(self, node, who, where, dist, goal, rng, root_candidates, blocked):
@@ -438,4 +438,21 @@ def check_plan(grid, positions, starts=None, goals=None) -> list[str]:
     return problems
 
 
-__all__ = ["LaCAM", "LaCAMResult", "check_plan"]
+SOLVABILITY_NODES = 50_000  # the node budget of `solvability` (the expert ceiling's, per search)
+EXHAUSTED = "search space exhausted"  # in `LaCAMResult.reason` when a region has no plan
+
+
+def solvability(grid, starts, goals, max_nodes: int = SOLVABILITY_NODES) -> tuple[str, int | None]:
+    """("unsolvable" | "solved" | "undecided", the makespan of the plan found or None): LaCAM
+    with swap from the starts within `max_nodes`. LaCAM is complete, so a search that exhausts a
+    free region's configurations proves the instance has no plan (generated maps shut agents
+    into dead-end pockets where they cannot pass each other); "undecided": the budget ran out."""
+    result = LaCAM(grid, seed=0, swap=True).plan(starts, goals, time_limit=float("inf"),
+                                                 max_nodes=max_nodes)
+    if result.solved:
+        return "solved", len(result.positions) - 1
+    # one region proven without a plan settles it, whatever the other regions' budget did
+    return ("unsolvable" if EXHAUSTED in result.reason else "undecided"), None
+
+
+__all__ = ["LaCAM", "LaCAMResult", "check_plan", "solvability"]

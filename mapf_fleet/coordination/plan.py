@@ -10,8 +10,8 @@ something leaves the plan:
 - a robot not where the plan put it (a missed decision, a robot the arbiter did not command),
 - every `replan_every` ticks when asked (0: never; a failed periodic re-plan keeps the old plan).
 Each re-plan gets `planning_budget` seconds of wall clock. When the planner finds no plan in it,
-the tick falls back to the anchored PIBT step (`PIBTShield(anchor=True)`) over the robots'
-rankings (only for the robots of the free regions without a plan: regions never meet), and the
+the tick falls back to the anchored PIBT step (`fallback_rule`: `pibt_anchor`, and for the
+`lacam` rule `pibt_anchor_swap`) over the robots' rankings (only for the robots of the free regions without a plan: regions never meet), and the
 planner tries again next tick, then after 2, 4, ... ticks while it keeps failing (at most
 `max_retry_interval`): the tick time is bounded by the budget, an unsolvable crowd does not cost
 it every tick, and every tick keeps PIBT's guarantees. Robots sharing a goal cell plan towards
@@ -330,7 +330,7 @@ class PlanKeeper:
 
     def step(self, positions, rankings, fixed=None, reserved=()) -> ShieldStep:
         """One tick (arguments as `PIBTShield.step`): the kept plan's next step, a re-planned
-        one, or the anchored PIBT step over `rankings` for the agents without a plan."""
+        one, or the fallback rule's step over `rankings` for the agents without a plan."""
         began = time.perf_counter()
         positions = self.fallback._check_positions(positions)
         n = self.num_agents

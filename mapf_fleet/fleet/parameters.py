@@ -115,7 +115,7 @@ _RUN = {
                            "or revert (the paper's rules on the first choices)",
                            choices=CONFLICT_RULES),
     "planning_budget": Param(1.0, "conflict_rule lacam: seconds of planning per re-plan; a tick "
-                                  "without a plan in it takes pibt_anchor's step",
+                                  "without a plan in it takes pibt_anchor_swap's step",
                              **_positive()),
     "max_steps": Param(256, "tick limit: a one-shot run fails when robots are not all on goal "
                             "by then; continuous runs end there (0: no limit, continuous task "

@@ -37,7 +37,7 @@ The simulator (or the aggregator) arbitrates each tick with `--conflict-rule`: `
 and lacam3's swap in corridors; nothing is reverted), `pibt_anchor` (the same without swap),
 `pibt` (CS-PIBT as published), the other `_swap` / `_hindrance` variants, `lacam` (a kept LaCAM
 plan over the robots' rankings, repaired when something leaves it, `--planning-budget` seconds per
-tick, else the anchored PIBT step) or `revert` (the paper's environment: conflicting first choices
+tick, else the `pibt_anchor_swap` step) or `revert` (the paper's environment: conflicting first choices
 are reverted).
 
 With no arguments: 8 simulated robots on a generated 16x16 map, checkpoint models/default.pt.
