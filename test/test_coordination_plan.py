@@ -429,22 +429,25 @@ def test_restarts_keep_the_shortest_of_several_searches():
         PlanKeeper(inst.grid, inst.goals, restarts=0)
 
 
-def test_shared_budget_restarts_stop_when_the_budget_is_spent():
+def test_shared_budget_restarts_stop_when_the_budget_is_spent(monkeypatch):
     """With `shared_budget` the restarts run in what the earlier searches left of one
     `planning_budget` (the arbiter's re-plan costs at most about the budget); without it each
-    search has the whole budget and all of them run."""
-    import time as clock
+    search has the whole budget and all of them run. A fake clock: each search takes 0.04 s."""
+    import types
 
+    from mapf_fleet.coordination import plan as plan_module
+
+    now = [0.0]
+    monkeypatch.setattr(plan_module, "time", types.SimpleNamespace(perf_counter=lambda: now[0]))
     inst = generate_instance(10, 6, 0.1, np.random.default_rng(4))
-    calls = {}
+    limits = {}
 
     def counted(keeper, name):
         original = keeper.planner.plan
 
         def plan(*args, **kwargs):
-            calls[name] = calls.get(name, 0) + 1
-            calls.setdefault(name + "_limits", []).append(kwargs["time_limit"])
-            clock.sleep(0.04)
+            limits.setdefault(name, []).append(kwargs["time_limit"])
+            now[0] += 0.04
             return original(*args, **kwargs)
         keeper.planner.plan = plan
         return keeper
@@ -454,6 +457,29 @@ def test_shared_budget_restarts_stop_when_the_budget_is_spent():
     each = counted(PlanKeeper(inst.grid, inst.goals, planning_budget=0.1, restarts=8,
                               swap=True), "each")
     assert shared.replan(inst.starts) and each.replan(inst.starts)
-    assert 2 <= calls["shared"] <= 3 and calls["each"] == 8
-    assert all(b < a for a, b in zip(calls["shared_limits"], calls["shared_limits"][1:]))
-    assert calls["each_limits"] == [0.1] * 8
+    # searches at 0, 0.04 and 0.08 s; at 0.12 s the budget is spent
+    assert limits["shared"] == pytest.approx([0.1, 0.06, 0.02])
+    assert limits["each"] == [0.1] * 8
+
+
+def test_restarts_only_while_the_plan_is_long_for_its_distances():
+    """`restart_ratio`: a plan within that many times the longest agent's distance ends the
+    restarts (lifelong re-plans); a plan longer than it does not; 0 restarts always."""
+    inst = generate_instance(12, 8, 0.1, np.random.default_rng(5))
+
+    def searches(ratio):
+        keeper = PlanKeeper(inst.grid, inst.goals, planning_budget=10, restarts=4, swap=True,
+                            restart_ratio=ratio)
+        calls = []
+        original = keeper.planner.plan
+        keeper.planner.plan = lambda *a, **k: calls.append(1) or original(*a, **k)
+        assert keeper.replan(inst.starts)
+        makespan = len(keeper.plan) - 1
+        return len(calls), makespan / keeper._longest_distance(inst.starts, inst.goals)
+
+    calls, ratio = searches(0.0)
+    assert calls == 4
+    assert searches(ratio + 0.01)[0] == 1  # the first plan is short enough: no restart
+    assert searches(0.5)[0] == 4  # no plan is within half the longest distance
+    with pytest.raises(ValueError, match="restart_ratio"):
+        PlanKeeper(inst.grid, inst.goals, restart_ratio=-1)

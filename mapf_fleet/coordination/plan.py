@@ -63,14 +63,17 @@ class PlanKeeper:
     swap: LaCAM's successors by PIBT with swap (`LaCAM(swap=True)`). restarts: LaCAM searches
     per re-plan, the shortest plan kept (`_call_planner`). shared_budget: the restarts share one
     `planning_budget` (a re-plan costs at most about the budget: the arbiter) instead of one
-    each (the committed expert, whose labels a node budget bounds). fallback_rule: the PIBT
+    each (the committed expert, whose labels a node budget bounds). restart_ratio: restart only
+    while the shortest plan so far is longer than this many times the longest agent's distance
+    to its goal (0: always; lifelong re-plans are mostly within 1.4 times it, a first plan that
+    misses a step limit is 2-8 times it, docs/results.md). fallback_rule: the PIBT
     rule of the ticks without a plan (`pibt_anchor`; the `lacam` conflict rule:
     `pibt_anchor_swap`)."""
 
     def __init__(self, grid, goals, planning_budget: float = DEFAULT_PLANNING_BUDGET,
                  replan_every: int = 0, max_nodes: int = 1_000_000, seed: int = 0,
                  max_retry_interval: int = DEFAULT_MAX_RETRY_INTERVAL, swap: bool = False,
-                 restarts: int = 1, shared_budget: bool = False,
+                 restarts: int = 1, shared_budget: bool = False, restart_ratio: float = 0.0,
                  fallback_rule: str = "pibt_anchor"):
         if not planning_budget > 0:
             raise ValueError(f"planning_budget must be a positive number of seconds, got "
@@ -93,6 +96,9 @@ class PlanKeeper:
             raise ValueError(f"restarts must be >= 1, got {restarts!r}")
         self.restarts = int(restarts)
         self.shared_budget = bool(shared_budget)
+        if not float(restart_ratio) >= 0:
+            raise ValueError(f"restart_ratio must be >= 0, got {restart_ratio!r}")
+        self.restart_ratio = float(restart_ratio)
         if int(max_retry_interval) < 1:
             raise ValueError(f"max_retry_interval must be >= 1 tick, got {max_retry_interval!r}")
         self.max_retry_interval = int(max_retry_interval)
@@ -263,6 +269,9 @@ class PlanKeeper:
                     key = (len(p), int((p[1:] != p[-1]).any(axis=2).sum()))
                     if best is None or key < best[0]:
                         best = (key, found)
+                    if best[0][0] - 1 <= self.restart_ratio * self._longest_distance(positions,
+                                                                                    goals):
+                        break
         finally:
             self.planner.seed = seed
         if best is not None:
@@ -273,6 +282,14 @@ class PlanKeeper:
         c["planner_seconds"] += spent
         c["planner_max_seconds"] = max(c["planner_max_seconds"], spent)
         return result
+
+    def _longest_distance(self, positions, goals) -> int:
+        """The longest of the agents' distances to their goals (a plan's least makespan)."""
+        w = self.width
+        flat = (np.asarray(goals)[:, 0] * w + np.asarray(goals)[:, 1]).tolist()
+        rows = self.planner.distances(flat)
+        now = np.asarray(positions)[:, 0] * w + np.asarray(positions)[:, 1]
+        return max((int(rows[i][c]) for i, c in enumerate(now.tolist())), default=0)
 
     def replan(self, positions, rankings=None, fixed=None, reserved=()) -> bool:
         """Plan every agent from `positions` within the budget. Keeps what was found (a whole
