@@ -483,3 +483,22 @@ def test_restarts_only_while_the_plan_is_long_for_its_distances():
     assert searches(0.5)[0] == 4  # no plan is within half the longest distance
     with pytest.raises(ValueError, match="restart_ratio"):
         PlanKeeper(inst.grid, inst.goals, restart_ratio=-1)
+
+
+def test_no_restarts_once_the_goals_stream_in_unless_asked():
+    """`streamed_restarts=False` (the arbiter): the episode's first goals get every restart; once
+    `set_goals` changed them (a lifelong stream), one search per re-plan; a new episode
+    (`reset`) restarts again."""
+    inst = generate_instance(12, 8, 0.1, np.random.default_rng(6))
+    moved = np.roll(inst.goals, 1, axis=0)
+    for streamed_restarts, after in ((False, 1), (True, 4)):
+        keeper = PlanKeeper(inst.grid, inst.goals, planning_budget=10, restarts=4, swap=True,
+                            streamed_restarts=streamed_restarts)
+        calls = []
+        original = keeper.planner.plan
+        keeper.planner.plan = lambda *a, **k: calls.append(1) or original(*a, **k)
+        assert keeper.replan(inst.starts) and len(calls) == 4
+        keeper.set_goals(moved)
+        assert keeper.replan(inst.starts) and len(calls) == 4 + after
+        keeper.reset()  # a new episode: its goals are its first ones
+        assert keeper.replan(inst.starts) and len(calls) == 8 + after

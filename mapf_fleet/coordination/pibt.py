@@ -119,10 +119,11 @@ COORDINATED_RULES = (*PIBT_RULES, "lacam")
 # fleet's rule (lacam3's; from the starts it solves dense 21x21 maps with 48 agents 20 of 20 in
 # 0.3 s where plain PIBT successors solve 15 in 121 s), and the shortest of 8 searches' plans
 # within the one budget where the first is over 1.5 times as long as the longest agent's
-# distance (a first-found plan can miss the step limit where another seed's fits; restarting
-# every lifelong re-plan cost several times the tick time; docs/results.md)
+# distance (a first-found plan can miss the step limit where another seed's fits), and not once
+# the goals stream in (there restarts cost several times the tick time for nothing;
+# docs/results.md)
 LACAM_OPTIONS = {"swap": True, "restarts": 8, "shared_budget": True, "restart_ratio": 1.5,
-                 "fallback_rule": "pibt_anchor_swap"}
+                 "streamed_restarts": False, "fallback_rule": "pibt_anchor_swap"}
 REVERT = "revert"
 CONFLICT_RULES = (*COORDINATED_RULES, REVERT)
 

@@ -11,8 +11,8 @@ something leaves the plan:
 - every `replan_every` ticks when asked (0: never; a failed periodic re-plan keeps the old plan).
 Each re-plan gets `planning_budget` seconds of wall clock. When the planner finds no plan in it,
 the tick falls back to the anchored PIBT step (`fallback_rule`: `pibt_anchor`, and for the
-`lacam` rule `pibt_anchor_swap`) over the robots' rankings (only for the robots of the free regions without a plan: regions never meet), and the
-planner tries again next tick, then after 2, 4, ... ticks while it keeps failing (at most
+`lacam` rule `pibt_anchor_swap`) over the robots' rankings (only for the robots of the free
+regions without a plan: regions never meet), and the planner tries again next tick, then after 2, 4, ... ticks while it keeps failing (at most
 `max_retry_interval`): the tick time is bounded by the budget, an unsolvable crowd does not cost
 it every tick, and every tick keeps PIBT's guarantees. Robots sharing a goal cell plan towards
 distinct cells (`planning_goals`).
@@ -65,16 +65,17 @@ class PlanKeeper:
     `planning_budget` (a re-plan costs at most about the budget: the arbiter) instead of one
     each (the committed expert, whose labels a node budget bounds). restart_ratio: restart only
     while the shortest plan so far is longer than this many times the longest agent's distance
-    to its goal (0: always; lifelong re-plans are mostly within 1.4 times it, a first plan that
-    misses a step limit is 2-8 times it, docs/results.md). fallback_rule: the PIBT
-    rule of the ticks without a plan (`pibt_anchor`; the `lacam` conflict rule:
-    `pibt_anchor_swap`)."""
+    to its goal (0: always; a first plan that misses a step limit is 2-8 times it).
+    streamed_restarts: restart also once the goals have changed (a lifelong stream: every
+    arrival re-plans and the plan is dropped at the next one; restarting there cost the arbiter
+    2-3.5 times the run time and gained nothing; docs/results.md). fallback_rule: the PIBT rule
+    of the ticks without a plan (`pibt_anchor`; the `lacam` conflict rule: `pibt_anchor_swap`)."""
 
     def __init__(self, grid, goals, planning_budget: float = DEFAULT_PLANNING_BUDGET,
                  replan_every: int = 0, max_nodes: int = 1_000_000, seed: int = 0,
                  max_retry_interval: int = DEFAULT_MAX_RETRY_INTERVAL, swap: bool = False,
                  restarts: int = 1, shared_budget: bool = False, restart_ratio: float = 0.0,
-                 fallback_rule: str = "pibt_anchor"):
+                 streamed_restarts: bool = True, fallback_rule: str = "pibt_anchor"):
         if not planning_budget > 0:
             raise ValueError(f"planning_budget must be a positive number of seconds, got "
                              f"{planning_budget!r}")
@@ -99,6 +100,8 @@ class PlanKeeper:
         if not float(restart_ratio) >= 0:
             raise ValueError(f"restart_ratio must be >= 0, got {restart_ratio!r}")
         self.restart_ratio = float(restart_ratio)
+        self.streamed_restarts = bool(streamed_restarts)
+        self.streamed = False  # the goals changed since the episode began
         if int(max_retry_interval) < 1:
             raise ValueError(f"max_retry_interval must be >= 1 tick, got {max_retry_interval!r}")
         self.max_retry_interval = int(max_retry_interval)
@@ -140,6 +143,7 @@ class PlanKeeper:
         self.plan = None
         self.index = 0
         self._retry_at, self._retry_interval = 0, 1
+        self.streamed = False
 
     def set_goals(self, goals) -> np.ndarray:
         """New goals (N, 2); the plan is dropped when any changed (`PIBTShield.set_goals`) and
@@ -151,6 +155,7 @@ class PlanKeeper:
             # solve would otherwise cost the whole budget every tick)
             self.plan = None
             self.counters["goal_changes"] += 1
+            self.streamed = True
         return changed
 
     def advance_priorities(self, positions) -> None:
@@ -250,8 +255,9 @@ class PlanKeeper:
         began = time.perf_counter()
         result, best = None, None
         seed = self.planner.seed
+        restarts = self.restarts if self.streamed_restarts or not self.streamed else 1
         try:
-            for k in range(self.restarts):
+            for k in range(restarts):
                 budget = self.planning_budget
                 if self.shared_budget:
                     budget -= time.perf_counter() - began
