@@ -12,10 +12,10 @@ something leaves the plan:
 Each re-plan gets `planning_budget` seconds of wall clock. When the planner finds no plan in it,
 the tick falls back to the anchored PIBT step (`fallback_rule`: `pibt_anchor`, and for the
 `lacam` rule `pibt_anchor_swap`) over the robots' rankings (only for the robots of the free
-regions without a plan: regions never meet), and the planner tries again next tick, then after 2, 4, ... ticks while it keeps failing (at most
-`max_retry_interval`): the tick time is bounded by the budget, an unsolvable crowd does not cost
-it every tick, and every tick keeps PIBT's guarantees. Robots sharing a goal cell plan towards
-distinct cells (`planning_goals`).
+regions without a plan: regions never meet), and the planner tries again next tick, then after
+2, 4, ... ticks while it keeps failing (at most `max_retry_interval`): the tick time is bounded
+by the budget, an unsolvable crowd does not cost it every tick, and every tick keeps PIBT's
+guarantees. Robots sharing a goal cell plan towards distinct cells (`planning_goals`).
 
 Guarantees of `PlanKeeper.step` (property-tested), as `PIBTShield.step`: no two agents in one
 cell, no two agents trading cells, no agent on an obstacle or off the map, every agent moves at
@@ -256,6 +256,9 @@ class PlanKeeper:
         result, best = None, None
         seed = self.planner.seed
         restarts = self.restarts if self.streamed_restarts or not self.streamed else 1
+        # a plan this short ends the restarts (restart_ratio; computed once, only when asked)
+        short_enough = (self.restart_ratio * self._longest_distance(positions, goals)
+                        if self.restart_ratio > 0 and restarts > 1 else None)
         try:
             for k in range(restarts):
                 budget = self.planning_budget
@@ -275,8 +278,7 @@ class PlanKeeper:
                     key = (len(p), int((p[1:] != p[-1]).any(axis=2).sum()))
                     if best is None or key < best[0]:
                         best = (key, found)
-                    if best[0][0] - 1 <= self.restart_ratio * self._longest_distance(positions,
-                                                                                    goals):
+                    if short_enough is not None and best[0][0] - 1 <= short_enough:
                         break
         finally:
             self.planner.seed = seed

@@ -13,8 +13,8 @@ Rules (`CONFLICT_RULES`):
           guarantee below holds for each).
   lacam   the planning arbiter (`coordination.plan.PlanKeeper`): a kept LaCAM plan whose root
           step ranks each robot's moves by its ranking, re-planned when something leaves it,
-          `planning_budget` seconds per re-plan (successors with swap, the shortest of 8
-          searches' plans: `coordination.pibt.LACAM_OPTIONS`); a tick without a plan is
+          `planning_budget` seconds per re-plan (successors with swap, restarts for long
+          first plans: `coordination.pibt.LACAM_OPTIONS`); a tick without a plan is
           pibt_anchor_swap's step.
   revert  the paper's environment: `grid.env.resolve_moves` on the first choices (a conflicting
           move is reverted to "stay").
