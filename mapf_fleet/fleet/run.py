@@ -38,7 +38,7 @@ import numpy as np
 
 from .arbiter import DEFAULT_CONFLICT_RULE, Resolution, TickArbiter
 from .record import Decisions, GoalEvent, RunRecorder
-from .tasks import Task, TaskSource, unreachable_problem
+from .tasks import Task, TaskSource, batch_problems
 
 
 def plural(count: int, word: str) -> str:
@@ -209,30 +209,19 @@ class FleetRun:
 
     def submit_task(self, task: Task) -> GoalEvent:
         """Queue a task (for its robot, or the nearest idle robot); checked now."""
-        for k, cell in enumerate(task.goals):
-            problem = self.goal_problem(None, cell)
-            if problem and not problem.startswith("robot "):  # a busy goal may free up later
-                event = GoalEvent(self.tick, -1 if task.robot is None else task.robot,
-                                  "rejected", cell, task.source, task.task_id,
-                                  f"goal {k}: {problem}")
-                self.recorder.add_events([event])
-                return event
-        if task.robot is not None and not 0 <= task.robot < self.num_robots:
-            event = GoalEvent(self.tick, -1, "rejected", task.goals[0], task.source, task.task_id,
-                              f"unknown robot {task.robot} (robots 0..{self.num_robots - 1})")
-            self.recorder.add_events([event])
-            return event
-        problem = unreachable_problem(task.goals, self.grid, self.positions, task.robot)
-        if problem:  # an enclosed cell would stay queued forever
-            event = GoalEvent(self.tick, -1 if task.robot is None else task.robot, "rejected",
-                              task.goals[0], task.source, task.task_id, problem)
-            self.recorder.add_events([event])
-            return event
-        self.queue.append(task)
-        event = GoalEvent(self.tick, -1 if task.robot is None else task.robot, "queued",
-                          task.goals[0], task.source, task.task_id)
-        self.recorder.add_events([event])
-        return event
+        return self.submit_tasks([task])[0]
+
+    def submit_tasks(self, tasks) -> list[GoalEvent]:
+        """Queue every task or none (`tasks.batch_problems`: each checked before any is
+        queued, so a request resent after a fix does not queue its good tasks twice)."""
+        problems = batch_problems(self, tasks)
+        events = [GoalEvent(self.tick, -1 if t.robot is None or not 0 <= t.robot < self.num_robots
+                            else t.robot, "rejected" if problems else "queued", t.goals[0],
+                            t.source, t.task_id, problems.get(k, "")) for k, t in enumerate(tasks)]
+        if not problems:
+            self.queue.extend(tasks)
+        self.recorder.add_events(events)
+        return events
 
     def apply_requests(self) -> list[GoalEvent]:
         """Apply the goal requests and queued tasks now (between ticks); the new events."""
@@ -308,6 +297,8 @@ class FleetRun:
                                announce_previous=False)
                 continue
             self._task_of[i] = None
+            if self.tasks.draws_goals and self.queue and self._take_queued(i):
+                continue  # a lifelong robot is never idle: it takes a waiting task first
             nxt = self.tasks.next_goal(i, cell)  # lifelong: the next goal, else None
             if nxt is not None:
                 self._goal_count[i] += 1
@@ -353,6 +344,22 @@ class FleetRun:
             self._set_goal(robot, task.goals[0], task.source,
                            task.task_id if len(task.goals) == 1 else f"{task.task_id}/0")
         self.queue = waiting
+
+    def _take_queued(self, robot: int) -> bool:
+        """Give `robot`, free between two drawn goals, the first waiting task it can take."""
+        here = self.positions[robot]
+        for task in self.queue:
+            first = task.goals[0]
+            if task.robot not in (None, robot) or self.distance_to(first)[here[0], here[1]] < 0 \
+                    or self.goal_problem(None, first).startswith("robot "):
+                continue
+            self.queue.remove(task)
+            self._task_of[robot] = (task, 0)
+            self._set_goal(robot, first, task.source,
+                           task.task_id if len(task.goals) == 1 else f"{task.task_id}/0",
+                           announce_previous=False)
+            return True
+        return False
 
     def _robot_for(self, task: Task) -> int | None:
         first = task.goals[0]
@@ -490,8 +497,8 @@ class FleetRun:
             success = bool(self.on_goal().all()) and stopped_at is None
         elif self.tasks.name == "tasks":
             success = reason == "every task done" and stopped_at is None
-        else:
-            success = stopped_at is None and bool(reason)
+        else:  # a task accepted but still queued at the end was not served
+            success = stopped_at is None and bool(reason) and not self.queue
         verdict = ('success' if success else 'failure') if stopped_at is None else \
             f"stopped at tick {stopped_at}"
         if self.tasks.continuous:

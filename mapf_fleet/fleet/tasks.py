@@ -16,7 +16,11 @@ that order, for a named robot or for "any idle robot". Sources (`TASK_SOURCES`):
   external  robots start idle on their start cells and move only for goals given at run time
             (ROS `goal_pose`, the `navigate_to_pose` action, the fleet's task service).
 
-Goals given at run time (`FleetRun.request_goal`, `submit_task`) work with every source.
+Goals given at run time (`FleetRun.request_goal`) work with every source. Tasks submitted at
+run time (`FleetRun.submit_tasks`, queued whole or not at all) go to idle robots; under lifelong
+a robot that reaches its goal takes the first waiting task before drawing its next goal; the
+instance source refuses them at once (its robots keep their goals for the whole run: none is
+ever free), and a run never succeeds while a task it accepted is still queued.
 """
 
 from __future__ import annotations
@@ -54,6 +58,9 @@ class TaskSource:
     # False: the run ends when every robot stands on its goal; True: it runs on (max_steps,
     # a stop, or `done` of the source)
     continuous: bool = False
+    # True: a robot that arrives draws its next goal (it is never idle), so it takes a waiting
+    # task first (`FleetRun._take_queued`)
+    draws_goals: bool = False
 
     def initial(self, starts: np.ndarray, goals: np.ndarray | None):
         """(goals (N, 2), active (N,) bool): a robot without a task is idle (inactive)."""
@@ -91,6 +98,7 @@ class LifelongTasks(TaskSource):
     seed: int = 0
     name: str = "lifelong"
     continuous: bool = True
+    draws_goals: bool = True
     _regions: dict = field(default_factory=dict, init=False, repr=False)
     _rngs: dict = field(default_factory=dict, init=False, repr=False)
     _labels: np.ndarray | None = field(default=None, init=False, repr=False)
@@ -253,6 +261,16 @@ def _task_cell(entry: dict, cell_field: str, xy_field: str, here: str, cell_of):
     return tuple(int(v) for v in cell_of(float(value[0]), float(value[1])))
 
 
+def yaml_error_text(where, exc) -> str:
+    """One line for a YAML syntax error: `where:LINE:COLUMN: not valid YAML: the problem` (the
+    parser's first line alone, "while parsing a flow sequence", names neither)."""
+    mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
+    problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+    context = getattr(exc, "context", None)
+    at = f"{where}:{mark.line + 1}:{mark.column + 1}" if mark is not None else str(where)
+    return f"{at}: not valid YAML: {problem}" + (f" ({context})" if context else "")
+
+
 def _entry_lines(text: str) -> list[int]:
     """The 1-based line of each task of a task file's text ([] when it has no task list)."""
     import yaml
@@ -277,8 +295,7 @@ def unreachable_problem(goals, grid, starts, robot: int | None = None) -> str:
     grid = np.asarray(grid)
     h, w = grid.shape
     for k, (r, c) in enumerate(goals):
-        name = "goal" if len(goals) == 1 else ("pickup", "dropoff")[k] if len(goals) == 2 \
-            else f"goal {k}"
+        name = _goal_name(goals, k)
         if not (0 <= r < h and 0 <= c < w):
             return f"{name} ({r}, {c}) is off the {h}x{w} map"
         if grid[r, c]:
@@ -301,6 +318,45 @@ def unreachable_problem(goals, grid, starts, robot: int | None = None) -> str:
     return ""
 
 
+INSTANCE_TASKS_REFUSED = (
+    "the instance source keeps every robot on its instance goal for the whole run, so no robot "
+    "is ever free to take a task: send one robot a goal instead (`mapf-fleet goal R --cell ROW "
+    "COL` replaces its instance goal), or run with --task-source lifelong, tasks or external")
+
+
+def task_problem(run, task: Task) -> str:
+    """Why `run` (a `FleetRun`) cannot queue `task` ("" when it can): a robot it does not have,
+    a goal off the map, on an obstacle or walled off; under the instance source, any task (its
+    robots are never free: INSTANCE_TASKS_REFUSED). A goal another robot is headed for is no
+    problem: the task waits until it moves on."""
+    if not run.tasks.continuous:
+        return INSTANCE_TASKS_REFUSED
+    if task.robot is not None and not 0 <= task.robot < run.num_robots:
+        return f"unknown robot {task.robot} (robots 0..{run.num_robots - 1})"
+    for k, cell in enumerate(task.goals):
+        problem = run.goal_problem(None, cell)
+        if problem and not problem.startswith("robot "):  # a busy goal may free up later
+            return f"{_goal_name(task.goals, k)}: {problem}"
+    return unreachable_problem(task.goals, run.grid, run.positions, task.robot)
+
+
+def batch_problems(run, tasks) -> dict[int, str]:
+    """{index: why} for a request of several tasks, queued whole or not at all: each bad task's
+    reason, and for each good one of a bad request that it was not queued either."""
+    problems = {k: p for k, t in enumerate(tasks) if (p := task_problem(run, t))}
+    if not problems:
+        return {}
+    bad = ", ".join(str(k) for k in problems)
+    return {k: problems.get(k, f"not queued: task {bad} of this request "
+                               f"{'was' if len(problems) == 1 else 'were'} rejected (a request "
+                               f"is queued whole or not at all)") for k in range(len(tasks))}
+
+
+def _goal_name(goals, k: int) -> str:
+    return "goal" if len(goals) == 1 else ("pickup", "dropoff")[k] if len(goals) == 2 \
+        else f"goal {k}"
+
+
 def load_task_file(path: str, *, num_robots: int | None = None, cell_of=None, grid=None,
                    starts=None) -> list[Task]:
     """The tasks of a YAML file: a list of tasks, or a mapping with the list under `tasks`.
@@ -316,7 +372,7 @@ def load_task_file(path: str, *, num_robots: int | None = None, cell_of=None, gr
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        raise TaskFileError(f"{path}: not valid YAML: {str(exc).splitlines()[0]}") from None
+        raise TaskFileError(yaml_error_text(path, exc)) from None
     if isinstance(data, dict):
         if "tasks" not in data:
             raise TaskFileError(f"{path}: missing field 'tasks' (a list of tasks)")
