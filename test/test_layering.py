@@ -9,7 +9,7 @@ sibling on the same level (fleet <-> models, training <-> ros). On top of the or
 - evaluation never imports the Ape-X trainer (`training.trainer`, Ray);
 - in view, only the live view (`view/live.py`, `mapf-fleet view`) imports ros; the renderer and
   the pictures read recorded runs without ROS.
-The package's support modules (aliases, entry, files, paths, version) import no layer; cli.py
+The package's support modules (aliases, entry, files, paths, stop_signals, version) import no layer; cli.py
 dispatches to all of them and is outside the order.
 
 Checked statically on every import statement of the package (also the lazy ones inside
@@ -27,7 +27,8 @@ PACKAGE = Path(__file__).resolve().parents[1] / "mapf_fleet"
 LEVELS = (("grid",), ("coordination",), ("fleet", "models"), ("training", "ros"),
           ("evaluation",), ("view",))
 LAYERS = tuple(layer for level in LEVELS for layer in level)
-SUPPORT = ("aliases", "entry", "files", "paths", "version")  # mapf_fleet/<name>.py, below every layer
+# mapf_fleet/<name>.py, below every layer
+SUPPORT = ("aliases", "entry", "files", "paths", "stop_signals", "version")
 LEVEL_OF = {layer: k for k, level in enumerate(LEVELS) for layer in level}
 NO_TORCH = ("grid", "coordination", "fleet")
 NO_ROS = ("grid", "coordination", "fleet", "models", "training", "evaluation", "view")

@@ -28,7 +28,7 @@ from contextlib import contextmanager
 import yaml
 
 from mapf_fleet.ros import common
-from mapf_fleet.ros.processes import StopSignals
+from mapf_fleet.stop_signals import StopSignals
 
 # Topics the fleet publishes latched (reliable, transient local); relative to any namespace.
 LATCHED_TOPIC_RE = re.compile(r"(^|/)(fleet/(map|outcome)|robot_\d+/(goal|waypoint))$")
@@ -178,7 +178,7 @@ def topics_main(argv: list[str] | None = None) -> int:
         parser.error("--wait and --settle must be > 0")
     with ros_command("mapf_fleet_topics") as (node, stop):
         topics, settled = settled_topics(node, stop, args.settle, args.wait)
-        if stop.event.is_set():
+        if stop.requested:
             return 0
         prefix = "/" + args.namespace.strip("/") + "/" if args.namespace.strip("/") else "/"
         for name, types in topics:
@@ -235,7 +235,7 @@ def main(argv: list[str] | None = None) -> int:
     with ros_command("mapf_fleet_echo") as (node, stop):
         deadline = time.monotonic() + args.timeout
         type_name, publishers = _discover(node, stop, args.topic, args.type, deadline)
-        if stop.event.is_set():
+        if stop.requested:
             return 0
         if type_name is None:
             print(f"mapf-fleet echo: topic {args.topic} not found within {args.timeout:g} s",

@@ -1,7 +1,8 @@
 """Process plumbing of the fleet (plain Python, no rclpy): stop signals, child processes and
 their supervision by `mapf-fleet up`.
 
-- `StopSignals`: SIGINT and SIGTERM become a stop request (an Event) that the process acts on,
+- `StopSignals` (from `mapf_fleet.stop_signals`): SIGINT and SIGTERM become a stop request (a
+  flag, waits woken through a self-pipe) that the process acts on,
   as `ros2 launch` users expect: the run ends cleanly (record and "stopped at tick k" outcome
   written, children stopped), no KeyboardInterrupt traceback (not on a second Ctrl-C either), and
   the exit code is 128 + the signal (130 / 143). The fleet's processes call
@@ -23,7 +24,9 @@ import sys
 import threading
 import time
 
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+# the stop signals live below every layer (the trainer uses them too); re-exported here
+from mapf_fleet.stop_signals import (PARENT_PID_ENV, STOP_SIGNALS, StopSignals,  # noqa: F401
+                                     signal_name, stop_signals)
 
 # Environment every process of the fleet runs with: nothing leaves loopback,
 # and the venv is the ROS prefix so ament lookups work. (Here, below `common`, which re-exports
@@ -40,87 +43,6 @@ def prepare_environment(env: dict | None = None) -> dict:
     if "AMENT_PREFIX_PATH" not in target:
         target["AMENT_PREFIX_PATH"] = sys.prefix
     return target
-
-
-def signal_name(signum: int) -> str:
-    try:
-        return signal.Signals(signum).name
-    except ValueError:
-        return f"signal {signum}"
-
-
-class StopSignals:
-    """SIGINT / SIGTERM -> `event` (first signal in `signum`, how many in `count`). Install in
-    the main thread (`with StopSignals() as signals:` or `.install()`); the previous handlers
-    come back with `restore()`."""
-
-    def __init__(self):
-        self.event = threading.Event()
-        self.signum: int | None = None
-        self.count = 0
-        self._previous: dict = {}
-
-    def install(self) -> "StopSignals":
-        if threading.current_thread() is threading.main_thread() and not self._previous:
-            for sig in STOP_SIGNALS:
-                self._previous[sig] = signal.signal(sig, self._handle)
-        return self
-
-    @property
-    def installed(self) -> bool:
-        return bool(self._previous)
-
-    def restore(self) -> None:
-        for sig, previous in self._previous.items():
-            signal.signal(sig, previous)
-        self._previous.clear()
-
-    def __enter__(self) -> "StopSignals":
-        return self.install()
-
-    def __exit__(self, *exc) -> None:
-        self.restore()
-
-    def _handle(self, signum, frame) -> None:  # main thread, between bytecodes: no locks here
-        if self.signum is None:
-            self.signum = int(signum)
-        self.count += 1
-        self.event.set()
-
-    @property
-    def requested(self) -> bool:
-        return self.event.is_set()
-
-    def wait(self, seconds: float) -> bool:
-        """Sleep up to `seconds`; True when a stop signal came."""
-        return self.event.wait(seconds)
-
-    @property
-    def forced(self) -> bool:
-        """A second signal: stop waiting for a clean end."""
-        return self.count >= 2
-
-    @property
-    def exit_code(self) -> int | None:
-        """128 + the first signal (130 SIGINT, 143 SIGTERM), None without a signal."""
-        return None if self.signum is None else 128 + self.signum
-
-    @property
-    def name(self) -> str:
-        return "" if self.signum is None else signal_name(self.signum)
-
-
-_PROCESS_SIGNALS: StopSignals | None = None
-
-
-def stop_signals() -> StopSignals:
-    """The process's `StopSignals`, installed on the first call (from the main thread): a
-    process's entry point calls it first thing, so a signal that comes while it is still
-    importing or loading is kept and acted on as soon as its loop runs."""
-    global _PROCESS_SIGNALS
-    if _PROCESS_SIGNALS is None or not _PROCESS_SIGNALS.installed:
-        _PROCESS_SIGNALS = StopSignals().install()
-    return _PROCESS_SIGNALS
 
 
 def _prctl():
@@ -169,6 +91,8 @@ class Child:
         self.name = name
         # every child stays on loopback (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST), whoever built env
         env = prepare_environment(dict(env))
+        # the child stops if this process is gone before it catches SIGTERM (`stop_signals`)
+        env[PARENT_PID_ENV] = str(os.getpid())
         self._lines: collections.deque[str] = collections.deque(maxlen=keep_lines)
         self.log_path = log_path
         self._reader = None
@@ -389,7 +313,10 @@ def supervise(main: Child, others: list[Child], signals: StopSignals, *, grace: 
                 main.proc.kill()
                 killed = True
                 break
-            time.sleep(poll)
+            if signals.requested:  # a second signal is seen within `poll`
+                time.sleep(poll)
+            else:
+                signals.wait(poll)  # wakes at once on a signal (self-pipe); takes no lock
         code = main.proc.wait()
     finally:
         stop_children([main] + list(others))

@@ -23,7 +23,6 @@ gathered since the last replay save.
 from __future__ import annotations
 
 import logging
-import signal
 import threading
 import time
 from pathlib import Path
@@ -31,6 +30,7 @@ from pathlib import Path
 import torch
 
 from mapf_fleet.aliases import renamed_keys
+from mapf_fleet.stop_signals import StopSignals
 from mapf_fleet.version import code_version
 
 from . import demos, run_state
@@ -298,25 +298,21 @@ class Trainer:
 
     # -- main loop --------------------------------------------------------------------------------
     stop_signal: str = ""
+    _stops: StopSignals | None = None  # the run's stop signals (`_catch_stop_signals`)
 
     def _catch_stop_signals(self):
         """Ctrl-C / SIGTERM: finish the current update, save state and the final checkpoint, and
-        return (a second Ctrl-C aborts at once). Returns a function restoring the old handlers."""
+        return (`_stop_reason`; more signals change nothing: the handler only sets a flag, so a
+        burst of them cannot hang the run; kill -9 and --resume for an abort). Called again
+        after ray.init, which installs its own handlers. Returns a function restoring the old
+        handlers."""
         if threading.current_thread() is not threading.main_thread():
             return lambda: None
-
-        def request_stop(signum, frame):
-            if self.stop_signal:  # second signal: the user really wants out now
-                raise KeyboardInterrupt
-            self.stop_signal = signal.Signals(signum).name
-            self._log_event(f"{self.stop_signal}: stopping after this update, saving state")
-
-        previous = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
-
-        def restore():
-            for sig, handler in previous.items():
-                signal.signal(sig, handler)
-        return restore
+        if self._stops is None:
+            self._stops = StopSignals().install()
+            return self._stops.restore
+        self._stops.reinstall()
+        return lambda: None
 
     def _warm_start_progress(self, stats: dict) -> None:
         """The bar during the demo warm start (its updates count towards max_updates)."""
@@ -446,6 +442,9 @@ class Trainer:
         cfg = self.cfg
         if self.learner.updates >= cfg.max_updates:
             return f"max_updates {cfg.max_updates} reached"
+        if not self.stop_signal and self._stops is not None and self._stops.requested:
+            self.stop_signal = self._stops.name
+            self._log_event(f"{self.stop_signal}: stopping after this update, saving state")
         if self.stop_signal:
             return f"stopped by {self.stop_signal} (resume with --resume)"
         if cfg.max_wall_seconds and pace.wall() >= cfg.max_wall_seconds:

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import time
 import zipfile
 from pathlib import Path
@@ -22,6 +21,7 @@ import torch
 import yaml
 
 from mapf_fleet.files import atomic_write
+from mapf_fleet.stop_signals import StopSignals
 
 from ..modelio import pick_device
 from ..ray_pool import make_pool
@@ -79,7 +79,7 @@ class Dagger:
             atomic_write(self.run_dir / CONFIG_FILE,
                          lambda f: f.write(yaml.safe_dump(cfg.to_dict(), sort_keys=False).encode()))
         self.data = LabelledData(cfg.seq_len, cfg.burn_in, cfg.wait_label_cap)
-        self.stop_signal = None
+        self._stops = StopSignals()
         self._cpu_last: dict[int, float] = {}
 
     # -- state --------------------------------------------------------------------------------
@@ -309,14 +309,16 @@ class Dagger:
                     writer.add_scalar(f"heldout_{row['policy']}/{k}", v, row["round"])
 
     def _catch_signals(self):
-        previous = {}
+        """SIGINT / SIGTERM: the round's work stops at its next check (`stop_signal`), the
+        state is saved. The handler only sets a flag (a burst of signals cannot hang the run).
+        Returns a function restoring the old handlers."""
+        self._stops.install()
+        return self._stops.restore
 
-        def handler(signum, _frame):
-            self.stop_signal = signal.Signals(signum).name
-
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            previous[sig] = signal.signal(sig, handler)
-        return lambda: [signal.signal(s, h) for s, h in previous.items()]
+    @property
+    def stop_signal(self) -> str | None:
+        """The first stop signal's name (None: none came)."""
+        return self._stops.name or None
 
     def run(self) -> dict:
         cfg = self.cfg
