@@ -15,6 +15,11 @@ capitals (`models/X.md`, `F.yaml`, `RUN/`) and are not checked; neither are path
 repository's own folders (`runs/...`, `bags/...`, `../shared/...`: outputs or beside the checkout).
 
 Shell blocks are fenced ```bash (or sh, console, no language); ```text blocks are not commands.
+
+A link's `#anchor` names a heading of its target (GitHub's anchor of it) or an `<a id="...">` there,
+so a reorganised page keeps old links valid with an alias. Code, configs, benchmarks and docs that
+cite docs/results.md by section name (`docs/results.md, "Name"`) name one of its headings.
+docs/where_to_change.md names files and `module.symbol`s; each file and symbol exists.
 """
 
 from __future__ import annotations
@@ -143,10 +148,75 @@ def collect():
                 inline += [(f"{name}:{number}", argv) for argv in commands_of(span)]
             paths += [(f"{name}:{number}", p) for p in path_candidates(span)]
         for number, target in targets:
-            target = target.split("#")[0]
-            if target and not re.match(r"[a-z]+:", target):
+            if re.match(r"[a-z]+:", target):
+                continue
+            target, _, anchor = target.partition("#")
+            if target:
                 links.append((f"{name}:{number}", doc.parent, target))
+            if anchor and not PLACEHOLDER.search(target):
+                ANCHOR_LINKS.append((f"{name}:{number}", (doc.parent / target) if target else doc,
+                                     anchor))
     return full, inline, paths, links
+
+
+# ---- anchors and section names --------------------------------------------------------------------
+
+ANCHOR_LINKS: list[tuple[str, Path, str]] = []  # (where, target file, anchor), filled by collect()
+
+
+def heading_slug(text: str) -> str:
+    """GitHub's anchor of a Markdown heading: lower case, punctuation dropped (letters, digits,
+    `_` and `-` kept), each space a hyphen."""
+    text = text.strip().lower().replace("`", "")
+    return re.sub(r"[^\w\- ]", "", text).replace(" ", "-")
+
+
+def headings(path: Path) -> list[str]:
+    """The heading texts of a Markdown file (outside fenced blocks), backticks dropped."""
+    found, fence = [], False
+    for line in path.read_text().splitlines():
+        if line.strip().startswith("```"):
+            fence = not fence
+        elif not fence and re.match(r"#{1,6} ", line):
+            found.append(line.lstrip("#").strip().replace("`", ""))
+    return found
+
+
+def anchors(path: Path) -> set[str]:
+    """Every anchor a link into `path` may name: its headings' (a repeated one gets -1, -2, ...)
+    and its `<a id="...">` / `<a name="...">` aliases."""
+    seen: dict[str, int] = {}
+    out = set()
+    for text in headings(path):
+        slug = heading_slug(text)
+        out.add(f"{slug}-{seen[slug]}" if slug in seen else slug)
+        seen[slug] = seen.get(slug, 0) + 1
+    out.update(re.findall(r"<a (?:id|name)=\"([^\"]+)\"", path.read_text()))
+    return out
+
+
+RESULTS = REPO / "docs" / "results.md"
+CITING = ["mapf_fleet/**/*.py", "test/**/*.py", "benchmarks/**/*.py", "config/**/*.yaml",
+          "docs/*.md", "README.md", "models/README.md"]
+
+
+def results_citations() -> list[tuple[str, str]]:
+    """(where, name) for each `results.md, "Name"` / `results.md ("Name")` in code, configs and docs
+    (a name broken over comment lines is joined)."""
+    found = []
+    for pattern in CITING:
+        for path in sorted(REPO.glob(pattern)):
+            if path.name == "test_docs.py" or path == RESULTS:
+                continue
+            text = path.read_text()
+            for match in re.finditer(r"results\.md", text):
+                after = re.sub(r"\s*\n\s*#?\s*", " ", text[match.end():match.end() + 200])
+                cited = re.match(r"\)?[,:]?\s*\(?\s*(?:[\"“]([^\"”]{3,120})[\"”]|'(.{3,120}?)'(?!\w))",
+                                 after)
+                if cited:
+                    line = text.count("\n", 0, match.start()) + 1
+                    found.append((f"{path.relative_to(REPO)}:{line}", cited.group(1) or cited.group(2)))
+    return found
 
 
 # ---- parsing a command without running it -------------------------------------------------------
@@ -245,6 +315,35 @@ def test_every_link_resolves():
     missing = [f"{where}: {target}" for where, base, target in LINKS
                if not PLACEHOLDER.search(target) and not path_exists(target, base)]
     assert not missing, "links to files that do not exist:\n" + "\n".join(missing)
+
+
+def test_every_link_anchor_resolves():
+    assert ANCHOR_LINKS, "the collector found no #anchor links (an empty list would pass everything)"
+    missing = [f"{where}: {target.name}#{anchor}" for where, target, anchor in ANCHOR_LINKS
+               if target.suffix == ".md" and target.is_file() and anchor not in anchors(target)]
+    assert not missing, "links to anchors that no heading or <a id> defines:\n" + "\n".join(missing)
+
+
+def test_results_sections_cited_by_name_exist():
+    """A comment or doc that cites docs/results.md by a section's name names one of its headings
+    (case aside; a shortened name is fine): the page is reorganised, the citations follow."""
+    cited = results_citations()
+    assert len(cited) >= 3, cited  # the scan finds the citations it is meant to check
+    titles = [re.sub(r"\s+", " ", t).lower() for t in headings(RESULTS)]
+    missing = [f"{where}: {name!r}" for where, name in cited
+               if not any(re.sub(r"\s+", " ", name.replace("`", "")).lower() in t for t in titles)]
+    assert not missing, ("docs/results.md has no section of these names (rename the citation, or "
+                         "give the section that name):\n" + "\n".join(missing))
+
+
+def test_anchor_helpers():
+    assert heading_slug("The expert ceiling, second reading: LaCAM with swap") == \
+        "the-expert-ceiling-second-reading-lacam-with-swap"
+    assert heading_slug("Lifelong throughput (`--lifelong`)") == "lifelong-throughput---lifelong"
+    assert heading_slug("The ROS fleet at 128 / 256 robots") == "the-ros-fleet-at-128--256-robots"
+    assert heading_slug("Training at the evaluation's density") == "training-at-the-evaluations-density"
+    assert "lifelong-throughput" in anchors(RESULTS)
+    assert "no-such-section" not in anchors(RESULTS)
 
 
 @pytest.mark.parametrize("text, expected", [
