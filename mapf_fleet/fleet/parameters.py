@@ -1,10 +1,13 @@
 """The ROS parameters of the fleet's nodes, one table per node kind (plain Python, no rclpy).
 
-Each parameter has its name, type (its default's), default, description, check and whether it
-may change during a run. The nodes declare and check their parameters from these tables
-(`fleet_io.declare_parameters`, `policy_node.PolicyNode`), `mapf-fleet up` takes its options'
-defaults and checks from them and writes one merged parameters file from them
-(`merged_values`), and config/fleet/fleet.yaml is tested against them.
+Each parameter has its name, type (its default's), default, description, check, whether it
+may change during a run and, when `mapf-fleet up` offers it, its `up` option (`Option`: flag,
+help, when it applies). The nodes declare and check their parameters from these tables
+(`fleet_io.declare_parameters`, `policy_node.PolicyNode`), `mapf-fleet up` builds its options
+from them (`up_options.build_parser`) and writes one merged parameters file from them
+(`merged_values`), docs/fleet.md's parameter list is generated from them
+(`fleet.parameter_doc`), and config/fleet/fleet.yaml is tested against them. Adding a
+parameter to the fleet is one entry here plus the code that reads it.
 
 `up` resolves every node's values itself, in one order: the table's defaults < the user's
 params file(s) < `up`'s options < `-p` rules, and hands the nodes one params file with a fully
@@ -17,10 +20,8 @@ namespace than the fleet's applies to no node of it.
 from __future__ import annotations
 
 import fnmatch
-import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import yaml
 
@@ -28,82 +29,75 @@ from mapf_fleet.aliases import PARAMETERS as PARAMETER_ALIASES
 from mapf_fleet.coordination.ranking import (DEFAULT_RANKING_BY_RULE, RANKINGS,
                                              default_ranking)
 from mapf_fleet.fleet.arbiter import CONFLICT_RULES, DEFAULT_CONFLICT_RULE
+from mapf_fleet.fleet.param import (GENERATED_MAP, LIFELONG, NAV2_MAP, REAL_ROBOTS, Applies,
+                                    Option, Param)
+from mapf_fleet.fleet.ros_args import RosArgs, read_ros_args
 from mapf_fleet.fleet.tasks import TASK_SOURCES
 
-
-@dataclass(frozen=True)
-class Param:
-    default: object
-    description: str
-    check: Callable[[object], bool] | None = None
-    condition: str = ""  # what `check` demands, as a message says it ("> 0")
-    choices: tuple = ()
-    runtime: bool = False  # may change during a run (`mapf-fleet param set`)
-
-    @property
-    def type(self) -> type:
-        return type(self.default)
-
-    def coerce(self, value):
-        """`value` as this parameter's type (an int for a float parameter becomes a float; rcl
-        refuses the type otherwise); TypeError when it cannot be."""
-        kind = self.type
-        if kind is bool:
-            if isinstance(value, bool):
-                return value
-        elif kind is int:
-            if isinstance(value, int) and not isinstance(value, bool):
-                return value
-        elif kind is float:
-            if isinstance(value, (int, float)) and not isinstance(value, bool):
-                return float(value)
-        elif kind is str:
-            if isinstance(value, str):
-                return value
-            if value is None:
-                return ""
-        raise TypeError(kind.__name__)
-
-    def problem(self, value) -> str:
-        """Why `value` is refused ("" when it is not): 'must be > 0, got -1'."""
-        try:
-            value = self.coerce(value)
-        except TypeError:
-            what = {int: "an integer", float: "a number", str: "text",
-                    bool: "true or false"}[self.type]
-            extra = f" {self.condition}" if self.condition else ""
-            return f"must be {what}{extra}, got {value!r}"
-        if isinstance(value, float) and not math.isfinite(value):
-            return f"must be a finite number, got {value!r}"
-        if self.choices and value not in self.choices:
-            return f"must be one of {', '.join(c or repr(c) for c in self.choices)}, got {value!r}"
-        if self.check is not None and not self.check(value):
-            return f"must be {self.condition}, got {value!r}"
-        return ""
+__all__ = ["AGGREGATOR", "ALIASES", "Applies", "NODE_TABLES", "Option", "POLICY", "Param",
+           "RosArgs", "SIMULATOR", "merged_values", "read_params_file", "read_ros_args",
+           "table_of", "write_params_file"]
 
 
 def _positive(text: str = "seconds") -> dict:
     return {"check": lambda v: v > 0, "condition": "> 0"}
 
 
+DEVICES = ("auto", "cpu", "cuda")
+
+
+def resolve_guidance(value: str) -> str | None:
+    """The guidance file a node builds its world with (None: no guidance, "none")."""
+    return None if value in ("none", "") else str(value)
+
+
+# the simulator's, the aggregator's and the policy nodes' guidance: one value for the fleet
+GUIDANCE = Param("none", "guidance file (costs on the grid's directed edges, read by every "
+                         "distance to a goal) or none; every node of the fleet gets the same",
+                 lambda v: v == "none" or Path(v).is_file(), "none or an existing file",
+                 option=Option("--guidance", metavar="FILE|none"))
+
+
 # both lockstep nodes (simulator, aggregator) take their instance and their tick from these
 _INSTANCE = {
-    "instance_file": Param("", "instance YAML (grid rows, starts, goals); overrides the rest"),
+    "instance_file": Param("", "instance YAML (grid rows, starts, goals); overrides the rest",
+                           option=Option("--instance")),
     "map_file": Param("", "the map: a MovingAI .map (with scen_file for starts and goals) or a "
                           "Nav2 map_server YAML (see cell_size); without scen_file, starts and "
-                          "goals are drawn from seed"),
-    "scen_file": Param("", "MovingAI .scen file (with map_file)"),
+                          "goals are drawn from seed",
+                      option=Option("--map", help="the map: a MovingAI .map (with --scen for "
+                                    "starts and goals), or a building's Nav2 map_server YAML "
+                                    "(image, resolution, origin, ...; see --cell-size); "
+                                    "without --scen, starts and goals are drawn from --seed")),
+    "scen_file": Param("", "MovingAI .scen file (with map_file)",
+                       option=Option("--scen", help="MovingAI .scen (with --map)", applies=(
+                           Applies(lambda f: bool(f.map),
+                                   "needs --map (the .map it was made for)"),))),
     "num_robots": Param(8, "robots to generate or to take from the .scen file",
-                        lambda v: v >= 1, ">= 1"),
-    "size": Param(16, "side of a generated square map", lambda v: v >= 2, ">= 2"),
+                        lambda v: v >= 1, ">= 1",
+                        option=Option("--num-robots", help="robots of a generated instance, or "
+                                      "the first N entries of --scen (default: 8 generated, "
+                                      "every entry of --scen)", applies=(
+                                          Applies(lambda f: not f.instance,
+                                                  "does not apply to --instance: the instance "
+                                                  "file gives the robots"),))),
+    "size": Param(16, "side of a generated square map", lambda v: v >= 2, ">= 2",
+                  option=Option("--size", applies=(GENERATED_MAP,))),
     "density": Param(0.3, "obstacle density of a generated map", lambda v: 0 <= v < 1,
-                     "in [0, 1)"),
+                     "in [0, 1)", option=Option("--density", applies=(GENERATED_MAP,))),
     "seed": Param(0, "seed of a generated instance (and of the starts and goals drawn on a "
-                     "map_file without scen_file)", lambda v: v >= 0, ">= 0"),
+                     "map_file without scen_file)", lambda v: v >= 0, ">= 0",
+                  option=Option("--seed", help="seed of a generated instance")),
     "cell_size": Param(0.0, "Nav2 map YAML (map_file F.yaml): metres per grid cell, a whole "
                             "number of image pixels (0: one pixel per cell); a cell is blocked "
                             "when any of its pixels is occupied or unknown",
-                       lambda v: v >= 0, ">= 0 (0: one pixel per cell)"),
+                       lambda v: v >= 0, ">= 0 (0: one pixel per cell)",
+                       option=Option("--cell-size", metavar="M", applies=(NAV2_MAP,), help=(
+                           "Nav2 map YAML: metres per grid cell, a whole number of image "
+                           "pixels (default: one pixel per cell); a cell is blocked when any of "
+                           "its pixels is occupied or unknown (as the YAML's thresholds read "
+                           "them: under Nav2's free_thresh 0.25 map_saver's unknown grey 205 "
+                           "reads as free, and up warns); with --map F.yaml only"))),
 }
 _RUN = {
     "conflict_rule": Param(DEFAULT_CONFLICT_RULE,
@@ -113,28 +107,57 @@ _RUN = {
                            "variants (coordination.pibt.COORDINATED_RULES), lacam (a kept LaCAM "
                            "plan over the robots' rankings, re-planned when something leaves it) "
                            "or revert (the paper's rules on the first choices)",
-                           choices=CONFLICT_RULES),
+                           choices=CONFLICT_RULES, option=Option("--conflict-rule", help=(
+                               "how the arbiter resolves a tick: pibt (PIBT over the robots' "
+                               "ranked actions), pibt_anchor (the same, the top-priority robot "
+                               "on its distance order), their _swap / _hindrance variants "
+                               "(docs/coordination.md), lacam (a kept LaCAM plan over the "
+                               "robots' rankings) or revert (the paper's rules on first "
+                               "choices)"))),
     "planning_budget": Param(1.0, "conflict_rule lacam: seconds of planning per re-plan; a tick "
                                   "without a plan in it takes pibt_anchor_swap's step",
-                             **_positive()),
+                             **_positive(), option=Option("--planning-budget")),
     "max_steps": Param(256, "tick limit: a one-shot run fails when robots are not all on goal "
                             "by then; continuous runs end there (0: no limit, continuous task "
                             "sources)", lambda v: v >= 0,
-                       ">= 1 (0: no limit, continuous task sources)"),
+                       ">= 1 (0: no limit, continuous task sources)",
+                       option=Option("--max-steps", help=(
+                           "tick limit (>= 1): a one-shot run fails when the robots are not all "
+                           "on goal by then; a continuous one ends there (default: 256; with "
+                           "--task-source external: none, 0, the run goes on until Ctrl-C)"))),
     "task_source": Param("instance", f"where goals come from: {' | '.join(TASK_SOURCES)} "
                                      f"(instance: the one-shot episode; lifelong: a new random "
                                      f"goal on arrival; tasks: task_file's goals / pick-up-drop-"
                                      f"off pairs for the nearest idle robot; external: only "
-                                     f"goals given at run time)", choices=TASK_SOURCES),
-    "task_file": Param("", "task list YAML for task_source tasks"),
+                                     f"goals given at run time)", choices=TASK_SOURCES,
+                         option=Option("--task-source", nargs="+", metavar="SOURCE [FILE]",
+                                       part=0, help=(
+                             "where goals come from: instance (the one-shot episode: every "
+                             "robot to its goal, then the run ends), lifelong (a new random goal "
+                             "on arrival, POGEMA's lifelong MAPF), tasks FILE (a YAML list of "
+                             "goals or pickup/dropoff pairs for the nearest idle robot), "
+                             "external (robots idle until goals come over ROS: goal_pose, "
+                             "navigate_to_pose, mapf-fleet goal); goals given at run time work "
+                             "with every source (default: instance)"))),
+    "task_file": Param("", "task list YAML for task_source tasks",
+                       option=Option("--task-source", part=1)),
     "goal_seed": Param(-1, "seed of the lifelong goal stream (-1: the instance seed)",
-                       lambda v: v >= -1, ">= -1 (-1: the instance seed)"),
+                       lambda v: v >= -1, ">= -1 (-1: the instance seed)",
+                       option=Option("--goal-seed", applies=(LIFELONG,), help=(
+                           "seed of the lifelong goal stream (default: --seed)"))),
     "decision_timeout": Param(10.0, "seconds to wait for a robot's move before it counts as "
-                                    "stay (reported)", **_positive(), runtime=True),
+                                    "stay (reported)", **_positive(), runtime=True,
+                              option=Option("--decision-timeout")),
     "startup_timeout": Param(120.0, "seconds to wait for every policy node to report ready",
-                             **_positive()),
-    "resolution": Param(1.0, "metres per cell in poses and the map", **_positive()),
-    "record_file": Param("", "write the run's trajectory and outcome to this JSON file"),
+                             **_positive(), option=Option("--startup-timeout")),
+    "resolution": Param(1.0, "metres per cell in poses and the map", **_positive(),
+                        option=Option("--resolution", applies=(Applies(
+                            lambda f: not f.nav2_map, "does not apply to a Nav2 map: its YAML "
+                            "gives the resolution (use --cell-size for metres per grid "
+                            "cell)"),))),
+    "record_file": Param("", "write the run's trajectory and outcome to this JSON file",
+                         option=Option("--record", help="write trajectory and outcome JSON "
+                                                        "here")),
     "progress_every": Param(10, "log progress every this many ticks", lambda v: v >= 1, ">= 1",
                             runtime=True),
     "state_subscribers": Param(0, "before tick 0, also wait (up to startup_timeout) until the "
@@ -149,6 +172,7 @@ _RUN = {
                                 "node of this name (`up --bag`: mapf_fleet_recorder) has a "
                                 "subscription matched to the fleet state, so the bag has every "
                                 "tick; empty: no wait"),
+    "guidance": GUIDANCE,
 }
 
 SIMULATOR = {
@@ -169,20 +193,35 @@ AGGREGATOR = {
                              **_positive()),
     "resolution": Param(1.0, "metres per cell (a Nav2 map_file sets its own)", **_positive()),
     "arrival_timeout": Param(10.0, "seconds to wait for robots to reach their waypoints",
-                             **_positive(), runtime=True),
+                             **_positive(), runtime=True,
+                             option=Option("--arrival-timeout", applies=(REAL_ROBOTS,))),
     "pose_timeout": Param(3.0, "seconds without a pose message after which a robot is reported "
                                "silent and held as an obstacle (the run ends when every robot "
                                "is)", **_positive()),
     "origin_x": Param(0.0, "x of the map's corner (cell (0, 0) starts there; a Nav2 map sets "
-                           "its own)"),
-    "origin_y": Param(0.0, "y of the map's corner"),
+                           "its own)",
+                      option=Option("--origin", nargs=2, metavar=("X", "Y"), part=0, applies=(
+                          Applies(lambda f: f.real_robots, "applies to --real-robots (the "
+                                  "simulator's map has its corner at 0, 0)"),
+                          Applies(lambda f: not f.nav2_map, "does not apply to a Nav2 map: its "
+                                  "YAML gives the origin")),
+                          help="real-robot mode: x, y (metres) of the map's corner, where cell "
+                               "(0, 0) starts (default: 0 0)")),
+    "origin_y": Param(0.0, "y of the map's corner", option=Option("--origin", part=1)),
 }
 
 POLICY = {
     "robot_id": Param(0, "index of this robot in the fleet state", lambda v: v >= 0, ">= 0"),
-    "checkpoint": Param("", "checkpoint file (mapf_fleet.models.save_checkpoint) to run"),
+    "checkpoint": Param("", "checkpoint file (mapf_fleet.models.save_checkpoint) to run",
+                        option=Option("--checkpoint", help=(
+                            "policy checkpoint (default: models/default.pt, else the first DHC "
+                            "checkpoint in models/)"))),
+    "device": Param("auto", "where the policy nodes run inference: auto (cuda when "
+                            "torch.cuda.is_available(), else cpu), cpu or cuda",
+                    choices=DEVICES, option=Option("--device")),
+    "guidance": GUIDANCE,
     "comm_timeout": Param(5.0, "seconds to wait for a peer's message before leaving it out "
-                               "(reported)", **_positive()),
+                               "(reported)", **_positive(), option=Option("--comm-timeout")),
     "service_timeout": Param(2.0, "seconds to wait for a peer's DCC service to be discovered",
                              **_positive()),
     "status_period": Param(0.5, "seconds between readiness heartbeats", **_positive()),
@@ -198,7 +237,14 @@ POLICY = {
                          "records for the conflict rule (metadata rankings, e.g. a DAgger "
                          "round's), else the rule's default ("
                      + ", ".join(f"{m} under {r}" for r, m in DEFAULT_RANKING_BY_RULE.items())
-                     + f", {default_ranking('revert')} otherwise)", choices=("",) + RANKINGS),
+                     + f", {default_ranking('revert')} otherwise)", choices=("",) + RANKINGS,
+                     option=Option("--ranking", help=(
+                         "how policy nodes rank their actions from Q-values (default: the "
+                         "policy nodes' ranking if a params file sets it, else the ranking the "
+                         "checkpoint records for the conflict rule (metadata rankings, e.g. a "
+                         "DAgger round's), else the rule's, coordination.ranking."
+                         "default_ranking: confidence under pibt_anchor, q under pibt and "
+                         "revert)"))),
 }
 
 # deprecated parameter names still read (a warning each): old name -> name
@@ -307,76 +353,6 @@ def key_applies(key: str, node_name: str, namespace: str = "") -> bool:
     if "**" in tokens[:-1] or name == "**":
         return True
     return "/".join(before) == namespace.strip("/")
-
-
-def parse_rule(text: str) -> tuple[str, str, object]:
-    """`-p [node:]name:=value` -> (node, name, value as YAML); ValueError when malformed."""
-    if ":=" not in text:
-        raise ValueError(f"-p {text}: expected name:=value")
-    target, raw = text.split(":=", 1)
-    node, _, name = target.rpartition(":")
-    try:
-        value = yaml.safe_load(raw) if raw else ""
-    except yaml.YAMLError:
-        value = raw
-    return node, name, value
-
-
-# ROS arguments `up` passes on unchanged (after --ros-args), with how many values each takes
-PASSED_ROS_ARGS = {"--log-level": 1, "--log-config-file": 1, "--enclave": 1, "-e": 1,
-                   "--disable-rosout-logs": 0, "--enable-rosout-logs": 0,
-                   "--disable-stdout-logs": 0, "--enable-stdout-logs": 0,
-                   "--disable-external-lib-logs": 0, "--enable-external-lib-logs": 0,
-                   "--log-file-name": 1}
-
-
-@dataclass
-class RosArgs:
-    """The user's `--ros-args ...` as `up` reads them: the parameter sources in order
-    (("file", path) / ("rule", node, name, value, text)), the namespace remapping and the
-    arguments passed on as they are."""
-    sources: list
-    namespace: str
-    passed: list
-
-
-def read_ros_args(ros_args: list[str], is_up_option=lambda a: False) -> RosArgs:
-    """ValueError with one line for an argument `up` does not know (an `up` option put after
-    --ros-args, a typo)."""
-    sources, namespace, passed = [], "", []
-    args = [a for a in ros_args if a != "--ros-args"]
-    i = 0
-    while i < len(args):
-        arg = args[i]
-        value = args[i + 1] if i + 1 < len(args) else None
-        if arg == "--":
-            i += 1
-            continue
-        if arg in ("-p", "--param", "--params-file", "-r", "--remap") and value is None:
-            raise ValueError(f"--ros-args {arg}: needs a value")
-        if arg in ("-p", "--param"):
-            node, name, parsed = parse_rule(value)
-            sources.append(("rule", node, name, parsed, value))
-        elif arg == "--params-file":
-            sources.append(("file", value))
-        elif arg in ("-r", "--remap"):
-            if value.startswith("__ns:="):
-                namespace = value.split(":=", 1)[1]
-            elif value.startswith("__node:=") or value.startswith("__name:="):
-                raise ValueError(f"--ros-args {arg} {value}: the fleet's node names are fixed "
-                                 f"(mapf_simulator, mapf_policy_<i>, ...)")
-            else:
-                passed += [arg, value]
-        elif arg in PASSED_ROS_ARGS:
-            passed += args[i:i + 1 + PASSED_ROS_ARGS[arg]]
-            i += PASSED_ROS_ARGS[arg]
-        elif is_up_option(arg):
-            raise ValueError(f"{arg} is an option of `mapf-fleet up`: put it before --ros-args "
-                             f"(everything after --ros-args goes to the ROS nodes)")
-        else:
-            raise ValueError(f"--ros-args: unknown ROS argument {arg!r}")
-        i += 1 + (arg in ("-p", "--param", "--params-file", "-r", "--remap"))
-    return RosArgs(sources, namespace, passed)
 
 
 def _known_anywhere(name: str, tables) -> bool:

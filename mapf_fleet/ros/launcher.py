@@ -43,8 +43,8 @@ def default_checkpoint() -> str:
 
 
 def prepare(argv: list[str]):
-    """(args, plan, instance source) of `up` with every value checked, nothing started;
-    UpError (one line) for anything refused."""
+    """(args, plan (`up_options.Plan`, immutable), robot count) of `up` with every value
+    checked, nothing started; UpError (one line) for anything refused."""
     own, ros_argv = common.split_ros_args(argv)
     args = build_parser().parse_args(own)
     plan = plan_parameters(args, ros_argv)
@@ -112,7 +112,7 @@ def prepare(argv: list[str]):
     if args.bag and Path(args.bag).exists():
         raise UpError(f"--bag {args.bag} exists already: a rosbag2 is written into a new "
                       f"directory")
-    plan_policy_parameters(plan, args, ros_argv, num_robots, checkpoint)
+    plan = plan_policy_parameters(plan, args, ros_argv, num_robots, checkpoint)  # frozen
     return args, plan, num_robots
 
 
@@ -165,10 +165,10 @@ def main(argv: list[str] | None = None) -> int:
             print(f"mapf-fleet up: --log-dir {args.log_dir}: {exc.strerror or exc}",
                   file=sys.stderr)
             return 2
-    if not plan.sim["record_file"]:
-        plan.sim["record_file"] = os.path.join(work, "run.json")
+    plan = plan.with_run_files(
+        record_file=None if plan.sim["record_file"] else os.path.join(work, "run.json"),
+        params_path=os.path.join(work, "parameters.yaml"))
     record = plan.sim["record_file"]
-    plan.params_path = os.path.join(work, "parameters.yaml")
     P.write_params_file(plan.params_path, plan.values, plan.namespace)
     started = time.monotonic()
     result = 1
