@@ -24,6 +24,7 @@ docs/where_to_change.md names files and `module.symbol`s; each file and symbol e
 
 from __future__ import annotations
 
+import ast
 import json
 import re
 import shlex
@@ -315,6 +316,75 @@ def test_every_link_resolves():
     missing = [f"{where}: {target}" for where, base, target in LINKS
                if not PLACEHOLDER.search(target) and not path_exists(target, base)]
     assert not missing, "links to files that do not exist:\n" + "\n".join(missing)
+
+
+WHERE_TO_CHANGE = REPO / "docs" / "where_to_change.md"
+SYMBOL = re.compile(r"(?:mapf_fleet|test)(?:\.\w+)+")
+
+
+def symbol_problem(dotted: str) -> str:
+    """Why `dotted` (`mapf_fleet.fleet.run.FleetRun.step`, `test.test_layering.LEVELS`) names
+    nothing ("" when it names something): its longest prefix that is a module file or package,
+    then each further name a definition, assignment or import of the one before, read with `ast`
+    (nothing imported: other layers may need rclpy or torch)."""
+    parts = dotted.split(".")
+    for cut in range(len(parts), 0, -1):
+        base = REPO.joinpath(*parts[:cut])
+        for module in (base.with_suffix(".py"), base / "__init__.py"):
+            if module.is_file():
+                return _attribute_problem(module, parts[cut:], dotted)
+    return f"{dotted}: no module {parts[0]}"
+
+
+def _defined_in(body, name: str):
+    for node in body:
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)) and node.name == name:
+            return node
+        targets = (node.targets if isinstance(node, ast.Assign)
+                   else [node.target] if isinstance(node, ast.AnnAssign) else [])
+        if any(isinstance(t, ast.Name) and t.id == name for t in targets):
+            return node
+        if isinstance(node, (ast.Import, ast.ImportFrom)) and any(
+                (alias.asname or alias.name.split(".")[0]) == name for alias in node.names):
+            return node
+    return None
+
+
+def _attribute_problem(module: Path, names: list[str], dotted: str) -> str:
+    body = ast.parse(module.read_text()).body
+    for depth, name in enumerate(names):
+        found = _defined_in(body, name)
+        if found is None:
+            return f"{dotted}: {module.relative_to(REPO)} has no {'.'.join(names[:depth + 1])}"
+        if depth < len(names) - 1:
+            if not isinstance(found, ast.ClassDef):
+                return f"{dotted}: {'.'.join(names[:depth + 1])} is not a class"
+            body = found.body
+    return ""
+
+
+def test_where_to_change_names_exist():
+    """docs/where_to_change.md cannot rot: every `mapf_fleet.…` / `test.…` name it gives is defined
+    where it says, and every path it names exists."""
+    shell, spans, _ = doc_parts(WHERE_TO_CHANGE)
+    symbols = sorted({m for _, span in spans for m in SYMBOL.findall(span) if m == span.strip()})
+    paths = [p for where, p in PATHS if where.startswith("docs/where_to_change.md:")]
+    assert len(symbols) >= 30 and len(paths) >= 10, (symbols, paths)  # the scan finds them
+    problems = [problem for problem in map(symbol_problem, symbols) if problem]
+    problems += [f"no such path: {p}" for p in paths if not path_exists(p, REPO)]
+    assert not problems, ("docs/where_to_change.md names what does not exist (update the page "
+                          "to where it moved):\n" + "\n".join(problems))
+
+
+def test_symbol_problem_catches_a_missing_name():
+    assert symbol_problem("mapf_fleet.fleet.run.FleetRun") == ""
+    assert symbol_problem("test.test_layering.LEVELS") == ""
+    assert symbol_problem("mapf_fleet.cli.COMMANDS") == ""
+    assert "has no" in symbol_problem("mapf_fleet.fleet.run.FleetRun.no_such_method")
+    assert "has no" in symbol_problem("mapf_fleet.fleet.run.NoSuchClass")
+    assert "no module" in symbol_problem("nowhere.x")
+    assert symbol_problem("mapf_fleet.no_such_module.thing") != ""
+    assert "not a class" in symbol_problem("mapf_fleet.cli.main.x")
 
 
 def test_every_link_anchor_resolves():
