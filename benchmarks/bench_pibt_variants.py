@@ -1,4 +1,4 @@
-"""Per-step cost of each PIBT conflict rule (`coordination.pibt.COORDINATED_RULES`: plain, anchor,
+"""Per-step cost of each PIBT conflict rule (`coordination.rules.COORDINATED_RULES`: plain, anchor,
 swap, hindrance and their combinations) at a few fleet sizes.
 
 For each fleet size N (default 64 and 256) one crowded instance (the published 40x40 DHC test set
@@ -26,7 +26,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from mapf_fleet.coordination.pibt import COORDINATED_RULES, make_shield  # noqa: E402
+from mapf_fleet.coordination.factory import make_shield  # noqa: E402
+from mapf_fleet.coordination.rules import COORDINATED_RULES  # noqa: E402
 from mapf_fleet.coordination.ranking import tie_breakers  # noqa: E402
 from mapf_fleet.grid.instance import generate_instance, load_dhc_testset  # noqa: E402
 

@@ -114,8 +114,8 @@ def rankings_ab(policies, agents, count, tick_budget) -> list[dict]:
 
 
 def expert_as_policy(rules, agents, count, tick_budget) -> list[dict]:
-    from mapf_fleet.coordination.pibt import make_shield
-    from mapf_fleet.coordination.plan import CommittedExpert
+    from mapf_fleet.coordination.factory import make_shield
+    from mapf_fleet.training.dagger.expert import CommittedExpert
     from mapf_fleet.evaluation.cli import dense_scenarios
 
     rows = []

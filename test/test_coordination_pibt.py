@@ -7,7 +7,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapf_fleet.coordination.pibt import PIBTShield, validate_rankings
+from mapf_fleet.coordination.pibt import PIBTShield
+from mapf_fleet.coordination.ranking import validate_rankings
 from mapf_fleet.coordination.ranking import distance_classes, rank_actions
 from mapf_fleet.grid.actions import ACTION_DELTAS, DOWN, LEFT, RIGHT, STAY, UP
 from mapf_fleet.grid.env import MAPFEnv, resolve_moves

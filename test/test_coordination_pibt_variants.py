@@ -9,10 +9,18 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapf_fleet.coordination.pibt import (ANCHOR_PATIENCE, CONFLICT_RULES, COORDINATED_RULES,
-                                          PIBT_RULES,
-                                          RULE_OPTIONS, PIBTShield, make_shield, rule_name,
-                                          rule_options)
+from mapf_fleet.coordination.factory import make_shield
+from mapf_fleet.coordination.pibt import PIBTShield
+from mapf_fleet.coordination.rules import (ANCHOR_PATIENCE, CONFLICT_RULES, COORDINATED_RULES,
+                                           PIBT_RULES, RULE_OPTIONS, Rule)
+
+
+def rule_options(rule):
+    return Rule.parse(rule).pibt_options()
+
+
+def rule_name(**options):
+    return Rule.pibt(**options).name
 from mapf_fleet.coordination.ranking import (DEFAULT_RANKING_BY_RULE, Q_RANKINGS,
                                              default_ranking)
 from mapf_fleet.grid.actions import ACTION_DELTAS
@@ -66,7 +74,7 @@ def test_rule_names_list_every_option_set_in_suffix_order():
                                              "hindrance": False, "patient": True}
     for bad in ("pibt_swap_anchor", "pibt_hindrance_swap", "pibt_", "swap", "lacam_swap",
                 "pibt_anchor_patient", "pibt_swap_patient"):
-        with pytest.raises(ValueError, match=f"PIBT rule .*got '{bad}'"):
+        with pytest.raises(ValueError, match=f"conflict rule must be one of .*got '{bad}'"):
             rule_options(bad)
 
 

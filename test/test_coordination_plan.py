@@ -10,8 +10,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mapf_fleet.coordination.lacam import check_plan
-from mapf_fleet.coordination.pibt import PIBTShield, make_shield
-from mapf_fleet.coordination.plan import CommittedExpert, PlanKeeper, distance_rankings
+from mapf_fleet.coordination.factory import make_shield
+from mapf_fleet.coordination.pibt import PIBTShield
+from mapf_fleet.coordination.plan import PlanKeeper, distance_rankings
+from mapf_fleet.training.dagger.expert import CommittedExpert
 from mapf_fleet.fleet.arbiter import TickArbiter, plan_robot_commands, unsafe_commands
 from mapf_fleet.grid.instance import generate_instance
 

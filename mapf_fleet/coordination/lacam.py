@@ -18,8 +18,10 @@ What is ours:
   may command.
 - A known configuration found again is pushed back onto the stack (lacam2's re-insertion)
   instead of being dropped: it leaves dead ends sooner.
-- Distances come from the project's vectorised BFS (`grid.heuristic.bfs_distances_many`), cached
-  per goal cell; the search runs on flat cell ids and Python lists (no per-step numpy calls).
+- Distances come from the map's shared `grid.heuristic.DistanceTable` (BFS steps, or least path
+  costs under a guidance graph: then deeper candidates are ordered by step cost plus distance);
+  the search runs on flat cell ids and Python sequences (no per-step numpy calls).
+- One PIBT push (`push.Push`) serves this generator and the shield's tick.
 - Budget: wall-clock seconds and a node count; the same inputs and seed give the same plan.
 
 The plans are valid by construction (one move or a wait per agent per step, no two agents in a
@@ -36,12 +38,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-# (importing pibt also raises the recursion limit: a push chain recurses once per agent)
-from .pibt import move_targets, validate_rankings
-from .swap import swap_partner
+from mapf_fleet.grid.heuristic import distance_table
 
-# distance maps kept per planner (one per goal cell)
-MAX_DISTANCE_MAPS = 4096
+from .push import Push
+from .ranking import validate_rankings
+from .swap import swap_partner
 
 
 @dataclass(frozen=True)
@@ -85,9 +86,10 @@ class LaCAM:
     a seed). swap: the successor generator is lacam3's PIBT with swap (`swap.swap_partner`):
     two agents meeting head-on in a corridor back out to a branch and pass there, where plain
     PIBT's successors only push the one in front ahead (lacam3 measured it the largest single
-    gain on dense instances; docs/results.md, "The expert ceiling")."""
+    gain on dense instances; docs/results.md, "The expert ceiling"). guidance: a
+    `grid.guidance.Guidance` for the map (None: BFS steps)."""
 
-    def __init__(self, grid, seed: int = 0, swap: bool = False):
+    def __init__(self, grid, seed: int = 0, swap: bool = False, guidance=None):
         grid = np.asarray(grid)
         if grid.ndim != 2:
             raise ValueError(f"grid must be 2-D, got shape {grid.shape}")
@@ -95,28 +97,25 @@ class LaCAM:
         self.height, self.width = self.grid.shape
         self.seed = int(seed)
         self.swap = bool(swap)
-        # _targets[cell, action]: the flat cell an action leads to, -1 off the map / obstacle
-        self._targets = move_targets(self.grid)
+        self.table = distance_table(self.grid, guidance)
+        # _targets[cell, action]: the flat cell an action leads to, -1 off the map, into an
+        # obstacle or against a one-way lane
+        self._targets = self.table.move_targets()
         # per cell: its free neighbours then itself (the candidates deeper in the search)
         self._moves = [[c for c in row[1:] if c >= 0] + [int(row[0])]
                        for row in self._targets.tolist()]
         self._neighbors = [m[:-1] for m in self._moves]
-        self._distances: dict[int, list] = {}
+        self._step_costs = (None if self.table.step_costs is None
+                            else self.table.step_costs.tolist())
+        self._target_lists = self._targets.tolist()
         self._regions = None  # free-region labels, computed when first needed
 
     # ------------------------------------------------------------------------------------------
-    def distances(self, goals_flat: list[int]) -> list[list]:
-        """Per agent the BFS distance list (flat cells) to its goal (-1: unreachable)."""
-        missing = [g for g in dict.fromkeys(goals_flat) if g not in self._distances]
-        if missing:
-            from mapf_fleet.grid.heuristic import bfs_distances_many
-
-            cells = np.stack(np.divmod(np.asarray(missing), self.width), axis=1)
-            for goal, dist in zip(missing, bfs_distances_many(self.grid, cells)):
-                self._distances[goal] = dist.ravel().tolist()
-            while len(self._distances) > MAX_DISTANCE_MAPS:
-                del self._distances[next(iter(self._distances))]
-        return [self._distances[g] for g in goals_flat]
+    def distances(self, goals_flat: list[int]) -> list:
+        """Per agent the distance row (`DistanceTable.row`, flat cells) to its goal; unreachable
+        cells hold `self.table.unreachable`."""
+        row = self.table.row
+        return [row(g) for g in goals_flat]
 
     def _flat(self, cells, name: str) -> list[int]:
         cells = np.asarray(cells, dtype=np.int64)
@@ -209,7 +208,8 @@ class LaCAM:
         if len(set(goal)) != n:
             raise ValueError("goals: two agents share a goal cell")
         dist = self.distances(goal)
-        unreachable = [i for i in range(n) if dist[i][start[i]] < 0]
+        far = self.table.unreachable
+        unreachable = [i for i in range(n) if dist[i][start[i]] >= far]
         if unreachable:
             return LaCAMResult(None, 0, time.perf_counter() - began,
                                f"agents {unreachable[:8]} cannot reach their goals")
@@ -313,18 +313,26 @@ class LaCAM:
             nxt[i] = cell
             occ_next[cell] = i
         moves = self._moves
-        journal: list[int] = []
-
         rand = rng.random
+        costs = self._step_costs
+        targets = self._target_lists
 
         def candidates(i: int) -> list[int]:
             if root_candidates is not None:
                 return root_candidates[i]
+            here = now[i]
+            d = dist[i]
+            if costs is not None:
+                # guided: step cost plus the distance from where it leads (stay: the wait
+                # cost), ties in a random order drawn afresh each call
+                step = costs[here]
+                keyed = [(d[c] + step[a], rand(), c)
+                         for a, c in enumerate(targets[here]) if c >= 0]
+                keyed.sort()
+                return [c for _, _, c in keyed]
             # distance first, ties in a random order drawn afresh each call (PIBT's tie-breaks;
             # drawing it once per search solved fewer dense instances). On a 4-connected grid a
             # neighbour is one step closer or one step farther: no sort needed.
-            here = now[i]
-            d = dist[i]
             dh = d[here]
             closer, away = [], []
             for c in moves[here]:
@@ -337,53 +345,14 @@ class LaCAM:
             closer.append(here)
             return closer + away
 
-        def rollback(mark: int) -> None:
-            while len(journal) > mark:
-                i = journal.pop()
-                cell = nxt[i]
-                nxt[i] = -1
-                if occ_next.get(cell) == i:
-                    del occ_next[cell]
-
-        swap = self.swap
-        neighbors = self._neighbors
-
-        def funnel(i: int, caller: int) -> bool:
-            here = now[i]
-            ranked = candidates(i)
-            partner = -1
-            if swap and ranked:
-                partner = swap_partner(i, ranked[0], here, occ_now, nxt, neighbors, goal,
-                                       dist.__getitem__)
-                if partner >= 0:
-                    ranked = ranked[::-1]  # back away, pulling the partner behind
-            for k, cell in enumerate(ranked):
-                if cell in occ_next:
-                    continue
-                if caller >= 0 and cell == now[caller]:
-                    continue  # the caller's cell: a swap with it
-                other = occ_now.get(cell, -1)
-                if other >= 0 and other != i and nxt[other] == here:
-                    continue  # the occupant already moves into our cell: a swap
-                mark = len(journal)
-                occ_next[cell] = i
-                nxt[i] = cell
-                journal.append(i)
-                if other >= 0 and other != i and nxt[other] < 0:
-                    if not funnel(other, i):
-                        rollback(mark)
-                        continue
-                if (k == 0 and partner >= 0 and nxt[partner] < 0 and cell != here
-                        and here not in occ_next):
-                    # the pull: the partner takes the cell we leave (as the shield's swap)
-                    occ_next[here] = partner
-                    nxt[partner] = here
-                    journal.append(partner)
-                return True
-            return False
-
+        partner_of = None
+        if self.swap:
+            def partner_of(i: int, target: int) -> int:
+                return swap_partner(i, target, now[i], occ_now, nxt, self._neighbors, goal,
+                                    dist.__getitem__)
+        push = Push(now, occ_now, occ_next, nxt, candidates, partner_of)
         for i in node.order:
-            if nxt[i] < 0 and not funnel(i, -1):
+            if nxt[i] < 0 and not push.funnel(i, -1):
                 return None  # even staying is taken (by a constraint): no successor
         return tuple(nxt)
 

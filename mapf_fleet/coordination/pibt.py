@@ -75,8 +75,14 @@ it is and is never pushed nor pulled; reserved cells stay free. (A pull only mov
 agent into the cell the puller leaves, a cell no one else has taken, and the puller never moves
 into the pulled agent's cell in the same tick.)
 
-Rule names (`PIBT_RULES`, parsed by `rule_options`): `pibt[_anchor][_swap][_hindrance]`, the
-options in that order.
+Rule names: `pibt[_anchor|_patient][_swap][_hindrance]`, parsed once by `rules.Rule.parse`;
+`Rule.pibt_options()` gives this class's keyword options.
+
+Distances: every distance this rule reads (the anchor's order, swap's corridor walk, hindrance,
+the patient anchor's clock) comes from the map's shared `grid.heuristic.DistanceTable`: BFS steps,
+or least path costs under a guidance graph (`guidance`). Under guidance the anchored order ranks
+a move by its step cost plus the distance from the cell it leads to (Guided PIBT's order; with
+unit costs exactly the distance order).
 
 numpy only (no torch, no rclpy): the evaluator, the trainer's actors, the simulator and the
 real-robot aggregator all call this one implementation.
@@ -85,83 +91,18 @@ real-robot aggregator all call this one implementation.
 from __future__ import annotations
 
 import sys
-from array import array
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from mapf_fleet.grid.actions import ACTION_DELTAS, NUM_ACTIONS
+from mapf_fleet.grid.heuristic import distance_table
 
-from .ranking import tie_breakers
+from .push import Push
+from .ranking import tie_breakers, validate_rankings
+from .rules import ANCHOR_PATIENCE
 from .swap import swap_partner
-
-# The options a rule name may add to "pibt", in the order they appear in it
-RULE_OPTIONS = ("anchor", "swap", "hindrance")
-# The conflict rules (`conflict_rule` in the trainer's and DAgger's configs, the evaluator's
-# `--conflict-rule`, the fleet's parameter): `revert` is the paper's environment (conflicting
-# moves are reverted, no coordination layer); the others are the coordination layer's
-# (`COORDINATED_RULES`), `make_shield` builds the one named: every subset of the PIBT options,
-# the original two rules first (`PIBT_RULES`), and `lacam`, the planning arbiter
-# (`coordination.plan.PlanKeeper`: a kept LaCAM plan, the anchored step as its fallback).
-PIBT_RULES = ("pibt", "pibt_anchor", "pibt_swap", "pibt_anchor_swap", "pibt_hindrance",
-              "pibt_anchor_hindrance", "pibt_swap_hindrance", "pibt_anchor_swap_hindrance",
-              "pibt_patient", "pibt_patient_swap", "pibt_patient_hindrance",
-              "pibt_patient_swap_hindrance")
-# `patient` in a rule's name (in the anchor's place): the anchor waits until the top agent has
-# gone this many ticks without getting closer to its goal than before (PIBTShield's
-# `anchor_patience`): a plan or a policy may keep it waiting that long, and it still reaches its
-# goal within (patience + 1) x its distance ticks (docs/coordination.md; chosen by the expert
-# ceiling, docs/results.md)
-ANCHOR_PATIENCE = 32
-COORDINATED_RULES = (*PIBT_RULES, "lacam")
-# the planning arbiter's LaCAM and fallback (`PlanKeeper`): successors by PIBT with swap, as the
-# fleet's rule (lacam3's; from the starts it solves dense 21x21 maps with 48 agents 20 of 20 in
-# 0.3 s where plain PIBT successors solve 15 in 121 s), and the shortest of 8 searches' plans
-# within the one budget where the first is over 1.5 times as long as the longest agent's
-# distance (a first-found plan can miss the step limit where another seed's fits), and not once
-# the goals stream in (there restarts cost several times the tick time for nothing;
-# docs/results.md)
-LACAM_OPTIONS = {"swap": True, "restarts": 8, "shared_budget": True, "restart_ratio": 1.5,
-                 "streamed_restarts": False, "fallback_rule": "pibt_anchor_swap"}
-REVERT = "revert"
-CONFLICT_RULES = (*COORDINATED_RULES, REVERT)
-
-
-def move_targets(blocked: np.ndarray) -> np.ndarray:
-    """(H*W, 5) int64: the flat cell each action leads to from each flat cell of the (H, W)
-    bool map `blocked` (True = obstacle), -1 where it leaves the map or enters an obstacle."""
-    h, w = blocked.shape
-    rows, cols = np.divmod(np.arange(h * w), w)
-    tr = rows[:, None] + ACTION_DELTAS[:, 0]
-    tc = cols[:, None] + ACTION_DELTAS[:, 1]
-    inside = (tr >= 0) & (tr < h) & (tc >= 0) & (tc < w)
-    flat = np.where(inside, tr * w + tc, 0)
-    return np.where(inside & ~blocked.ravel()[flat], flat, -1)
-
-
-def rule_options(rule: str) -> dict[str, bool]:
-    """{"anchor", "swap", "hindrance", "patient": bool} of a PIBT rule
-    `pibt[_anchor|_patient][_swap][_hindrance]` (one of PIBT_RULES; `patient` is an anchor
-    with `ANCHOR_PATIENCE`); ValueError naming the rule otherwise."""
-    if rule not in PIBT_RULES:
-        raise ValueError(f"PIBT rule must be one of {PIBT_RULES}, got {rule!r}")
-    parts = rule.split("_")[1:]
-    options = {option: option in parts for option in RULE_OPTIONS}
-    options["patient"] = "patient" in parts
-    options["anchor"] |= options["patient"]
-    return options
-
-
-def rule_name(anchor: bool = False, swap: bool = False, hindrance: bool = False,
-              patient: bool = False) -> str:
-    """The PIBT rule with these options (the inverse of `rule_options`)."""
-    flags = {"anchor": anchor and not patient, "swap": swap, "hindrance": hindrance}
-    names = [o for o in RULE_OPTIONS if flags[o]]
-    return "_".join(["pibt", *(["patient"] if patient else []), *names])
-
-# Distance maps kept per shield (one per goal cell; 6.4 kB each at 40x40, 26 kB at 80x80)
-MAX_DISTANCE_MAPS = 4096
 
 # One recursion level per agent of a push chain; a chain can hold every agent.
 _MIN_RECURSION = 10_000
@@ -179,23 +120,6 @@ class ShieldStep:
     overridden: np.ndarray
 
 
-def validate_rankings(rankings, num_agents: int) -> np.ndarray:
-    """(N, 5) int64 where each row is a ranking (permutation) of the actions 0..4."""
-    prefs = np.asarray(rankings)
-    if prefs.shape != (num_agents, NUM_ACTIONS):
-        raise ValueError(f"rankings must have shape ({num_agents}, {NUM_ACTIONS}), "
-                         f"got {prefs.shape}")
-    if prefs.size and not np.issubdtype(prefs.dtype, np.integer):
-        raise ValueError(f"rankings must be integer actions, got dtype {prefs.dtype}")
-    prefs = prefs.astype(np.int64, copy=False)
-    bad = (np.sort(prefs, axis=1) != np.arange(NUM_ACTIONS)).any(axis=1)
-    if bad.any():
-        i = int(np.flatnonzero(bad)[0])
-        raise ValueError(f"agent {i}: ranking {prefs[i].tolist()} is not a ranking of the "
-                         f"actions 0..{NUM_ACTIONS - 1}")
-    return prefs
-
-
 class PIBTShield:
     """PIBT for one fleet on one map. `step` resolves one tick and advances the priorities.
 
@@ -204,12 +128,14 @@ class PIBTShield:
     corridors; hindrance: equally short moves ordered by the neighbours they block (module
     docstring). patient: an anchor that waits `ANCHOR_PATIENCE` ticks; anchor_patience: the
     ticks the top agent may go without getting closer to its goal before the anchor ranks it
-    (default 0, every tick; `ANCHOR_PATIENCE` when patient).
+    (default 0, every tick; `ANCHOR_PATIENCE` when patient). guidance: a
+    `grid.guidance.Guidance` for the map (None: BFS steps); every distance comes from the map's
+    shared `DistanceTable` under it (`self.distances`).
     """
 
     def __init__(self, grid, goals, anchor: bool = False, swap: bool = False,
                  hindrance: bool = False, patient: bool = False,
-                 anchor_patience: int | None = None):
+                 anchor_patience: int | None = None, guidance=None):
         grid = np.asarray(grid)
         if grid.ndim != 2:
             raise ValueError(f"grid must be 2-D, got shape {grid.shape}")
@@ -223,7 +149,13 @@ class PIBTShield:
         self.num_agents = len(goals)
         self._blocked = self.grid.ravel().tolist()
         w = self.width
-        self._targets = move_targets(self.grid)
+        # distances per goal CELL (not per agent), shared with every rule, planner and
+        # observation on this map: a fleet that hands out new goals at run time reuses a cell's
+        # distances whichever agent heads there
+        self.distances = distance_table(self.grid, guidance)
+        self._step_costs = self.distances.step_costs  # None unguided
+        # the flat cell each action leads to; -1 off the map, into an obstacle, against a lane
+        self._targets = self.distances.move_targets()
         # executed action from the flat displacement (next - current + w)
         self._action_of_delta = np.zeros(2 * w + 1, dtype=np.int64)
         for a in range(1, NUM_ACTIONS):
@@ -239,23 +171,18 @@ class PIBTShield:
         self.anchor_patience = int(anchor_patience)
         # per agent: its least distance to its goal so far and the ticks since it got there
         # (the patient anchor's clock; a new goal starts it afresh)
-        self.best_distance = np.full(self.num_agents, np.iinfo(np.int64).max, dtype=np.int64)
+        self.best_distance = np.full(self.num_agents, np.inf)
         self.stalled = np.zeros(self.num_agents, dtype=np.int64)
         self.swap = bool(swap)
         self.hindrance = bool(hindrance)
         # valid neighbour cells per flat cell (swap walks corridors, hindrance reads neighbours)
         self._neighbors = [[c for c in row if c >= 0] for row in self._targets[:, 1:].tolist()]
         self.tick = 0  # steps since reset: the anchor's tie-breakers
-        # BFS distances per goal CELL (not per agent): a fleet that hands out new goals at run
-        # time (lifelong streams, tasks) reuses a cell's map whichever agent heads there
-        self._distance_maps: dict[tuple[int, int], np.ndarray] = {}
-        self._distance_lists: dict[tuple[int, int], Sequence[int]] = {}
-
     def reset(self) -> None:
         """Start a new episode: every priority back to its tie-breaker."""
         self.priorities = self.base_priority.copy()
         self.tick = 0
-        self.best_distance[:] = np.iinfo(np.int64).max
+        self.best_distance[:] = np.inf
         self.stalled[:] = 0
 
     def snapshot(self) -> dict:
@@ -268,7 +195,7 @@ class PIBTShield:
     def restore(self, state: dict) -> None:
         self.priorities = np.asarray(state["priorities"], dtype=np.float64).copy()
         self.tick = int(state["tick"])
-        self.best_distance = np.asarray(state["best_distance"], dtype=np.int64).copy()
+        self.best_distance = np.asarray(state["best_distance"], dtype=np.float64).copy()
         self.stalled = np.asarray(state["stalled"], dtype=np.int64).copy()
 
     def anchored_agent(self, fixed=None) -> int:
@@ -299,55 +226,36 @@ class PIBTShield:
             self.goals = goals.copy()
             self._goal_flat = (self.goals[:, 0] * self.width + self.goals[:, 1]).tolist()
             self.priorities = np.where(changed, self.base_priority, self.priorities)
-            self.best_distance[changed] = np.iinfo(np.int64).max
+            self.best_distance[changed] = np.inf
             self.stalled[changed] = 0
         return changed
 
     def distance_map(self, agent: int) -> np.ndarray:
-        """(H * W,) BFS distances to `agent`'s goal (-1 where unreachable), computed once per
-        goal cell."""
-        goal = (int(self.goals[agent, 0]), int(self.goals[agent, 1]))
-        found = self._distance_maps.get(goal)
-        if found is None:
-            # scipy's graph search, imported here: the plain shield (and `up`'s launcher, which
-            # reads COORDINATED_RULES) never needs it
-            from mapf_fleet.grid.heuristic import bfs_distances
+        """(H * W,) read-only distances to `agent`'s goal (-1 where unreachable): BFS steps, or
+        guided costs (`DistanceTable.array`)."""
+        return self.distances.array(self._goal_flat[agent])
 
-            found = self._distance_maps[goal] = bfs_distances(self.grid, goal).ravel()
-            if len(self._distance_maps) > MAX_DISTANCE_MAPS:  # a long lifelong run: oldest out
-                del self._distance_maps[next(iter(self._distance_maps))]
-        return found
-
-    def _distance_list(self, agent: int) -> Sequence[int]:
-        """`distance_map(agent)` as a flat int32 array.array (indexed cell by cell by the
-        search loops: Python ints, no numpy scalars; 4 bytes a cell where a list costs 36 on
-        large maps), unreachable cells at a distance above any path."""
-        goal = (int(self.goals[agent, 0]), int(self.goals[agent, 1]))
-        found = self._distance_lists.get(goal)
-        if found is None:
-            dist = self._distance_maps.get(goal)
-            if dist is None:  # only the anchor's ranking keeps the array: half the memory
-                from mapf_fleet.grid.heuristic import bfs_distances
-
-                dist = bfs_distances(self.grid, goal).ravel()
-            found = array("i", np.where(dist >= 0, dist, dist.size + 1).astype(np.int32).tobytes())
-            self._distance_lists[goal] = found
-            if len(self._distance_lists) > MAX_DISTANCE_MAPS:
-                del self._distance_lists[next(iter(self._distance_lists))]
-        return found
+    def _distance_list(self, agent: int) -> Sequence:
+        """`distance_map(agent)` as the table's flat `array.array` (`DistanceTable.row`),
+        unreachable cells above any path."""
+        return self.distances.row(self._goal_flat[agent])
 
     def anchored_ranking(self, agent: int, cell: int) -> np.ndarray:
         """`agent`'s five actions at flat `cell` by distance to its goal (closer first, blocked
-        moves last), equal distances by this tick's hash: plain PIBT's ranking."""
-        dist = self.distance_map(agent)
-        targets = self._targets[cell]
-        reach = np.where(targets >= 0, dist[np.maximum(targets, 0)], -1)
-        key = np.where(reach >= 0, reach, np.iinfo(np.int64).max)
+        moves last), equal distances by this tick's hash: plain PIBT's ranking. Under guidance
+        an action's key is its step cost plus the distance from where it leads."""
+        dist = self._distance_list(agent)
+        targets = self._targets[cell].tolist()
+        unreachable = self.distances.unreachable
+        key = [dist[t] if t >= 0 and dist[t] < unreachable else -1 for t in targets]  # EQUIV-OLD
+        if self._step_costs is not None:
+            costs = self._step_costs[cell].tolist()
+            key = [k + c for k, c in zip(key, costs)]
         ties = tie_breakers(np.array([agent]), self.tick)[0]
-        return np.lexsort((ties, key)).astype(np.int64)
+        return np.lexsort((ties, np.asarray(key))).astype(np.int64)
 
     # ------------------------------------------------------------------------------------------
-    def _check_positions(self, positions) -> np.ndarray:
+    def check_positions(self, positions) -> np.ndarray:
         positions = np.asarray(positions)
         if positions.shape != (self.num_agents, 2):
             raise ValueError(f"positions must have shape ({self.num_agents}, 2), "
@@ -382,7 +290,7 @@ class PIBTShield:
         reserved: cells (row, col) no agent may enter (a moving robot's second cell); an agent
             standing on a reserved cell is held there like a fixed one.
         """
-        positions = self._check_positions(positions)
+        positions = self.check_positions(positions)
         n = self.num_agents
         prefs = validate_rankings(rankings, n)
         fixed = np.zeros(n, dtype=bool) if fixed is None else np.asarray(fixed, dtype=bool)
@@ -421,60 +329,15 @@ class PIBTShield:
         for i in np.flatnonzero(fixed).tolist():
             occupied_next[current[i]] = i
             decided[i] = current[i]
-        journal: list[int] = []
-
-        def assign(i: int, cell: int) -> None:
-            occupied_next[cell] = i
-            decided[i] = cell
-            journal.append(i)
-
-        def rollback(mark: int) -> None:
-            while len(journal) > mark:
-                i = journal.pop()
-                cell = decided[i]
-                decided[i] = -1
-                if occupied_next.get(cell) == i:
-                    del occupied_next[cell]
-
-        swap = self.swap
-
-        def funnel(i: int, caller: int) -> bool:
-            here = current[i]
-            ranked = candidates[i]
-            partner = -1
-            if swap and ranked:
-                partner = self._swap_partner(i, ranked[0], current, occupied_now, decided)
-                if partner >= 0:
-                    ranked = ranked[::-1]  # back away, pulling the partner behind
-            for k, cell in enumerate(ranked):
-                if cell in occupied_next:
-                    continue
-                if caller >= 0 and cell == current[caller]:
-                    continue  # the caller's cell: that would be a swap with it
-                other = occupied_now.get(cell, -1)
-                if other >= 0 and other != i and decided[other] == here:
-                    continue  # the occupant already moves into our cell: a swap
-                mark = len(journal)
-                assign(i, cell)
-                if other >= 0 and other != i and decided[other] < 0:
-                    if not funnel(other, i):  # the occupant must make room first
-                        rollback(mark)
-                        continue
-                if (k == 0 and partner >= 0 and decided[partner] < 0 and cell != here
-                        and here not in occupied_next):
-                    # the pull: the partner (undecided, so neither fixed nor on a reserved
-                    # cell) takes the cell we leave; we did not take its cell (it would be
-                    # decided then), so nobody trades cells
-                    assign(partner, here)
-                return True
-            if caller < 0 and here not in occupied_next:
-                assign(i, here)  # not pushed: staying is always possible
-                return True
-            return False
-
+        partner_of = None
+        if self.swap:
+            def partner_of(i: int, target: int) -> int:
+                return self._swap_partner(i, target, current, occupied_now, decided)
+        push = Push(current, occupied_now, occupied_next, decided, candidates.__getitem__,
+                    partner_of)
         for i in np.argsort(-self.priorities, kind="stable").tolist():
-            if decided[i] < 0:
-                funnel(i, -1)
+            if decided[i] < 0 and not push.funnel(i, -1) and current[i] not in occupied_next:
+                push.assign(i, current[i])  # not pushed: staying is always possible
 
         nxt = np.asarray(decided, dtype=np.int64)
         if (nxt < 0).any():  # cannot happen: an unpushed agent can always stay
@@ -485,6 +348,15 @@ class PIBTShield:
         self.advance_priorities(new_positions)
         self.tick += 1
         return ShieldStep(new_positions, actions, overridden)
+
+    def peek(self, positions, rankings, fixed=None, reserved=()) -> ShieldStep:
+        """What `step` would command, the rule's state (priorities, tick, the patient anchor's
+        clocks) left as it was: the one way to ask the rule without taking the tick."""
+        state = self.snapshot()
+        try:
+            return self.step(positions, rankings, fixed=fixed, reserved=reserved)
+        finally:
+            self.restore(state)
 
     # --- hindrance ------------------------------------------------------------------------------
     def _hindrance_order(self, i: int, ranked: list[int], current: list[int],
@@ -526,6 +398,12 @@ class PIBTShield:
         return swap_partner(i, target, current[i], occupied_now, decided, self._neighbors,
                             self._goal_flat, self._distance_list)
 
+    def advance(self, positions) -> None:
+        """A tick commanded by someone else (a kept plan) that left the agents at `positions`:
+        the priorities advance and the tick counts, as after `step`."""
+        self.advance_priorities(positions)
+        self.tick += 1
+
     def advance_priorities(self, positions) -> None:
         """PIBT's dynamic priorities after a step that left the agents at `positions` (N, 2):
         back to the tie-breaker on the goal, one more off it. `step` calls it; a caller that
@@ -536,25 +414,7 @@ class PIBTShield:
         if self.anchor and self.anchor_patience:
             flat = (positions[:, 0] * self.width + positions[:, 1]).tolist()
             dist = np.fromiter((self._distance_list(i)[c] for i, c in enumerate(flat)),
-                               dtype=np.int64, count=len(flat))
+                               dtype=np.float64, count=len(flat))
             closer = dist < self.best_distance
             self.best_distance = np.minimum(self.best_distance, dist)
             self.stalled = np.where(closer, 0, self.stalled + 1)
-
-
-def make_shield(rule: str, grid, goals, planning_budget: float | None = None,
-                anchor_patience: int | None = None):
-    """The coordination layer of a conflict rule: None for "revert", `PIBTShield` with the options
-    a PIBT rule's name carries (`rule_options`), or for "lacam" a `coordination.plan.PlanKeeper`
-    (same interface) with `planning_budget` seconds per re-plan (default
-    `plan.DEFAULT_PLANNING_BUDGET`)."""
-    if rule == REVERT:
-        return None
-    if rule not in COORDINATED_RULES:
-        raise ValueError(f"conflict rule must be one of {CONFLICT_RULES}, got {rule!r}")
-    if rule == "lacam":
-        from .plan import DEFAULT_PLANNING_BUDGET, PlanKeeper
-
-        return PlanKeeper(grid, goals, planning_budget=DEFAULT_PLANNING_BUDGET
-                          if planning_budget is None else planning_budget, **LACAM_OPTIONS)
-    return PIBTShield(grid, goals, **rule_options(rule), anchor_patience=anchor_patience)

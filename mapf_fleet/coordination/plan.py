@@ -1,5 +1,4 @@
-"""The plan keeper: a committed joint plan executed tick by tick (the `lacam` conflict rule), and
-the committed expert that labels from the same kept plan.
+"""The plan keeper: a committed joint plan executed tick by tick (the `lacam` conflict rule).
 
 `PlanKeeper` keeps a LaCAM plan (`coordination.lacam`, the robots' rankings ranking the root
 step's moves) and commands its next step every tick. It re-plans from the current state only when
@@ -27,10 +26,10 @@ Priorities: the keeper's PIBT priorities (`priorities`, `base_priority`, `advanc
 advance every tick as the shield's do; a re-plan starts LaCAM from them, so a robot that has
 waited long leads the plan's first step, and the fallback step uses them.
 
-`CommittedExpert` gives, for a state, every agent's next move from a kept plan (re-planning, with
-the kept plan's next moves ranked first at the root for the agents still on it, only when some
-agent left it or every k steps) and the plan's remaining trajectory: an expert whose labels add
-up to one plan, instead of a fresh plan's first move every step.
+Options: one `PlanOptions` value (budget, re-planning, restarts, fallback rule), with two named
+presets: `ARBITER`, the `lacam` conflict rule's, and `EXPERT`, DAgger's committed expert's
+(`training.dagger.expert`, which drives a keeper through its public surface: `next_cells`,
+`saved` / `restore`, `replan`, `fallback.peek`).
 
 numpy only, as `pibt`.
 """
@@ -38,73 +37,111 @@ numpy only, as `pibt`.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
-from mapf_fleet.grid.actions import NUM_ACTIONS
+from mapf_fleet.grid.actions import NUM_ACTIONS, actions_between
 
 from .lacam import LaCAM
-from .pibt import PIBTShield, ShieldStep, rule_options, validate_rankings
+from .pibt import PIBTShield, ShieldStep
+from .ranking import validate_rankings
+from .rules import Rule
 
 # The planning arbiter's default per-tick planning budget (seconds of wall clock)
 DEFAULT_PLANNING_BUDGET = 1.0
-# After a failed planner call the next waits 1, 2, 4, ... ticks, at most this many
-DEFAULT_MAX_RETRY_INTERVAL = 16
+
+
+@dataclass(frozen=True)
+class PlanOptions:
+    """How a `PlanKeeper` plans: one value, checked once here.
+
+    planning_budget: wall-clock seconds per re-plan. replan_every: re-plan every k ticks even
+    when the plan holds (0: only when it breaks). max_nodes: LaCAM's node budget per call.
+    seed: LaCAM's tie-breaking seed. max_retry_interval: the longest wait (ticks) between tries
+    after failed calls (1, 2, 4, ... up to it). swap: LaCAM's successors by PIBT with swap.
+    restarts: LaCAM searches per re-plan, the shortest plan kept. shared_budget: the restarts
+    share one `planning_budget` (a re-plan costs at most about the budget) instead of one each.
+    restart_ratio: restart only while the shortest plan so far is longer than this many times
+    the longest agent's distance to its goal (0: always). streamed_restarts: restart also once
+    the goals have changed (a lifelong stream). fallback_rule: the anchored PIBT rule of the
+    ticks without a plan (the anchor is what makes the fallback reach every goal)."""
+
+    planning_budget: float = DEFAULT_PLANNING_BUDGET
+    replan_every: int = 0
+    max_nodes: int = 1_000_000
+    seed: int = 0
+    max_retry_interval: int = 16
+    swap: bool = False
+    restarts: int = 1
+    shared_budget: bool = False
+    restart_ratio: float = 0.0
+    streamed_restarts: bool = True
+    fallback_rule: str = "pibt_anchor"
+
+    def __post_init__(self):
+        if not self.planning_budget > 0:
+            raise ValueError(f"planning_budget must be a positive number of seconds, got "
+                             f"{self.planning_budget!r}")
+        for name, least in (("replan_every", 0), ("max_retry_interval", 1), ("restarts", 1)):
+            if int(getattr(self, name)) < least:
+                raise ValueError(f"{name} must be >= {least}, got {getattr(self, name)!r}")
+        if not float(self.restart_ratio) >= 0:
+            raise ValueError(f"restart_ratio must be >= 0, got {self.restart_ratio!r}")
+        fallback = Rule.parse(self.fallback_rule, "fallback_rule")
+        if not (fallback.is_pibt and fallback.anchor):
+            raise ValueError(f"fallback_rule must be an anchored PIBT rule, got "
+                             f"{self.fallback_rule!r}")
+
+    def but(self, **changes) -> "PlanOptions":
+        """These options with `changes` (None values ignored), checked again."""
+        changes = {k: v for k, v in changes.items() if v is not None}
+        unknown = set(changes) - {f.name for f in fields(self)}
+        if unknown:
+            raise TypeError(f"unknown plan option(s) {sorted(unknown)}")
+        return replace(self, **changes) if changes else self
+
+
+# The `lacam` conflict rule (the planning arbiter): successors by PIBT with swap, as the fleet's
+# rule; the shortest of 8 searches' plans within the one budget where the first is over 1.5 times
+# the longest agent's distance (a first-found plan can miss a step limit where another seed's
+# fits), and not once the goals stream in (there restarts cost several times the tick time for
+# nothing); its fallback step is the fleet's rule (docs/results.md, "The planning arbiter")
+ARBITER = PlanOptions(swap=True, restarts=8, shared_budget=True, restart_ratio=1.5,
+                      streamed_restarts=False, fallback_rule="pibt_anchor_swap")
+# DAgger's committed expert: a longer budget per plan (labels are made offline, a node budget
+# bounds them)
+EXPERT = PlanOptions(planning_budget=5.0)
 
 
 class PlanKeeper:
     """The `lacam` conflict rule: the interface of `PIBTShield` (`step`, `set_goals`, `reset`,
     `advance_priorities`, `goals`, `priorities`, `base_priority`, `tick`) over a kept LaCAM plan.
 
-    grid: (H, W), nonzero = obstacle. goals: (N, 2). planning_budget: seconds per re-plan.
-    replan_every: re-plan every k ticks even when the plan holds (0: only when it breaks).
-    max_nodes: LaCAM's node budget per call. seed: LaCAM's tie-breaking seed.
-    max_retry_interval: the longest wait (ticks) between tries after failed calls.
-    swap: LaCAM's successors by PIBT with swap (`LaCAM(swap=True)`). restarts: LaCAM searches
-    per re-plan, the shortest plan kept (`_call_planner`). shared_budget: the restarts share one
-    `planning_budget` (a re-plan costs at most about the budget: the arbiter) instead of one
-    each (the committed expert, whose labels a node budget bounds). restart_ratio: restart only
-    while the shortest plan so far is longer than this many times the longest agent's distance
-    to its goal (0: always; a first plan that misses a step limit is 2-8 times it).
-    streamed_restarts: restart also once the goals have changed (a lifelong stream: every
-    arrival re-plans and the plan is dropped at the next one; restarting there cost the arbiter
-    2-3.5 times the run time and gained nothing; docs/results.md). fallback_rule: the PIBT rule
-    of the ticks without a plan (`pibt_anchor`; the `lacam` conflict rule: `pibt_anchor_swap`)."""
+    grid: (H, W), nonzero = obstacle. goals: (N, 2). options: a `PlanOptions` (default: its
+    defaults; `ARBITER` for the `lacam` rule); keyword `changes` override single options
+    (`PlanKeeper(grid, goals, ARBITER, planning_budget=0.5)`). guidance: a
+    `grid.guidance.Guidance` for the map, read by the planner and the fallback rule alike."""
 
-    def __init__(self, grid, goals, planning_budget: float = DEFAULT_PLANNING_BUDGET,
-                 replan_every: int = 0, max_nodes: int = 1_000_000, seed: int = 0,
-                 max_retry_interval: int = DEFAULT_MAX_RETRY_INTERVAL, swap: bool = False,
-                 restarts: int = 1, shared_budget: bool = False, restart_ratio: float = 0.0,
-                 streamed_restarts: bool = True, fallback_rule: str = "pibt_anchor"):
-        if not planning_budget > 0:
-            raise ValueError(f"planning_budget must be a positive number of seconds, got "
-                             f"{planning_budget!r}")
-        if int(replan_every) < 0:
-            raise ValueError(f"replan_every must be >= 0 (0: never), got {replan_every!r}")
-        options = rule_options(fallback_rule)
-        if not options["anchor"]:
-            # the anchor is what makes the fallback reach every goal (coordination.pibt)
-            raise ValueError(f"fallback_rule must be an anchored PIBT rule, got {fallback_rule!r}")
-        self.fallback = PIBTShield(grid, goals, **options)
+    def __init__(self, grid, goals, options: PlanOptions | None = None, guidance=None,
+                 **changes):
+        options = (options or PlanOptions()).but(**changes)
+        self.options = options
+        self.fallback = PIBTShield(grid, goals, **Rule.parse(options.fallback_rule).pibt_options(),
+                                   guidance=guidance)
         self.grid = self.fallback.grid
         self.height, self.width = self.grid.shape
         self.num_agents = self.fallback.num_agents
-        self.planner = LaCAM(self.grid, seed=seed, swap=swap)
-        self.planning_budget = float(planning_budget)
-        self.replan_every = int(replan_every)
-        self.max_nodes = int(max_nodes)
-        if int(restarts) < 1:
-            raise ValueError(f"restarts must be >= 1, got {restarts!r}")
-        self.restarts = int(restarts)
-        self.shared_budget = bool(shared_budget)
-        if not float(restart_ratio) >= 0:
-            raise ValueError(f"restart_ratio must be >= 0, got {restart_ratio!r}")
-        self.restart_ratio = float(restart_ratio)
-        self.streamed_restarts = bool(streamed_restarts)
+        self.planner = LaCAM(self.grid, seed=options.seed, swap=options.swap, guidance=guidance)
+        self.planning_budget = float(options.planning_budget)
+        self.replan_every = int(options.replan_every)
+        self.max_nodes = int(options.max_nodes)
+        self.restarts = int(options.restarts)
+        self.shared_budget = bool(options.shared_budget)
+        self.restart_ratio = float(options.restart_ratio)
+        self.streamed_restarts = bool(options.streamed_restarts)
+        self.max_retry_interval = int(options.max_retry_interval)
         self.streamed = False  # the goals changed since the episode began
-        if int(max_retry_interval) < 1:
-            raise ValueError(f"max_retry_interval must be >= 1 tick, got {max_retry_interval!r}")
-        self.max_retry_interval = int(max_retry_interval)
         self.plan: np.ndarray | None = None  # (T+1, N, 2), plan[self.index] = where we are
         self.index = 0
         self.unplanned = np.zeros(self.num_agents, dtype=bool)  # agents the plan leaves out
@@ -187,9 +224,18 @@ class PlanKeeper:
         """The kept plan from the current configuration on, (T'+1, N, 2), or None."""
         return None if self.plan is None else self.plan[self.index:].copy()
 
-    def _next_cells(self) -> np.ndarray:
+    def next_cells(self) -> np.ndarray:
+        """The kept plan's next configuration (N, 2) (the current one at its end)."""
         plan = self.plan
         return plan[min(self.index + 1, len(plan) - 1)]
+
+    def saved(self) -> tuple:
+        """The kept plan and where the robots are on it, for `restore`: a caller that tries a
+        re-plan and keeps the old plan when it fails."""
+        return self.plan, self.index, self.unplanned
+
+    def restore(self, saved: tuple) -> None:
+        self.plan, self.index, self.unplanned = saved
 
     def why_replan(self, positions, fixed, reserved_flat) -> str:
         """"" when the kept plan holds for this state, else the reason to plan: "no plan",
@@ -199,7 +245,7 @@ class PlanKeeper:
         planned = ~self.unplanned
         if not np.array_equal(positions[planned], self.plan[self.index][planned]):
             return "off plan"
-        nxt = self._next_cells()
+        nxt = self.next_cells()
         moving = planned & (nxt != positions).any(axis=1)
         if (fixed & moving).any():
             return "held"
@@ -224,7 +270,8 @@ class PlanKeeper:
         flat = (goals[:, 0] * w + goals[:, 1]).tolist()
         now = (np.asarray(positions)[:, 0] * w + np.asarray(positions)[:, 1]).tolist()
         dist = self.planner.distances(flat)
-        cut_off = [dist[i][now[i]] < 0 for i in range(len(flat))]
+        far = self.planner.table.unreachable
+        cut_off = [dist[i][now[i]] >= far for i in range(len(flat))]
         if len(set(flat)) == len(flat) and not any(cut_off):
             return goals
         nearest = sorted(range(len(flat)), key=lambda i: (cut_off[i], dist[i][now[i]], i))
@@ -237,7 +284,7 @@ class PlanKeeper:
                 used.add(flat[i])
         out = goals.copy()
         for i in losers:
-            d = np.asarray(self.planner.distances([now[i]])[0] if cut_off[i] else dist[i])
+            d = self.planner.table.array(now[i] if cut_off[i] else flat[i])
             cells = np.flatnonzero(d >= 0)
             for cell in cells[np.argsort(d[cells], kind="stable")].tolist():
                 if cell not in used:
@@ -291,13 +338,13 @@ class PlanKeeper:
         c["planner_max_seconds"] = max(c["planner_max_seconds"], spent)
         return result
 
-    def _longest_distance(self, positions, goals) -> int:
+    def _longest_distance(self, positions, goals) -> float:
         """The longest of the agents' distances to their goals (a plan's least makespan)."""
         w = self.width
         flat = (np.asarray(goals)[:, 0] * w + np.asarray(goals)[:, 1]).tolist()
         rows = self.planner.distances(flat)
         now = np.asarray(positions)[:, 0] * w + np.asarray(positions)[:, 1]
-        return max((int(rows[i][c]) for i, c in enumerate(now.tolist())), default=0)
+        return max((rows[i][c] for i, c in enumerate(now.tolist())), default=0)
 
     def replan(self, positions, rankings=None, fixed=None, reserved=()) -> bool:
         """Plan every agent from `positions` within the budget. Keeps what was found (a whole
@@ -357,7 +404,7 @@ class PlanKeeper:
         """One tick (arguments as `PIBTShield.step`): the kept plan's next step, a re-planned
         one, or the fallback rule's step over `rankings` for the agents without a plan."""
         began = time.perf_counter()
-        positions = self.fallback._check_positions(positions)
+        positions = self.fallback.check_positions(positions)
         n = self.num_agents
         prefs = validate_rankings(rankings, n)
         fixed = np.zeros(n, dtype=bool) if fixed is None else np.asarray(fixed, dtype=bool).copy()
@@ -381,33 +428,29 @@ class PlanKeeper:
         elif reason:
             if reason in ("held", "off plan", "periodic"):
                 c["repairs_" + reason.replace(" ", "_")] += 1
-            old = (self.plan, self.index, self.unplanned)
+            old = self.saved()
             if not self.replan(positions, prefs, fixed, reserved) and reason == "periodic":
-                self.plan, self.index, self.unplanned = old  # it still holds here: keep it
+                self.restore(old)  # it still holds here: keep it
         if self.plan is None:
             step = self.fallback.step(positions, prefs, fixed=fixed, reserved=reserved)
             c["fallback_ticks"] += 1
             c["fallback_agent_ticks"] += n
         else:
-            nxt = self._next_cells().copy()
+            nxt = self.next_cells().copy()
             self.index = min(self.index + 1, len(self.plan) - 1)
             unplanned = self.unplanned
             if unplanned.any():
                 # regions never meet: PIBT's moves for the unplanned regions, the plan's for
                 # the rest; priorities advance once, from the cells finally commanded
-                saved = self.fallback.priorities.copy()
-                pibt = self.fallback.step(positions, prefs, fixed=fixed, reserved=reserved)
+                pibt = self.fallback.peek(positions, prefs, fixed=fixed, reserved=reserved)
                 nxt[unplanned] = pibt.positions[unplanned]
-                self.fallback.priorities = saved
-                self.fallback.tick -= 1
                 c["fallback_ticks"] += 1
                 c["fallback_agent_ticks"] += int(unplanned.sum())
             else:
                 c["planned_ticks"] += 1
-            actions = self.fallback._action_of_delta[nxt[:, 0] * w + nxt[:, 1] - now + w]
+            actions = actions_between(positions, nxt)
             overridden = (actions != prefs[:, 0]) & ~fixed
-            self.fallback.advance_priorities(nxt)
-            self.fallback.tick += 1
+            self.fallback.advance(nxt)
             step = ShieldStep(nxt, actions, overridden)
         spent = time.perf_counter() - began
         c["ticks"] += 1
@@ -426,176 +469,5 @@ def distance_rankings(keeper_or_shield, positions) -> np.ndarray:
         if len(flat) else np.zeros((0, NUM_ACTIONS), dtype=np.int64)
 
 
-class CommittedExpert:
-    """An expert that commits to a plan: `moves(positions)` gives every agent's next action from
-    the kept plan. When some agents are not where the plan put them (the policy moved them
-    elsewhere), it re-plans from the state with the kept plan's next moves ranked first at the
-    root for the agents still on it (distance order for the others), so their labels stay on
-    the plan where LaCAM's first step can keep them; it also re-plans every `replan_every`
-    steps (0: never). When no plan is found in the budget, the labels are the anchored PIBT
-    step's (`fallback` is True in `last`).
-
-    The expert does not advance with the executed moves: call `moves` once with each state the
-    rollout visits (it follows the plan's index while the agents stay on it; a state that is not
-    the one the last labels lead to is off the plan).
-
-    rule: the PIBT rule its labels will run under (`pibt_anchor_swap`, ...; None: not known),
-    anchor_patience: its anchor's patience. Given the rule's state at the visited state
-    (`moves(positions, rule.snapshot())`),
-    the expert first asks a copy of the rule what it would execute for its labels; where that
-    leaves the plan (the anchored top agent's distance order, a swap), it re-plans from the
-    state with the rule's priorities and the top agent's anchored ranking at LaCAM's root, so
-    the new plan's first step is one the rule lets through (`last["rule_replan"]`)."""
-
-    def __init__(self, grid, goals, planning_budget: float = 5.0, replan_every: int = 0,
-                 max_nodes: int = 1_000_000, seed: int = 0, swap: bool = False,
-                 rule: str | None = None, anchor_patience: int | None = None,
-                 restarts: int = 1):
-        self.keeper = PlanKeeper(grid, goals, planning_budget=planning_budget,
-                                 replan_every=replan_every, max_nodes=max_nodes, seed=seed,
-                                 swap=swap, restarts=restarts)
-        self.rule = None
-        if rule is not None:
-            from .pibt import PIBT_RULES, rule_options
-
-            if rule not in PIBT_RULES:
-                raise ValueError(f"rule must be one of {PIBT_RULES}, got {rule!r}")
-            self.rule = PIBTShield(grid, goals, **rule_options(rule),
-                                   anchor_patience=anchor_patience)
-        self.last: dict = {}
-        self._expect: int | None = None  # the plan index the next state should be at
-
-    @property
-    def goals(self) -> np.ndarray:
-        return self.keeper.goals
-
-    def set_goals(self, goals) -> np.ndarray:
-        if self.rule is not None:
-            self.rule.set_goals(goals)
-        return self.keeper.set_goals(goals)
-
-    def reset(self) -> None:
-        self.keeper.reset()
-        self._expect = None
-
-    def _locate(self, positions) -> int:
-        """The index of the kept plan's configuration the planned agents are at: the one the
-        last labels lead to (the rollout followed them), or the current one right after a
-        (re-)plan; -1 otherwise. A state that did not advance while the plan moves someone
-        counts as off the plan: the executed step did not follow the labels (a shield
-        overriding them), and labelling it again would repeat the same labels forever."""
-        keeper = self.keeper
-        plan = keeper.plan
-        if plan is None:
-            return -1
-        planned = ~keeper.unplanned
-        t = keeper.index if self._expect is None else self._expect
-        return t if np.array_equal(plan[t][planned], positions[planned]) else -1
-
-    def moves(self, positions, rule_state: dict | None = None) -> np.ndarray:
-        """(N,) every agent's next action (DHC order) at `positions` (N, 2); with the rule's
-        state there (`PIBTShield.snapshot()`, see the class), labels the rule lets through
-        where it can."""
-        informed = self.rule is not None and rule_state is not None
-        if informed:  # a re-plan starts from the rule's priorities (LaCAM's root order)
-            self.keeper.priorities = np.asarray(rule_state["priorities"], np.float64).copy()
-        actions = self._moves(positions)
-        if not informed or self.keeper.plan is None:
-            return actions
-        keeper, rule = self.keeper, self.rule
-        positions = np.asarray(positions, dtype=np.int64)
-        rule.restore(rule_state)
-        rankings = self._label_rankings(positions, actions)
-        if np.array_equal(self._rule_step(positions, rankings), keeper._next_cells()):
-            self.last["rule_replan"] = False
-            return actions
-        # the rule would leave the plan: plan again from here with the rule's priorities and
-        # its anchored top agent's ranking at the root (the first step the rule would take)
-        top = rule.anchored_agent()
-        if top >= 0:
-            flat = int(positions[top, 0] * keeper.width + positions[top, 1])
-            rankings[top] = rule.anchored_ranking(top, flat)
-        old = (keeper.plan, keeper.index, keeper.unplanned)
-        found = keeper.replan(positions, rankings)
-        self.last["rule_replan"] = True
-        if not found and keeper.plan is None:
-            keeper.plan, keeper.index, keeper.unplanned = old  # keep the labels we had
-            return actions
-        self._expect = min(keeper.index + 1, len(keeper.plan) - 1)
-        return self._actions(positions, rankings)
-
-    def _label_rankings(self, positions, actions) -> np.ndarray:
-        """Every agent's label first, then its distance order (as a rollout ranks a label)."""
-        rankings = distance_rankings(self.rule, positions)
-        for i, first in enumerate(np.asarray(actions).tolist()):
-            if rankings[i, 0] != first:
-                rankings[i] = [first] + [a for a in rankings[i].tolist() if a != first]
-        return rankings
-
-    def _rule_step(self, positions, rankings) -> np.ndarray:
-        """The cells the rule would command for these rankings (its state left as it was)."""
-        rule = self.rule
-        state = rule.snapshot()
-        out = rule.step(positions, rankings).positions
-        rule.restore(state)
-        return out
-
-    def _moves(self, positions) -> np.ndarray:
-        keeper = self.keeper
-        positions = keeper.fallback._check_positions(positions)
-        t = self._locate(positions)
-        periodic = keeper.replan_every and t >= 0 and t >= keeper.replan_every
-        if t >= 0:
-            keeper.index = t  # where the state is (a failed periodic re-plan resumes here)
-        if t >= 0 and not periodic:
-            self._expect = min(t + 1, len(keeper.plan) - 1)
-            self.last = {"replanned": False, "fallback": bool(keeper.unplanned.any()),
-                         "on_plan": int((~keeper.unplanned).sum())}
-            return self._actions(positions)
-        rankings = distance_rankings(keeper, positions)
-        on_plan = np.zeros(keeper.num_agents, dtype=bool)
-        if keeper.plan is not None:
-            # the agents standing where the kept plan expected them (one step on from the last
-            # labelled state) keep their next planned move first
-            plan, w = keeper.plan, keeper.width
-            expected = min(keeper.index + 1, len(plan) - 1)
-            on_plan = (plan[expected] == positions).all(axis=1) & ~keeper.unplanned
-            nxt = plan[min(expected + 1, len(plan) - 1)]
-            for i in np.flatnonzero(on_plan).tolist():
-                first = int(keeper.fallback._action_of_delta[
-                    (nxt[i, 0] - positions[i, 0]) * w + nxt[i, 1] - positions[i, 1] + w])
-                rankings[i] = [first] + [a for a in rankings[i].tolist() if a != first]
-        old = (keeper.plan, keeper.index, keeper.unplanned)
-        found = keeper.replan(positions, rankings)
-        if not found and periodic:
-            keeper.plan, keeper.index, keeper.unplanned = old
-            found = True
-        self.last = {"replanned": True, "fallback": not found, "on_plan": int(on_plan.sum())}
-        if keeper.plan is None:
-            self._expect = None
-            return keeper.fallback.step(positions, rankings).actions
-        self._expect = min(keeper.index + 1, len(keeper.plan) - 1)
-        return self._actions(positions, rankings)
-
-    def _actions(self, positions, rankings=None) -> np.ndarray:
-        """The plan's next moves; the anchored PIBT step's for agents without a plan."""
-        keeper = self.keeper
-        nxt = keeper._next_cells().copy()
-        if keeper.unplanned.any():
-            if rankings is None:
-                rankings = distance_rankings(keeper, positions)
-            saved = keeper.fallback.priorities.copy()
-            pibt = keeper.fallback.step(positions, rankings)
-            keeper.fallback.priorities = saved
-            nxt[keeper.unplanned] = pibt.positions[keeper.unplanned]
-        w = keeper.width
-        delta = (nxt[:, 0] - positions[:, 0]) * w + (nxt[:, 1] - positions[:, 1]) + w
-        return keeper.fallback._action_of_delta[delta].copy()
-
-    def trajectory(self) -> np.ndarray | None:
-        """The kept plan's remaining trajectory (T'+1, N, 2) from the configuration of the last
-        `moves` call, or None."""
-        return self.keeper.remaining_plan()
-
-
-__all__ = ["PlanKeeper", "CommittedExpert", "DEFAULT_PLANNING_BUDGET", "distance_rankings"]
+__all__ = ["PlanKeeper", "PlanOptions", "ARBITER", "EXPERT", "DEFAULT_PLANNING_BUDGET",
+           "distance_rankings"]

@@ -26,12 +26,10 @@ Rankings (`RANKINGS`; `Q_RANKINGS` those that read Q-values):
                   of two closer cells, which way to step aside), never a wait over a closer move
   distance        the distance order, ties by action order: plain PIBT (no learning); also the
                   non-learned heuristic's ranking (it follows a closer move, else stays)
-The learned default is `DEFAULT_RANKING` (chosen by measurement; docs/results.md);
-`default_ranking(rule, recorded)` is the ranking a learned policy uses under each shield rule when
-none is asked for, in the evaluator and the fleet's policy nodes alike: the ranking its checkpoint
+`default_ranking(rule, recorded)` is the ranking a learned policy uses under each rule when none
+is asked for, in the evaluator and the fleet's policy nodes alike: the ranking its checkpoint
 records for the rule (metadata `rankings`, e.g. what a DAgger round was trained under), else the
-rule's (`DEFAULT_RANKING_BY_RULE`, chosen by measurement: docs/results.md, "Ranking modes under
-the anchored shield").
+rule's own (`rules.Rule.default_ranking`: `confidence` under an anchor, `q` otherwise).
 """
 
 from __future__ import annotations
@@ -42,58 +40,58 @@ import numpy as np
 
 from mapf_fleet.grid.actions import ACTION_DELTAS, NUM_ACTIONS, STAY
 
+from .rules import PIBT_RULES, UNANCHORED_RANKING, Rule
+
 RANKINGS = ("q", "q_demote_stay", "q_then_distance", "confidence", "distance_q", "distance")
 Q_RANKINGS = ("q", "q_demote_stay", "q_then_distance", "confidence", "distance_q")
-DEFAULT_RANKING = "q"
-# The ranking each conflict rule uses by default, chosen by measurement (docs/results.md, "Ranking
-# modes under the anchored shield"): `confidence` where the anchor is on, `q` otherwise; the swap
-# and hindrance variants take their base rule's.
-DEFAULT_RANKING_BY_RULE = {
-    "pibt": "q", "pibt_anchor": "confidence",
-    "pibt_swap": "q", "pibt_anchor_swap": "confidence",
-    "pibt_hindrance": "q", "pibt_anchor_hindrance": "confidence",
-    "pibt_swap_hindrance": "q", "pibt_anchor_swap_hindrance": "confidence",
-    "pibt_patient": "confidence", "pibt_patient_swap": "confidence",
-    "pibt_patient_hindrance": "confidence", "pibt_patient_swap_hindrance": "confidence",
-}
-# The planning arbiter ranks its root step and its fallback step (pibt_anchor's) by the robots'
-# rankings: a learned policy ranks as it would under its fallback rule unless it records one.
-RANKING_RULE_OF = {"lacam": "pibt_anchor"}
+DEFAULT_RANKING = UNANCHORED_RANKING
+# The ranking each PIBT rule uses by default, derived from the rule (`Rule.default_ranking`; the
+# planning arbiter takes its fallback rule's)
+DEFAULT_RANKING_BY_RULE = {name: Rule.parse(name).default_ranking for name in PIBT_RULES}
 # `confidence`: the Q lead of the argmax over the runner-up above which the network's choice goes
 # first (Q units: one step costs 0.075); chosen on generated maps, never the published sets
-# (docs/results.md, "Ranking modes under the anchored shield").
+# (docs/results.md, "Which ranking under which rule").
 CONFIDENCE_MARGIN = 0.3
 
 
-def default_ranking(rule: str, recorded: Mapping[str, str] | None = None) -> str:
-    """The ranking a learned policy uses under shield `rule` when none is asked for: the one its
-    checkpoint records for `rule` (`recorded`, the metadata's `rankings` {rule: mode}), else the
-    rule's default. A checkpoint trained on the states one ranking visits does best under that
-    ranking (DAgger, pibt_anchor, 40x40/64, 100 instances: q_then_distance 0.77, confidence
-    0.66), whatever the rule's default measured best for models/archive/dcc_4x25_cl_alpha1.0.pt."""
+def default_ranking(rule: "Rule | str", recorded: Mapping[str, str] | None = None) -> str:
+    """The ranking a learned policy uses under `rule` when none is asked for: the one its
+    checkpoint records for the rule (`recorded`, the metadata's `rankings` {rule: mode}; see
+    `recorded_ranking`), else the rule's own (`Rule.default_ranking`). A checkpoint trained on the
+    states one ranking visits does best under that ranking (docs/results.md, "Which ranking
+    under which rule")."""
     found = recorded_ranking(rule, recorded)
-    if found is not None:
-        return found
-    if rule in RANKING_RULE_OF:  # a rule without rankings of its own: its fallback rule's
-        return default_ranking(RANKING_RULE_OF[rule], recorded)
-    return DEFAULT_RANKING_BY_RULE.get(rule, DEFAULT_RANKING)
+    return found if found is not None else Rule.parse(rule).default_ranking
 
 
-def recorded_ranking(rule: str, recorded: Mapping[str, str] | None) -> str | None:
-    """The ranking a checkpoint records for `rule`, else for its base rule (a swap / hindrance
-    variant is the same arbiter for the ranking's purpose: `pibt_anchor_swap` reads what was
-    recorded for `pibt_anchor`), else None."""
+def recorded_ranking(rule: "Rule | str", recorded: Mapping[str, str] | None) -> str | None:
+    """The ranking a checkpoint records for `rule`, else for its base rule (`Rule.base`: a swap
+    or hindrance variant, or the planning arbiter, reads what was recorded for its anchored or
+    plain rule), else None."""
     if not recorded:
         return None
-    if rule in recorded:
-        return recorded[rule]
-    from .pibt import PIBT_RULES, rule_name, rule_options  # pibt imports this module
-
-    if rule in PIBT_RULES:
-        return recorded.get(rule_name(anchor=rule_options(rule)["anchor"]))
-    if rule in RANKING_RULE_OF:  # the planning arbiter: what its fallback rule records
-        return recorded_ranking(RANKING_RULE_OF[rule], recorded)
+    rule = Rule.parse(rule)
+    for name in dict.fromkeys((rule.name, rule.base.name)):
+        if name in recorded:
+            return recorded[name]
     return None
+
+
+def validate_rankings(rankings, num_agents: int) -> np.ndarray:
+    """(N, 5) int64 where each row is a ranking (permutation) of the actions 0..4."""
+    prefs = np.asarray(rankings)
+    if prefs.shape != (num_agents, NUM_ACTIONS):
+        raise ValueError(f"rankings must have shape ({num_agents}, {NUM_ACTIONS}), "
+                         f"got {prefs.shape}")
+    if prefs.size and not np.issubdtype(prefs.dtype, np.integer):
+        raise ValueError(f"rankings must be integer actions, got dtype {prefs.dtype}")
+    prefs = prefs.astype(np.int64, copy=False)
+    bad = (np.sort(prefs, axis=1) != np.arange(NUM_ACTIONS)).any(axis=1)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"agent {i}: ranking {prefs[i].tolist()} is not a ranking of the "
+                         f"actions 0..{NUM_ACTIONS - 1}")
+    return prefs
 
 # distance classes of a move, lower is better
 _CLOSER, _STAY, _AWAY, _BLOCKED = 0, 1, 2, 3

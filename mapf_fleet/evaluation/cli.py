@@ -28,7 +28,7 @@ from mapf_fleet.grid.maps import DENSE
 from mapf_fleet.version import code_version
 
 from mapf_fleet.aliases import renamed_options
-from mapf_fleet.coordination.pibt import CONFLICT_RULES, REVERT
+from mapf_fleet.coordination.rules import CONFLICT_RULES, REVERT
 from mapf_fleet.coordination.ranking import DEFAULT_RANKING_BY_RULE, RANKINGS
 
 from .policies import REFERENCE_NAMES, parse_policy, unique_names, with_conflict_rule

@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mapf_fleet.coordination.pibt import CONFLICT_RULES, REVERT
+from mapf_fleet.coordination.rules import CONFLICT_RULES, REVERT
 from mapf_fleet.coordination.ranking import rank_actions, tie_breakers
 from mapf_fleet.fleet.arbiter import DEFAULT_CONFLICT_RULE, single_choice_ranking
 from mapf_fleet.fleet.record import Decisions

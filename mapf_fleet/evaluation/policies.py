@@ -6,7 +6,7 @@ the observations built as the policy's `observation` says ("paper", C = 6, or "c
 C = 7: a checkpoint's `model_config.observation`);
 under a coordinated conflict rule (`PolicySpec.conflict_rule == "pibt"`, ...) the runner calls
 `rank(obs, positions, tick) -> rankings (B,N,5)` instead, arbitrates them with
-`coordination.pibt.make_shield`'s layer, and tells the policy what was executed with
+`coordination.factory.make_shield`'s layer, and tells the policy what was executed with
 `executed(actions (B,N))` (DCC's last-action input).
 Centralized planners are `planners.ClassicalPlanner` objects, replayed by the runner.
 """
@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from mapf_fleet.coordination.planners import PLANNER_NAMES
-from mapf_fleet.coordination.pibt import CONFLICT_RULES, PIBT_RULES, REVERT
+from mapf_fleet.coordination.rules import PIBT_RULES, REVERT, Rule
 from mapf_fleet.coordination.ranking import (DEFAULT_RANKING, Q_RANKINGS, RANKINGS, default_ranking,
                                              recorded_ranking)
 
@@ -70,8 +70,7 @@ def with_conflict_rule(spec: PolicySpec, rule: str, ranking: str | None = None) 
     """`spec` under a conflict rule; the row label says which (and the ranking when given)."""
     from dataclasses import replace
 
-    if rule not in CONFLICT_RULES:
-        raise ValueError(f"--conflict-rule must be one of {CONFLICT_RULES}, got {rule!r}")
+    rule = Rule.parse(rule, "--conflict-rule").name
     if ranking is not None and ranking not in RANKINGS:
         raise ValueError(f"--ranking must be among {RANKINGS}, got {ranking!r}")
     if rule == REVERT or spec.is_planner:

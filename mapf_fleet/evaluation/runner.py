@@ -85,11 +85,11 @@ def run_decentralized(policy, instances: InstanceSet, max_steps: int, conflict_r
     obs = np.stack([env.reset() for env in envs]).astype(np.float32)
     positions = np.stack([np.asarray(env.positions) for env in envs])
     trackers = [EpisodeTracker(positions[k], instances.goals[k], max_steps, bounds[k]) for k in range(len(envs))]
-    from mapf_fleet.coordination.pibt import CONFLICT_RULES, REVERT, make_shield
+    from mapf_fleet.coordination.factory import make_shield
+    from mapf_fleet.coordination.rules import Rule
 
-    if conflict_rule not in CONFLICT_RULES:
-        raise ValueError(f"conflict_rule must be one of {CONFLICT_RULES}, got {conflict_rule!r}")
-    shields = None if conflict_rule == REVERT else [
+    rule = Rule.parse(conflict_rule, "conflict_rule")
+    shields = None if not rule.coordinated else [
         make_shield(conflict_rule, instances.maps[k], instances.goals[k], planning_budget=planning_budget)
         for k in range(len(envs))]
     policy.reset(len(envs), instances.starts.shape[1])

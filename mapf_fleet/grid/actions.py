@@ -23,3 +23,15 @@ def actions_between(positions, targets) -> np.ndarray:
     delta = np.asarray(targets, dtype=np.int64) - np.asarray(positions, dtype=np.int64)
     match = (delta[:, None, :] == ACTION_DELTAS[None]).all(axis=-1)  # (N, 5)
     return np.where(match.any(axis=1), match.argmax(axis=1), STAY).astype(np.int64)
+
+
+def move_targets(blocked: np.ndarray) -> np.ndarray:
+    """(H*W, 5) int64: the flat cell each action leads to from each flat cell of the (H, W)
+    bool map `blocked` (True = obstacle), -1 where it leaves the map or enters an obstacle."""
+    h, w = blocked.shape
+    rows, cols = np.divmod(np.arange(h * w), w)
+    tr = rows[:, None] + ACTION_DELTAS[:, 0]
+    tc = cols[:, None] + ACTION_DELTAS[:, 1]
+    inside = (tr >= 0) & (tr < h) & (tc >= 0) & (tc < w)
+    flat = np.where(inside, tr * w + tc, 0)
+    return np.where(inside & ~blocked.ravel()[flat], flat, -1)

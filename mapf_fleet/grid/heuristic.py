@@ -1,4 +1,5 @@
-"""BFS distances to a goal over static obstacles and the four heuristic observation channels.
+"""Distances to a goal over static obstacles (`DistanceTable`, one per map and guidance graph) and
+the four heuristic observation channels.
 
 Distances come from scipy's compiled breadth-first search over the 4-connected free cells, its
 visiting order cut into levels with numpy (a few ms per goal on 65k cells, about 3x faster than
@@ -10,6 +11,8 @@ Conventions:
 - Heuristic channel k (0 up, 1 down, 2 left, 3 right) is 1 at a cell when its neighbour in
   direction k is a free cell exactly one step closer to the goal (that is what "strictly closer"
   means with BFS distances). Obstacles, unreachable cells and the goal itself have no bit set.
+- Under a guidance graph (`grid.guidance`) distances are least path costs (float64, Dijkstra) and
+  channel k marks a move on a least-cost path; unit costs give the BFS tables exactly.
 - Internally the four channels are packed into one uint8 per cell (bit k = channel k): the
   environment gathers one byte per FOV cell instead of four, and the cache stays small.
 """
@@ -17,11 +20,14 @@ Conventions:
 from __future__ import annotations
 
 import threading
+from array import array
 from collections import OrderedDict
 
 import numpy as np
 from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import breadth_first_order
+from scipy.sparse.csgraph import breadth_first_order, dijkstra
+
+from .actions import move_targets
 
 UNREACHABLE = -1
 NUM_HEURISTIC_CHANNELS = 4
@@ -61,7 +67,110 @@ def _adjacency(blocked: np.ndarray) -> csr_matrix:
     return graph
 
 
-_MAPS: OrderedDict[tuple, tuple[csr_matrix, OrderedDict]] = OrderedDict()
+class DistanceTable:
+    """Distances to goal cells on one map under one guidance graph: the one table every consumer
+    of "distance to the goal" reads (the PIBT rules, LaCAM and the plan keeper, the fleet core,
+    the observations' heuristic channels, the lifelong evaluator).
+
+    Get the shared table of a map with `distance_table(grid, guidance)`: callers that search one
+    goal at a time (the conflict rules, a fleet's goal checks, a lifelong run's new goals) neither
+    rebuild the graph nor search a goal twice. A goal's distances are searched when first asked
+    for and the last ones are kept (up to `RECENT_BYTES`).
+
+    Unguided (guidance None or unit costs): int32 BFS steps. Guided: float64 least path costs
+    (Dijkstra on the guidance's costs, `grid.guidance`). Either way `UNREACHABLE` (-1) marks
+    obstacles and cells cut off from the goal in `array`; `row` gives the same distances as a
+    flat `array.array` for the search loops, unreachable cells above any path
+    (`unreachable`)."""
+
+    def __init__(self, blocked: np.ndarray, guidance=None):
+        self.blocked = blocked
+        self.shape = blocked.shape
+        self.size = blocked.size
+        if guidance is not None and guidance.is_unit:
+            guidance = None  # unit costs are BFS steps: the integer tables, bit for bit
+        self.guidance = guidance
+        self.guided = guidance is not None
+        self.graph = _adjacency(blocked) if guidance is None else guidance.reverse_graph()
+        self.step_costs = None if guidance is None else guidance.step_costs()
+        self.unreachable = float("inf") if self.guided else self.size + 1
+        self._arrays: OrderedDict[int, np.ndarray] = OrderedDict()
+        self._rows: OrderedDict[int, array] = OrderedDict()
+        self.keep = max(16, RECENT_BYTES // ((8 if self.guided else 4) * self.size))
+        self._lock = threading.Lock()
+        self.searches = 0
+
+    def move_targets(self) -> np.ndarray:
+        """(H*W, 5) the flat cell each action leads to (`grid.actions.move_targets`), -1 also
+        where the guidance forbids the move (a one-way lane): no rule or planner takes it."""
+        targets = move_targets(self.blocked)
+        if self.step_costs is not None:
+            targets = np.where(np.isfinite(self.step_costs), targets, -1)
+        return targets
+
+    def _search(self, goal: int) -> np.ndarray:
+        self.searches += 1
+        if self.blocked.flat[goal]:  # a goal on an obstacle: nothing reaches it
+            return np.full(self.size, UNREACHABLE, np.float64 if self.guided else np.int32)
+        if not self.guided:
+            return _bfs_steps(self.graph, goal, self.size)
+        dist = dijkstra(self.graph, directed=True, indices=goal)
+        dist[~np.isfinite(dist)] = UNREACHABLE
+        return dist
+
+    def array(self, goal: int) -> np.ndarray:
+        """(H*W,) read-only distances to flat cell `goal` (`UNREACHABLE` where none)."""
+        with self._lock:
+            found = self._arrays.get(goal)
+            if found is not None:
+                self._arrays.move_to_end(goal)
+                return found
+        found = self._search(int(goal))
+        found.setflags(write=False)
+        with self._lock:
+            self._arrays[goal] = found
+            while len(self._arrays) > self.keep:
+                self._arrays.popitem(last=False)
+        return found
+
+    def row(self, goal: int):
+        """`array(goal)` as a flat `array.array` ('i' steps, 'd' guided costs) indexed cell by
+        cell by the search loops (Python numbers, no numpy scalars; 4 bytes a cell where a list
+        costs 36), unreachable cells at `unreachable`."""
+        with self._lock:
+            found = self._rows.get(goal)
+            if found is not None:
+                self._rows.move_to_end(goal)
+                return found
+        dist = self.array(goal)
+        if self.guided:
+            found = array("d", np.where(dist >= 0, dist, np.inf).tobytes())
+        else:
+            found = array("i", np.where(dist >= 0, dist, self.unreachable).astype(np.int32).tobytes())
+        with self._lock:
+            self._rows[goal] = found
+            while len(self._rows) > self.keep:
+                self._rows.popitem(last=False)
+        return found
+
+    def many(self, goals) -> np.ndarray:
+        """(N, H, W) distances to each (row, col) goal of `goals` (N, 2), a copy."""
+        goals = _as_goals(goals, self.shape)
+        h, w = self.shape
+        out = np.empty((len(goals), h, w), dtype=np.float64 if self.guided else np.int32)
+        for k, (r, c) in enumerate(goals.tolist()):
+            out[k] = self.array(r * w + c).reshape(h, w)
+        return out
+
+    def bits(self, dist: np.ndarray) -> np.ndarray:
+        """Packed heuristic bits (N, H, W) uint8 from `many`'s distances: bit k where the move
+        in direction k lies on a shortest path to the goal (unguided: one step closer)."""
+        if not self.guided:
+            return _bits_from_distances(dist)
+        return _guided_bits(dist, self.step_costs.reshape(*self.shape, -1))
+
+
+_TABLES: OrderedDict[tuple, DistanceTable] = OrderedDict()
 _MAX_MAPS = 8
 _LOCK = threading.Lock()  # fleet processes decide in threads
 # the last searches of a map, kept up to this many bytes: the observations and the conflict rule
@@ -69,22 +178,26 @@ _LOCK = threading.Lock()  # fleet processes decide in threads
 RECENT_BYTES = 64 << 20
 
 
-def _map_entry(blocked: np.ndarray) -> tuple[csr_matrix, OrderedDict]:
-    """(`_adjacency`, recent searches by goal cell) of a map, kept for the last few maps:
-    callers that search one goal at a time (the conflict rules' distance tables, a fleet's goal
-    checks, the observations of a lifelong run) neither rebuild the graph nor search twice."""
-    key = (blocked.shape, np.packbits(blocked).tobytes())
+def distance_table(grid, guidance=None) -> DistanceTable:
+    """The shared `DistanceTable` of map `grid` ((H, W), nonzero = obstacle) under `guidance`
+    (a `grid.guidance.Guidance` for this map, or None), kept for the last few maps."""
+    blocked = _as_grid(grid)
+    if guidance is not None and guidance.shape != blocked.shape:
+        raise ValueError(f"guidance is for a {guidance.shape[0]}x{guidance.shape[1]} map, the "
+                         f"map is {blocked.shape[0]}x{blocked.shape[1]}")
+    key = (blocked.shape, np.packbits(blocked).tobytes(),
+           None if guidance is None or guidance.is_unit else guidance.key)
     with _LOCK:
-        entry = _MAPS.get(key)
-        if entry is not None:
-            _MAPS.move_to_end(key)
-            return entry
-    entry = (_adjacency(blocked), OrderedDict())
+        table = _TABLES.get(key)
+        if table is not None:
+            _TABLES.move_to_end(key)
+            return table
+    table = DistanceTable(blocked, guidance)
     with _LOCK:
-        entry = _MAPS.setdefault(key, entry)
-        while len(_MAPS) > _MAX_MAPS:
-            _MAPS.popitem(last=False)
-    return entry
+        table = _TABLES.setdefault(key, table)
+        while len(_TABLES) > _MAX_MAPS:
+            _TABLES.popitem(last=False)
+    return table
 
 
 def _bfs_steps(graph: csr_matrix, source: int, size: int) -> np.ndarray:
@@ -106,31 +219,14 @@ def _bfs_steps(graph: csr_matrix, source: int, size: int) -> np.ndarray:
     return steps
 
 
-def _distances(blocked: np.ndarray, goals: np.ndarray, graph: csr_matrix | None = None) -> np.ndarray:
-    h, w = blocked.shape
-    dist = np.empty((goals.shape[0], h, w), dtype=np.int32)
-    if goals.shape[0] == 0:
-        return dist
-    map_graph, recent = _map_entry(blocked)
-    graph = map_graph if graph is None else graph
-    keep = max(16, RECENT_BYTES // (4 * h * w))
-    for k, (r, c) in enumerate(goals):
-        if blocked[r, c]:  # a goal on an obstacle: report nothing as reachable
-            dist[k] = UNREACHABLE
-            continue
-        cell = int(r) * w + int(c)
-        with _LOCK:
-            found = recent.get(cell)
-            if found is not None:
-                recent.move_to_end(cell)
-        if found is None:
-            found = _bfs_steps(graph, cell, h * w)
-            with _LOCK:
-                recent[cell] = found
-                while len(recent) > keep:
-                    recent.popitem(last=False)
-        dist[k] = found.reshape(h, w)  # a copy: callers own what they get
-    return dist
+def _distances(blocked: np.ndarray, goals: np.ndarray, guidance=None) -> np.ndarray:
+    return distance_table(blocked, guidance).many(goals)
+
+
+def guided_distances_many(grid, goals, guidance=None) -> np.ndarray:
+    """(N, H, W) distances to each goal under `guidance` (None: `bfs_distances_many`)."""
+    blocked = _as_grid(grid)
+    return _distances(blocked, _as_goals(goals, blocked.shape), guidance)
 
 
 def bfs_distances(grid, goal) -> np.ndarray:
@@ -159,6 +255,23 @@ def _bits_from_distances(dist: np.ndarray) -> np.ndarray:
     bits[:, :, 1:] |= ((left >= 0) & (left == closer[:, :, 1:])).astype(np.uint8) << 2
     right = dist[:, :, 1:]
     bits[:, :, :-1] |= ((right >= 0) & (right == closer[:, :, :-1])).astype(np.uint8) << 3
+    return bits
+
+
+def _guided_bits(dist: np.ndarray, costs: np.ndarray) -> np.ndarray:
+    """Packed heuristic bits (N, H, W) from guided distances (N, H, W) and step costs (H, W, 5):
+    bit k where moving in direction k costs exactly what it saves (the move is on a least-cost
+    path to the goal)."""
+    n, h, w = dist.shape
+    bits = np.zeros(dist.shape, dtype=np.uint8)
+    pad = np.full((n, h + 2, w + 2), -1.0)
+    pad[:, 1:-1, 1:-1] = dist
+    here = dist
+    for k, (dr, dc) in enumerate(((-1, 0), (1, 0), (0, -1), (0, 1))):
+        there = pad[:, 1 + dr:1 + dr + h, 1 + dc:1 + dc + w]
+        step = costs[None, :, :, k + 1]
+        on_path = (here > 0) & (there >= 0) & np.isfinite(step) & np.isclose(step + there, here)
+        bits |= on_path.astype(np.uint8) << k
     return bits
 
 
@@ -194,7 +307,7 @@ class HeuristicCache:
         if int(max_maps) < 1:
             raise ValueError(f"max_maps must be >= 1, got {max_maps}")
         self.max_maps = int(max_maps)
-        self._maps: OrderedDict[tuple, tuple[csr_matrix, dict, dict]] = OrderedDict()
+        self._maps: OrderedDict[tuple, tuple[dict, dict]] = OrderedDict()
         self.hits = 0
         self.misses = 0
 
@@ -202,36 +315,40 @@ class HeuristicCache:
         self._maps.clear()
         self.hits = self.misses = 0
 
-    def bits(self, grid, goals) -> np.ndarray:
-        """uint8 (N, H, W) packed heuristic bits for each goal of `goals` (N, 2)."""
-        return self._lookup(grid, goals, want_distances=False)
+    def bits(self, grid, goals, guidance=None) -> np.ndarray:
+        """uint8 (N, H, W) packed heuristic bits for each goal of `goals` (N, 2) (`guidance`:
+        a `grid.guidance.Guidance` for the map, None for BFS steps)."""
+        return self._lookup(grid, goals, False, guidance)
 
-    def distances(self, grid, goals) -> np.ndarray:
-        """(N, H, W) `bfs_distances` to each goal of `goals` (N, 2), int16 when every distance
-        of the map fits (else int32); the goals' bits are cached by the same search."""
-        return self._lookup(grid, goals, want_distances=True)
+    def distances(self, grid, goals, guidance=None) -> np.ndarray:
+        """(N, H, W) distances to each goal of `goals` (N, 2): BFS steps as int16 when every
+        distance of the map fits (else int32), guided costs as float32; the goals' bits are
+        cached by the same search."""
+        return self._lookup(grid, goals, True, guidance)
 
-    def _lookup(self, grid, goals, want_distances: bool) -> np.ndarray:
+    def _lookup(self, grid, goals, want_distances: bool, guidance=None) -> np.ndarray:
         blocked = _as_grid(grid)
         goals = _as_goals(goals, blocked.shape)
-        key = (blocked.shape, np.packbits(blocked).tobytes())
+        table = distance_table(blocked, guidance)
+        key = (blocked.shape, np.packbits(blocked).tobytes(),
+               table.guidance.key if table.guided else None)
         entry = self._maps.get(key)
         if entry is None:
-            entry = (_adjacency(blocked), {}, {})
+            entry = ({}, {})
             self._maps[key] = entry
             while len(self._maps) > self.max_maps:
                 self._maps.popitem(last=False)
         else:
             self._maps.move_to_end(key)
-        graph, bits_of, distances_of = entry
+        bits_of, distances_of = entry
         wanted = distances_of if want_distances else bits_of
         goal_keys = [(int(r), int(c)) for r, c in goals]
         missing = sorted({g for g in goal_keys if g not in wanted})
         self.misses += len(missing)
         self.hits += len(goal_keys) - len(missing)
         if missing:
-            dist = _distances(blocked, np.array(missing, dtype=np.int64), graph)
-            computed = _bits_from_distances(dist)
+            dist = table.many(np.array(missing, dtype=np.int64))
+            computed = table.bits(dist)
             if want_distances:
                 dist = compact_distances(dist)
             for k, g in enumerate(missing):
@@ -243,15 +360,17 @@ class HeuristicCache:
         return np.stack([wanted[g] for g in goal_keys]) if goal_keys else \
             np.empty((0, *blocked.shape), np.int32 if want_distances else np.uint8)
 
-    def channels(self, grid, goals) -> np.ndarray:
+    def channels(self, grid, goals, guidance=None) -> np.ndarray:
         """uint8 (N, 4, H, W) heuristic channels for each goal."""
-        return unpack_heuristic_bits(self.bits(grid, goals))
+        return unpack_heuristic_bits(self.bits(grid, goals, guidance))
 
 
 def compact_distances(distances: np.ndarray) -> np.ndarray:
     """`distances` as int16 when every value fits (maps of up to 32,767 free cells always do),
     else int32: the cost-to-go observation keeps one map per agent."""
     distances = np.asarray(distances)
+    if np.issubdtype(distances.dtype, np.floating):  # guided costs
+        return distances.astype(np.float32)
     if distances.size == 0 or int(distances.max()) < np.iinfo(np.int16).max:
         return distances.astype(np.int16)
     return distances.astype(np.int32, copy=False)
@@ -261,13 +380,13 @@ def compact_distances(distances: np.ndarray) -> np.ndarray:
 default_cache = HeuristicCache()
 
 
-def cached_heuristic_bits(grid, goals) -> np.ndarray:
-    return default_cache.bits(grid, goals)
+def cached_heuristic_bits(grid, goals, guidance=None) -> np.ndarray:
+    return default_cache.bits(grid, goals, guidance)
 
 
-def cached_heuristic_channels(grid, goals) -> np.ndarray:
-    return default_cache.channels(grid, goals)
+def cached_heuristic_channels(grid, goals, guidance=None) -> np.ndarray:
+    return default_cache.channels(grid, goals, guidance)
 
 
-def cached_distances(grid, goals) -> np.ndarray:
-    return default_cache.distances(grid, goals)
+def cached_distances(grid, goals, guidance=None) -> np.ndarray:
+    return default_cache.distances(grid, goals, guidance)

@@ -237,15 +237,19 @@ def _check_metadata(meta: Mapping[str, Any], path: str) -> None:
 
 
 def _check_rankings(rankings: Any, fail) -> None:
-    """metadata.rankings: {rule: ranking}, a rule of coordination.pibt.COORDINATED_RULES and a
+    """metadata.rankings: {rule: ranking}, a coordinating rule (`coordination.rules.Rule`) and a
     ranking of coordination.ranking.Q_RANKINGS (a learned policy ranks by its Q-values)."""
-    from mapf_fleet.coordination.pibt import COORDINATED_RULES
     from mapf_fleet.coordination.ranking import Q_RANKINGS
+    from mapf_fleet.coordination.rules import COORDINATED_RULES, Rule
 
     if not isinstance(rankings, Mapping):
         fail("rankings", "a dict {conflict rule: ranking}", rankings)
     for rule, mode in rankings.items():
-        if rule not in COORDINATED_RULES:
+        try:
+            coordinated = Rule.parse(rule).coordinated
+        except ValueError:
+            coordinated = False
+        if not coordinated:
             fail("rankings", f"conflict rules among {COORDINATED_RULES}", rule)
         if mode not in Q_RANKINGS:
             fail(f"rankings.{rule}", f"one of {Q_RANKINGS}", mode)

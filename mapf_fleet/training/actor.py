@@ -131,7 +131,7 @@ class EpisodeWorker:
             env = MAPFEnv(instance, env_cfg)
             obs = env.observe()
         hidden = np.zeros((instance.num_agents, self.hidden_dim), np.float32)
-        from mapf_fleet.coordination.pibt import make_shield
+        from mapf_fleet.coordination.factory import make_shield
 
         shield = make_shield(self.cfg.conflict_rule, instance.grid, instance.goals)
         state = {"env": env, "obs": obs, "hidden": hidden, "shield": shield,

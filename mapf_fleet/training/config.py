@@ -205,11 +205,13 @@ class TrainConfig:
                 raise bad(name, "must be a number >= 0")
         if self.finish_reward not in ("team", "per_agent"):
             raise bad("finish_reward", "must be 'team' or 'per_agent'")
-        from mapf_fleet.coordination.pibt import CONFLICT_RULES
+        from mapf_fleet.coordination.rules import Rule
 
-        if self.conflict_rule not in CONFLICT_RULES:
-            raise bad("conflict_rule", f"must be one of {', '.join(CONFLICT_RULES)}")
-        if self.conflict_rule == "lacam":
+        try:
+            rule = Rule.parse(self.conflict_rule)
+        except ValueError as exc:
+            raise bad("conflict_rule", str(exc)) from None
+        if rule.is_lacam:
             raise bad("conflict_rule", "the planning arbiter executes its plan, not the "
                                        "policy's moves: train under 'pibt' or 'pibt_anchor'")
         if self.replay_action not in ("executed", "preferred"):

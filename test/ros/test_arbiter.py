@@ -9,7 +9,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from mapf_fleet.coordination.pibt import PIBT_RULES, COORDINATED_RULES, PIBTShield, rule_options
+from mapf_fleet.coordination.pibt import PIBTShield
+from mapf_fleet.coordination.rules import COORDINATED_RULES, PIBT_RULES, Rule
 from mapf_fleet.grid.actions import ACTION_DELTAS
 from mapf_fleet.grid.actions import actions_between
 from mapf_fleet.grid.env import resolve_moves
@@ -49,7 +50,7 @@ def test_pibt_rule_is_the_evaluators_shield_tick_after_tick(rule):
     rng = np.random.default_rng(0)
     instance = generate_instance(10, 16, 0.25, 3)
     arbiter = TickArbiter(instance.grid, instance.goals, rule)
-    shield = PIBTShield(instance.grid, instance.goals, **rule_options(rule))
+    shield = PIBTShield(instance.grid, instance.goals, **Rule.parse(rule).pibt_options())
     positions = np.asarray(instance.starts)
     overridden = 0
     for _ in range(30):

@@ -50,7 +50,7 @@ def batched_shielded_rollout(checkpoint: str, instance, max_steps: int, comm=Non
     the episode, the executed actions fed back as DCC's last action. Returns (first choices,
     executed actions, positions, overridden robot ids per step). `rule` (a shield rule) wins
     over `anchor`."""
-    from mapf_fleet.coordination.pibt import make_shield
+    from mapf_fleet.coordination.factory import make_shield
     from mapf_fleet.coordination.ranking import default_ranking, rank_actions, tie_breakers
 
     torch.set_num_threads(1)

@@ -165,16 +165,20 @@ class DaggerConfig:
         self.validate()
 
     def validate(self, source: str = "DaggerConfig") -> None:
-        from mapf_fleet.coordination.pibt import COORDINATED_RULES
+        from mapf_fleet.coordination.rules import Rule
         from mapf_fleet.coordination.ranking import Q_RANKINGS
         from mapf_fleet.grid.env import OBSERVATIONS
 
         def bad(name: str, why: str) -> DaggerConfigError:
             return DaggerConfigError(f"{source}: field {name!r} = {getattr(self, name)!r}: {why}")
 
-        if self.conflict_rule not in COORDINATED_RULES:
-            raise bad("conflict_rule", f"must be one of {COORDINATED_RULES}")
-        if self.conflict_rule == "lacam":
+        try:
+            rule = Rule.parse(self.conflict_rule)
+        except ValueError as exc:
+            raise bad("conflict_rule", str(exc)) from None
+        if not rule.coordinated:
+            raise bad("conflict_rule", "DAgger rolls out under a coordinating rule, not 'revert'")
+        if rule.is_lacam:
             raise bad("conflict_rule", "the planning arbiter executes its plan, not the policy's "
                                        "moves: roll out under a PIBT rule such as 'pibt_anchor'")
         from .labeller import LABELLERS

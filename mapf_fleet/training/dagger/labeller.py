@@ -130,7 +130,7 @@ class CommittedLabeller:
         self.replans = 0  # re-plans since construction (the ceiling reports them per episode)
 
     def label(self, state: LabelState) -> Labels:
-        from mapf_fleet.coordination.plan import CommittedExpert
+        from .expert import CommittedExpert
 
         if self.expert is None or state.step == 0 or state.grid is not self._grid:
             self.expert = CommittedExpert(state.grid, state.goals,

@@ -36,7 +36,7 @@ def play_episode(model, instance, max_steps: int, conflict_rule: str, ranking: s
     ceiling; `labels_executed` counts the labels the rule let through unchanged). `shadow`: a
     second labeller labelling the same states (another seed); the agents both label count in
     `agree_pairs`, those labelled alike in `agree`."""
-    from mapf_fleet.coordination.pibt import make_shield
+    from mapf_fleet.coordination.factory import make_shield
     from mapf_fleet.coordination.ranking import rank_actions, tie_breakers
     from mapf_fleet.grid.env import EnvConfig, MAPFEnv
     from mapf_fleet.grid.heuristic import bfs_distances_many

@@ -1,0 +1,135 @@
+"""The conflict rules, as values: the bottom of the coordination layer (standard library only).
+
+A conflict rule says what stands between the robots' ranked moves and the moves commanded:
+
+  revert        the paper's environment: conflicting moves are reverted, no coordination layer
+  pibt[_anchor|_patient][_swap][_hindrance]
+                PIBT over the rankings (`pibt.PIBTShield`), with its options in that order:
+                anchor (the top agent follows its distance order), patient (an anchor that waits
+                `ANCHOR_PATIENCE` ticks), swap (lacam3's corridor swap), hindrance (equally short
+                moves ordered by the neighbours they block); docs/coordination.md
+  lacam         the planning arbiter: a kept LaCAM plan, the anchored PIBT step with swap as its
+                fallback (`plan.PlanKeeper`)
+
+A rule name enters the project at its boundaries (the CLI, a ROS parameter, a config file, a
+checkpoint's metadata) and is parsed there, once, by `Rule.parse`: the one place that knows the
+spelling and the one refusal message. Everything below the boundary passes the `Rule` value.
+`Rule.default_ranking` is the ranking a learned policy uses under the rule when neither the user
+nor the checkpoint names one (derived from the rule's options: see the property).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+# The options a PIBT rule's name may add to "pibt", in the order they appear in it
+RULE_OPTIONS = ("anchor", "swap", "hindrance")
+REVERT = "revert"
+LACAM = "lacam"
+# Every PIBT rule: the original four first, then hindrance, then the patient anchor
+PIBT_RULES = ("pibt", "pibt_anchor", "pibt_swap", "pibt_anchor_swap", "pibt_hindrance",
+              "pibt_anchor_hindrance", "pibt_swap_hindrance", "pibt_anchor_swap_hindrance",
+              "pibt_patient", "pibt_patient_swap", "pibt_patient_hindrance",
+              "pibt_patient_swap_hindrance")
+COORDINATED_RULES = (*PIBT_RULES, LACAM)
+CONFLICT_RULES = (*COORDINATED_RULES, REVERT)
+# The fleet's rule: what `mapf-fleet up` runs and `evaluate` measures by default
+FLEET_RULE = "pibt_anchor_swap"
+# `patient`: the anchor waits until the top agent has gone this many ticks without getting closer
+# to its goal than before; a plan or a policy may keep it waiting that long and it still reaches
+# its goal within (patience + 1) x its distance ticks (docs/coordination.md; the value was chosen
+# by the expert ceiling, docs/results.md)
+ANCHOR_PATIENCE = 32
+# The learned rankings a rule picks by default (`Rule.default_ranking`; chosen by measurement,
+# docs/results.md, "Which ranking under which rule")
+ANCHORED_RANKING = "confidence"
+UNANCHORED_RANKING = "q"
+
+
+@dataclass(frozen=True)
+class Rule:
+    """One conflict rule. Build it with `Rule.parse(name)`; `str(rule)` is its name."""
+
+    name: str
+    kind: str  # "revert", "pibt" or "lacam"
+    anchor: bool = False
+    swap: bool = False
+    hindrance: bool = False
+    patient: bool = False
+
+    @classmethod
+    def parse(cls, value: "Rule | str", what: str = "conflict rule") -> "Rule":
+        """The rule named `value` (a `Rule` passes through); ValueError naming `what` and the
+        value otherwise. The only place a rule's spelling is read."""
+        if isinstance(value, Rule):
+            return value
+        if not isinstance(value, str) or value not in CONFLICT_RULES:
+            raise ValueError(f"{what} must be one of {', '.join(CONFLICT_RULES)}; got {value!r}")
+        if value in (REVERT, LACAM):
+            return cls(value, value)
+        parts = value.split("_")[1:]
+        patient = "patient" in parts
+        return cls(value, "pibt", anchor="anchor" in parts or patient, swap="swap" in parts,
+                   hindrance="hindrance" in parts, patient=patient)
+
+    @classmethod
+    def pibt(cls, anchor: bool = False, swap: bool = False, hindrance: bool = False,
+             patient: bool = False) -> "Rule":
+        """The PIBT rule with these options."""
+        flags = {"anchor": anchor and not patient, "swap": swap, "hindrance": hindrance}
+        names = [o for o in RULE_OPTIONS if flags[o]]
+        return cls.parse("_".join(["pibt", *(["patient"] if patient else []), *names]))
+
+    def __str__(self) -> str:
+        return self.name
+
+    @property
+    def coordinated(self) -> bool:
+        """A coordination layer commands the moves (every rule but `revert`)."""
+        return self.kind != REVERT
+
+    @property
+    def is_pibt(self) -> bool:
+        return self.kind == "pibt"
+
+    @property
+    def is_lacam(self) -> bool:
+        return self.kind == LACAM
+
+    def pibt_options(self) -> dict[str, bool]:
+        """{"anchor", "swap", "hindrance", "patient"}: `PIBTShield`'s keyword options."""
+        if not self.is_pibt:
+            raise ValueError(f"{self.name!r} is not a PIBT rule")
+        return {"anchor": self.anchor, "swap": self.swap, "hindrance": self.hindrance,
+                "patient": self.patient}
+
+    @property
+    def ranking_rule(self) -> "Rule":
+        """The rule whose rankings this rule's robots submit: itself for a PIBT rule; for the
+        planning arbiter its fallback step's anchored rule (it ranks LaCAM's root step and its
+        fallback by the robots' rankings)."""
+        return Rule.parse("pibt_anchor") if self.is_lacam else self
+
+    @property
+    def base(self) -> "Rule":
+        """The rule without swap and hindrance: what a checkpoint's recorded ranking was stored
+        under for a swap or hindrance variant (the same arbiter for the ranking's purpose)."""
+        rule = self.ranking_rule
+        return Rule.pibt(anchor=rule.anchor) if rule.is_pibt else rule
+
+    @property
+    def default_ranking(self) -> str:
+        """`confidence` where the top agent is anchored (the network overrides the distance
+        order only where it is sure, so the anchor's order and the policy's rarely fight), `q`
+        otherwise; the planning arbiter takes its fallback rule's."""
+        rule = self.ranking_rule
+        return ANCHORED_RANKING if rule.anchor else UNANCHORED_RANKING
+
+
+def parse_rules(values, what: str = "conflict rule") -> list[Rule]:
+    """`Rule.parse` of each value (a CLI's list of rule names)."""
+    return [Rule.parse(v, what) for v in values]
+
+
+__all__ = ["Rule", "parse_rules", "CONFLICT_RULES", "COORDINATED_RULES", "PIBT_RULES", "REVERT",
+           "LACAM", "FLEET_RULE", "ANCHOR_PATIENCE", "RULE_OPTIONS"]
