@@ -207,6 +207,11 @@ class FleetRun:
         self._requests[robot] = (None, source, goal_id or current)
         return GoalEvent(self.tick, robot, "accepted", None, source, goal_id or current)
 
+    def has_goal(self, robot: int) -> bool:
+        """Whether `robot` has a goal now, or one requested for the next tick (a cancel: no)."""
+        asked = self._requests.get(int(robot))
+        return bool(self.active[int(robot)]) if asked is None else asked[0] is not None
+
     def submit_task(self, task: Task) -> GoalEvent:
         """Queue a task (for its robot, or the nearest idle robot); checked now."""
         return self.submit_tasks([task])[0]

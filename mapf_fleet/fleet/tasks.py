@@ -271,7 +271,7 @@ def yaml_error_text(where, exc) -> str:
     return f"{at}: not valid YAML: {problem}" + (f" ({context})" if context else "")
 
 
-def _entry_lines(text: str) -> list[int]:
+def entry_lines(text: str) -> list[int]:
     """The 1-based line of each task of a task file's text ([] when it has no task list)."""
     import yaml
 
@@ -377,7 +377,7 @@ def load_task_file(path: str, *, num_robots: int | None = None, cell_of=None, gr
         if "tasks" not in data:
             raise TaskFileError(f"{path}: missing field 'tasks' (a list of tasks)")
         data = data["tasks"]
-    lines = _entry_lines(text)
+    lines = entry_lines(text)
     tasks = []
     for k, entry in enumerate(data if isinstance(data, list) else [data]):
         where = f"{path}:{lines[k]}" if k < len(lines) else str(path)

@@ -6,11 +6,13 @@ send_goal` and no `ros2 topic pub`).
     mapf-fleet goal 3 --cell 5 7 --topic         # publish on /robot_3/goal_pose (RViz's way)
     mapf-fleet goal any --cell 5 7               # the nearest idle robot (fleet/submit_tasks)
     mapf-fleet goal --tasks tasks.yaml           # many goals / pickup-dropoff tasks at once
-    mapf-fleet goal 3 --cancel                   # hold robot 3 on its cell (cancels its
-                                                 # robot_3/navigate_to_pose goals)
+    mapf-fleet goal 3 --cancel                   # hold robot 3 on its cell: cancels its goal
+                                                 # however it was given (fleet/cancel_goal)
 
-Exit codes: 0 accepted (with --wait: reached), 1 aborted or cancelled (--wait), 2 rejected (the
-reason printed, from fleet/goal_events) or bad input, 3 no fleet answered within --timeout.
+Exit codes: 0 accepted (with --wait: reached; --cancel: cancelled), 1 aborted or cancelled
+(--wait; --cancel: the robot had no goal), 2 rejected (the reason printed, from
+fleet/goal_events) or bad input, 3 no fleet answered within --timeout. A task file is queued
+whole or not at all: one bad task (named by file, line and index) and none is queued.
 A cell is turned into metres with the fleet's own map (`/fleet/map`: resolution and origin).
 """
 
@@ -186,9 +188,7 @@ class GoalClient:
         _wait_for(lambda: self.events_sub.get_publisher_count() > 0, min(args.timeout, 5.0),
                   signals)
         if args.tasks:
-            from pathlib import Path
-
-            return self._submit(Path(args.tasks).read_text(), signals)
+            return self._submit_file(args.tasks, signals)
         if args.robot == "any":
             pose = self._pose(signals) if args.cell is None else None
             goal = ({"goal": list(args.cell)} if args.cell is not None
@@ -197,6 +197,8 @@ class GoalClient:
 
             return self._submit(json.dumps([goal]), signals)
         robot = int(args.robot)
+        if args.cancel:  # the fleet checks the robot id itself, at once
+            return self._cancel(robot, signals)
         # the fleet's state names its robots (a tick, or every few seconds when idle): an id
         # past them is refused at once instead of after --timeout
         self._wait(lambda: self.robots is not None, min(args.timeout, STATE_WAIT_S), signals)
@@ -204,8 +206,6 @@ class GoalClient:
             print(f"mapf-fleet goal: robot {robot}: the fleet has {self.robots} robots "
                   f"(0..{self.robots - 1})", file=sys.stderr)
             return 2
-        if args.cancel:
-            return self._cancel(robot, signals)
         pose = self._pose(signals)
         if pose is None:
             print(f"mapf-fleet goal: no fleet map on {common.MAP_TOPIC} within {args.timeout} s "
@@ -292,33 +292,49 @@ class GoalClient:
         return 1
 
     def _cancel(self, robot, signals) -> int:
-        # cancelling every goal of the robot's action server holds it where it is
-        from action_msgs.srv import CancelGoal
+        # the fleet's own service, whatever gave the goal (fleet or per-robot action, goal_pose,
+        # a task, the task source) and whatever the fleet's size (no per-robot server needed)
+        from mapf_fleet_interfaces.srv import CancelRobotGoal
 
-        from mapf_fleet.ros.goals import navigate_action
+        from mapf_fleet.ros.goals import CANCEL_GOAL_SERVICE
 
-        client = self.node.create_client(
-            CancelGoal, common.rel(navigate_action(robot)) + "/_action/cancel_goal")
+        client = self.node.create_client(CancelRobotGoal, common.rel(CANCEL_GOAL_SERVICE))
         if not client.wait_for_service(timeout_sec=self.args.timeout):
-            print(f"mapf-fleet goal: no action server {navigate_action(robot)} within "
-                  f"{self.args.timeout:g} s (fleets of 256+ robots serve none unless started "
-                  f"with -p robot_actions:=true; a new goal replaces the robot's goal)",
+            print(f"mapf-fleet goal: no service {CANCEL_GOAL_SERVICE} within "
+                  f"{self.args.timeout:g} s (is the fleet up, in this namespace?)",
                   file=sys.stderr)
             return 3
-        future = _ask(lambda: client.call_async(CancelGoal.Request()), self.args.timeout,
-                      signals)
+        # a cancel asked twice is harmless: the second finds the robot idle, so only the first
+        # answer counts and a lost reply is asked again
+        future = _ask(lambda: client.call_async(CancelRobotGoal.Request(robot_id=robot)),
+                      self.args.timeout, signals)
         if future is None:
-            print("mapf-fleet goal: the cancel was not answered", file=sys.stderr)
+            print(f"mapf-fleet goal: {CANCEL_GOAL_SERVICE} did not answer within "
+                  f"{self.args.timeout:g} s", file=sys.stderr)
             return 3
-        cancelled = len(future.result().goals_canceling)
-        if cancelled:
-            print(f"robot {robot}: cancelling {cancelled} goal(s): it holds its cell")
+        res = future.result()
+        if res.cancelled:
+            print(f"robot {robot}: goal {res.goal_id} cancelled: it holds its cell")
             return 0
-        print(f"robot {robot}: no navigate_to_pose goal to cancel (goals from goal_pose or "
-              f"tasks are replaced by sending a new goal)")
-        return 1
+        print(f"robot {robot}: nothing to cancel: {res.reason}")
+        return 1 if "no goal" in res.reason else 2
 
-    def _submit(self, text: str, signals) -> int:
+    def _submit_file(self, path: str, signals) -> int:
+        """A task file: checked here first (YAML, fields: errors name the file, its line and the
+        task's index), then sent whole; the fleet's rejections are named the same way."""
+        from mapf_fleet.fleet.tasks import TaskFileError, entry_lines, load_task_file
+
+        try:
+            load_task_file(path)
+            text = open(path, encoding="utf-8").read()
+        except (TaskFileError, OSError, UnicodeDecodeError) as exc:
+            print(f"mapf-fleet goal: {exc}", file=sys.stderr)
+            return 2
+        lines = entry_lines(text)
+        return self._submit(text, signals, lambda k: f"{path}:{lines[k]}: task {k}"
+                            if k < len(lines) else f"{path}: task {k}")
+
+    def _submit(self, text: str, signals, name=lambda k: f"task {k}") -> int:
         from mapf_fleet_interfaces.srv import SubmitTasks
 
         from mapf_fleet.ros.goals import SUBMIT_TASKS_SERVICE
@@ -345,20 +361,28 @@ class GoalClient:
                   f"{self.args.timeout:g} s", file=sys.stderr)
             return 3
         res = future.result()
+        if not res.accepted:  # all or nothing: the bad tasks with their reasons, nothing queued
+            for k, reason in enumerate(res.reasons):
+                if res.events[k] == "rejected" and not reason.startswith("not queued"):
+                    print(f"{name(k)}" + (f" ({res.task_ids[k]})" if k < len(res.task_ids)
+                                          else "") + f": rejected: {reason}", file=sys.stderr)
+            count = len(res.events)
+            print(f"mapf-fleet goal: nothing queued ({count} task{'s' if count != 1 else ''} "
+                  f"sent, queued whole or not at all): fix the task named and send again",
+                  file=sys.stderr)
+            return 2
         queued = []
         for k, event in enumerate(res.events):
             ident = res.task_ids[k] if k < len(res.task_ids) else str(k)
-            reason = res.reasons[k] if k < len(res.reasons) else ""
-            print(f"task {ident}: {event}" + (f": {reason}" if reason else ""), flush=True)
-            if event == "queued":
-                queued.append(ident)
+            print(f"{name(k)} ({ident}): {event}", flush=True)
+            queued.append(ident)
         if queued and self.args.robot == "any":  # say which robot took it (next tick or two)
             taken = lambda: [e for e in self.events[since:]  # noqa: E731
                              if e.event == "assigned" and e.goal_id.split("/")[0] in queued]
             self._wait(lambda: bool(taken()), 3.0, signals)
             for e in taken():
                 print(f"task {e.goal_id.split('/')[0]}: assigned to robot {e.robot_id}")
-        return 0 if res.accepted else 2
+        return 0
 
 
 def _ask(send, timeout: float, signals, stop=lambda: False, attempts: int = 4):

@@ -13,7 +13,11 @@ simulator, or the real-robot aggregator) and what ROS users send goals with.
 - the fleet's action `fleet/navigate_to_pose` (`NavigateRobotToPose`): the same with the robot
   named in the goal, one server whatever the fleet's size;
 - `fleet/submit_tasks` (`SubmitTasks.srv`): many goals or pick-up/drop-off tasks at once, for a
-  named robot or the nearest idle one (the task file format, `fleet.tasks.parse_tasks`);
+  named robot or the nearest idle one (the task file format, `fleet.tasks.parse_tasks`), queued
+  whole or not at all;
+- `fleet/cancel_goal` (`CancelRobotGoal.srv`): a robot's goal cancelled however it was given (an
+  action's, a goal_pose, a task, the task source's): it holds its cell; one service whatever the
+  fleet's size;
 - `fleet/goal_events` (`GoalEvent`): every goal change, with the reason of each rejection.
 
 A request is checked at once (`FleetRun.goal_problem`: robot, map, obstacle, reachability,
@@ -34,7 +38,7 @@ import time
 from geometry_msgs.msg import PoseStamped
 from mapf_fleet_interfaces.action import NavigateRobotToPose, NavigateToPose
 from mapf_fleet_interfaces.msg import GoalEvent as GoalEventMsg
-from mapf_fleet_interfaces.srv import SubmitTasks
+from mapf_fleet_interfaces.srv import CancelRobotGoal, SubmitTasks
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.node import Node
 from rclpy.task import Future
@@ -45,6 +49,7 @@ from mapf_fleet.ros import common
 
 GOAL_EVENTS_TOPIC = common.GOAL_EVENTS_TOPIC
 SUBMIT_TASKS_SERVICE = "/fleet/submit_tasks"
+CANCEL_GOAL_SERVICE = "/fleet/cancel_goal"  # CancelRobotGoal: any robot's goal, however given
 FLEET_NAVIGATE_ACTION = "/fleet/navigate_to_pose"  # NavigateRobotToPose: the robot in the goal
 ACCEPTED_FRAMES = ("", common.FRAME_ID)  # an empty frame is read as the map frame (RViz sets it)
 
@@ -133,6 +138,8 @@ class GoalServer:
                                      cancel_callback=lambda h, i=i: self._on_cancel(i, h))
                         for i in range(n if robot_actions else 0)]
         self.node.create_service(SubmitTasks, common.rel(SUBMIT_TASKS_SERVICE), self._on_submit)
+        self.node.create_service(CancelRobotGoal, common.rel(CANCEL_GOAL_SERVICE),
+                                 self._on_cancel_robot)
 
     def bind(self, run) -> None:
         self.run = run
@@ -211,6 +218,26 @@ class GoalServer:
         self.on_request()
         return CancelResponse.ACCEPT
 
+    def _on_cancel_robot(self, request, response):
+        robot = int(request.robot_id)
+        if self.run is None:
+            response.reason = self.NOT_STARTED
+            return response
+        with self.lock:
+            run = self.run
+            if not 0 <= robot < run.num_robots:
+                response.reason = f"unknown robot {robot} (robots 0..{run.num_robots - 1})"
+                return response
+            if run.has_goal(robot):
+                event = run.cancel(robot, "", "cancel_goal")
+                response.cancelled, response.goal_id = True, event.goal_id
+            else:
+                response.reason = f"robot {robot} has no goal to cancel: it is idle"
+        if response.cancelled:
+            self.node.get_logger().info(f"robot {robot}: goal {response.goal_id} cancelled")
+            self.on_request()
+        return response
+
     def _on_submit(self, request, response):
         import yaml
 
@@ -223,27 +250,31 @@ class GoalServer:
             tasks = parse_tasks(entries, "submit_tasks", num_robots=self.run.num_robots,
                                 cell_of=self.geometry.xy_to_cell, source="submit_tasks",
                                 first_id=self._submitted)
-            self._submitted += len(tasks)  # ids of tasks without one stay unique in the run
         except (yaml.YAMLError, TaskFileError) as exc:
-            text = str(exc).splitlines()[0]
+            from mapf_fleet.fleet.tasks import yaml_error_text
+
+            text = (yaml_error_text("submit_tasks", exc) if isinstance(exc, yaml.YAMLError)
+                    else str(exc).splitlines()[0])
             self.node.get_logger().error(f"submit_tasks rejected: {text}")
             response.accepted = False
             response.reasons = [text]
             response.events = ["rejected"]
             return response
-        with self.lock:
-            stamp = self.run.tick
-            events = [self.run.submit_task(t) for t in tasks]
-        for t, e in zip(tasks, events):
-            response.task_ids.append(t.task_id if t.task_id else f"submit-{stamp}")
+        with self.lock:  # all or nothing: a resent request does not queue its good tasks twice
+            events = self.run.submit_tasks(tasks)
+        response.accepted = all(e.event == "queued" for e in events)
+        if response.accepted:
+            self._submitted += len(tasks)  # ids of tasks without one stay unique in the run
+        for k, (t, e) in enumerate(zip(tasks, events)):
+            response.task_ids.append(t.task_id)
             response.events.append(e.event)
             response.reasons.append(e.reason)
-            if e.event == "rejected":
+            if e.event == "rejected" and not e.reason.startswith("not queued"):
                 self._log_rejection(t.robot if t.robot is not None else "any",
-                                    f"task {t.task_id}: {e.reason}")
+                                    f"submit_tasks: task {k} ({t.task_id}): {e.reason}")
         self.publish(events)  # queued / rejected; assignments follow at the tick boundary
-        response.accepted = all(e.event != "rejected" for e in events)
-        self.on_request()
+        if response.accepted:
+            self.on_request()
         return response
 
     # ---- from the tick thread --------------------------------------------------------------------
@@ -255,8 +286,7 @@ class GoalServer:
         """After a tick (and after `apply_requests`): publish the goal events, end the action
         goals they end, and send every running action goal its feedback."""
         if tick_seconds:
-            self._tick_seconds = (tick_seconds if not self._tick_seconds
-                                  else 0.9 * self._tick_seconds + 0.1 * tick_seconds)
+            self._tick_seconds = smoothed_tick_seconds(self._tick_seconds, tick_seconds)
         self.publish(events)
         ends = {"reached": "reached", "preempted": "aborted", "aborted": "aborted",
                 "cancelled": "cancelled", "rejected": "aborted"}
@@ -299,7 +329,10 @@ class GoalServer:
             goal.handle.succeed()
         elif how == "cancelled":
             result.error_code = goal.action.Result.CANCELED
-            goal.handle.canceled()
+            if goal.handle.is_cancel_requested:
+                goal.handle.canceled()
+            else:  # cancelled through fleet/cancel_goal: the action's own cancel was not asked
+                goal.handle.abort()  # (EXECUTING -> CANCELED is no legal transition)
         else:
             result.error_code = goal.action.Result.ABORTED
             goal.handle.abort()
@@ -310,6 +343,16 @@ class GoalServer:
         for goal_id in list(self._goals):
             self._finish(goal_id, "aborted", reason)
         self._guard.trigger()
+
+
+def smoothed_tick_seconds(mean: float, seconds: float) -> float:
+    """The seconds per tick the estimated time uses, after a tick of `seconds`: a running mean
+    that jumps to the new value when a tick is off it by more than half (a `param set
+    tick_period`, a fleet that slowed down), so the estimate follows a new pace at once instead
+    of converging over dozens of ticks."""
+    if not mean or not mean / 1.5 <= seconds <= mean * 1.5:
+        return float(seconds)
+    return 0.8 * mean + 0.2 * seconds
 
 
 def _duration(seconds: float):
