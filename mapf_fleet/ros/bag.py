@@ -17,6 +17,13 @@ rosbags' ROS 2 Jazzy typestore from their .msg files, so the bag carries their d
 RIHS01 hashes. The bag is a rosbag2 of metadata version 9 (Jazzy), readable by `ros2 bag info`,
 `ros2 bag play` and `rosbags.rosbag2.Reader`.
 
+The bag survives a kill: rosbags' MCAP writer keeps its current chunk in memory until it holds
+1 MiB (it has no chunk-size or flush option), so the recorder closes the chunk and flushes the
+file after each fleet state (one per tick), after the outcome, and at least every
+FLUSH_PERIOD_S: a killed recorder (even `kill -9`) loses at most the messages of the tick in
+flight. Such a bag lacks its MCAP summary and metadata.yaml; `mapf-fleet render --run` reads
+it anyway (`view.bag_salvage`) and says so.
+
 SIGINT or SIGTERM (or `--duration`) stops it: it closes the bag (metadata.yaml written) and
 exits 0. The fleet launcher starts it as a child process with `recorder_command(bag_dir)` and
 stops it with `stop_recorder(proc)`.
@@ -61,6 +68,7 @@ READY_PREFIX = "mapf-fleet record: recording to"
 OUTCOME_PREFIX = "mapf-fleet record: outcome recorded"  # printed once, on the first outcome
 RECORDER_NODE = "mapf_fleet_recorder"  # the simulator waits for its state subscription
 DISCOVERY_PERIOD_S = 0.25
+FLUSH_PERIOD_S = 1.0  # longest time a received message stays in memory only
 
 
 class RecordError(RuntimeError):
@@ -150,6 +158,9 @@ class BagRecorder:
             raise RecordError(f"cannot create the bag {self.bag_dir}: {exc}") from None
         self._lock = threading.Lock()
         self._closed = False
+        self._flushed = time.monotonic()
+        self._flush_on = (common.in_namespace(common.STATE_TOPIC, namespace),
+                          common.in_namespace(common.OUTCOME_TOPIC, namespace))
         self._subscriptions = {}  # topic -> (connection, subscription)
         self._skipped: set[str] = set()
         self.counts: dict[str, int] = {}
@@ -161,7 +172,24 @@ class BagRecorder:
         for name, type_name in wanted.items():
             self._subscribe(name, type_name, node.get_publishers_info_by_topic(name))
         self.discover()
-        self._timer = node.create_timer(DISCOVERY_PERIOD_S, self.discover)
+        self._timer = node.create_timer(DISCOVERY_PERIOD_S, self._on_timer)
+
+    def _on_timer(self):
+        self.discover()
+        with self._lock:
+            if not self._closed and time.monotonic() - self._flushed >= FLUSH_PERIOD_S:
+                self._flush()
+
+    def _flush(self):
+        """Write the pending chunk to the file (the lock held): what a kill would lose."""
+        storage = self.writer.storage
+        chunk = getattr(storage, "chunk", None)
+        if chunk is not None and chunk.bio.tell():
+            storage.close_chunk()
+        bio = getattr(storage, "bio", None)
+        if bio is not None:
+            bio.flush()
+        self._flushed = time.monotonic()
 
     def wanted(self, topic: str) -> bool:
         return bool(self.pattern.fullmatch(topic)) if self.topics is None else topic in self.topics
@@ -206,6 +234,9 @@ class BagRecorder:
             self.counts[connection.topic] += 1
             first_outcome = (connection.topic.endswith(common.OUTCOME_TOPIC)
                              and self.counts[connection.topic] == 1)
+            if connection.topic in self._flush_on \
+                    or time.monotonic() - self._flushed >= FLUSH_PERIOD_S:
+                self._flush()  # a tick's state ends the tick: its messages reach the file
         if first_outcome and self.announce:
             print(f"{OUTCOME_PREFIX} on {connection.topic}", flush=True)
 

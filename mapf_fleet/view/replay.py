@@ -13,7 +13,9 @@ RUN is either
 - a rosbag2 directory (or its .mcap file) holding /fleet/map and /fleet/state (`mapf-fleet
   record`, `up --bag`): map, cells and goals of every tick, read with the bag's own message
   definitions (rosbags' AnyReader), so bags of older message versions still read. A bag with
-  several runs: the last one, or --episode.
+  several runs: the last one, or --episode. A bag whose recorder was killed (no metadata.yaml)
+  is read up to its last complete tick (`view.bag_salvage`), and a bag that ends without the
+  run's outcome (/fleet/outcome) is rendered as far as it goes, with a line saying so.
 
 Frames: `evaluation.render.draw_frames` (as `render --checkpoint`'s episodes), with the paths
 taken, the goals as they change, and per frame the robots on goal, the goals reached and the
@@ -27,7 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -48,6 +50,7 @@ class RecordedRun:
     reached: list | None      # per frame: the fleet's goals reached so far (None: not recorded)
     episode: int
     label: str
+    notes: list = field(default_factory=list)  # what the reader had to say (one line each)
 
 
 # ---- the JSON record ----------------------------------------------------------------------------
@@ -153,24 +156,45 @@ def load_bag(path, namespace: str = "", episode: int | None = None) -> RecordedR
 
     from mapf_fleet.fleet import topics as names
 
+    from mapf_fleet.view import bag_salvage
+
     path = Path(path)
     bag_dir = path.parent if path.suffix == ".mcap" else path
     topics = {name: names.in_namespace(name, namespace) for name in (
-        names.MAP_TOPIC, names.STATE_TOPIC, names.PROGRESS_TOPIC)}
-    maps, states, progress = [], {}, {}
+        names.MAP_TOPIC, names.STATE_TOPIC, names.PROGRESS_TOPIC, names.OUTCOME_TOPIC)}
+    maps, states, progress, outcomes, notes = [], {}, {}, set(), []
+
+    def take(topic, stamp, msg):
+        if topic == topics[names.MAP_TOPIC]:
+            maps.append((stamp, msg))
+        elif topic == topics[names.STATE_TOPIC]:
+            states.setdefault(int(msg.episode), {})[int(msg.tick)] = (stamp, msg)
+        elif topic == topics[names.PROGRESS_TOPIC]:
+            progress.setdefault(int(msg.episode), {})[int(msg.tick)] = int(msg.goals_reached)
+        elif topic == topics[names.OUTCOME_TOPIC]:
+            outcomes.add(int(msg.episode))
+
+    unfinished = bag_dir.is_dir() and not (bag_dir / "metadata.yaml").exists()
     try:
-        with AnyReader([bag_dir], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
-            wanted = [c for c in reader.connections if c.topic in topics.values()]
-            # none wanted (another namespace): read nothing (no connections means all of them)
-            for connection, stamp, raw in (reader.messages(connections=wanted) if wanted
-                                           else ()):
-                msg = reader.deserialize(raw, connection.msgtype)
-                if connection.topic == topics[names.MAP_TOPIC]:
-                    maps.append((stamp, msg))
-                elif connection.topic == topics[names.STATE_TOPIC]:
-                    states.setdefault(int(msg.episode), {})[int(msg.tick)] = (stamp, msg)
-                elif hasattr(msg, "goals_reached"):
-                    progress.setdefault(int(msg.episode), {})[int(msg.tick)] = int(msg.goals_reached)
+        if unfinished:  # the recorder was killed: its complete chunks (one per tick)
+            mcap = path if path.suffix == ".mcap" else bag_salvage.mcap_file(bag_dir)
+            if mcap is None:
+                raise RunFileError(f"{path}: no metadata.yaml and no .mcap file: not a rosbag2")
+            for topic, stamp, msg in bag_salvage.decoded_messages(mcap):
+                if topic in topics.values():
+                    take(topic, stamp, msg)
+            notes.append(f"{path}: the bag was not closed (no metadata.yaml: its recorder was "
+                         f"killed); read up to its last complete tick")
+        else:
+            with AnyReader([bag_dir],
+                           default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
+                wanted = [c for c in reader.connections if c.topic in topics.values()]
+                # none wanted (another namespace): read nothing (no connections means all)
+                for connection, stamp, raw in (reader.messages(connections=wanted) if wanted
+                                               else ()):
+                    take(connection.topic, stamp, reader.deserialize(raw, connection.msgtype))
+    except bag_salvage.SalvageError as exc:
+        raise RunFileError(str(exc)) from None
     except (ReaderError, FileNotFoundError, OSError) as exc:
         raise RunFileError(f"{path}: not a readable rosbag2 ({exc})") from None
     if not states:
@@ -201,7 +225,11 @@ def load_bag(path, namespace: str = "", episode: int | None = None) -> RecordedR
             last = progress[episode].get(t, last)
             counts.append(last)
         reached = counts
-    return RecordedRun(grid, ticks, positions, goals, reached, episode, bag_dir.name)
+    if episode not in outcomes:
+        notes.append(f"{path}: the bag ends at tick {ticks[-1]} without the run's outcome "
+                     f"({topics[names.OUTCOME_TOPIC]}): the fleet or its recorder was stopped "
+                     f"before the run ended; rendering the ticks recorded")
+    return RecordedRun(grid, ticks, positions, goals, reached, episode, bag_dir.name, notes)
 
 
 def load_run(path, instance_options: dict, namespace: str = "",
@@ -269,6 +297,8 @@ def render_run(argv: list[str]) -> int:
     except (RunFileError, ValueError) as exc:
         print(f"mapf-fleet render: {exc}", file=sys.stderr)
         return 2
+    for note in run.notes:
+        print(f"mapf-fleet render: {note}", file=sys.stderr, flush=True)
     frames = draw_frames(run.grid, run.goals, run.positions, np.zeros((0, run.positions.shape[1]), bool),
                          f"{run.label} ticks {run.ticks[0]}-{run.ticks[-1]}",
                          trails=not args.no_paths, captions=captions(run))
