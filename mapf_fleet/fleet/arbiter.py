@@ -9,12 +9,12 @@ Rules (`CONFLICT_RULES`):
   pibt_anchor  the same, with the highest-priority robot on its distance order whatever it
           ranked (`PIBTShield(anchor=True)`; measured in docs/results.md).
   pibt[_anchor]_swap, pibt[_anchor][_swap]_hindrance  the same with lacam3's swap in
-          corridors and/or the hindrance tie-break (`coordination.pibt.rule_options`; every
+          corridors and/or the hindrance tie-break (`coordination.rules.Rule`; every
           guarantee below holds for each).
   lacam   the planning arbiter (`coordination.plan.PlanKeeper`): a kept LaCAM plan whose root
           step ranks each robot's moves by its ranking, re-planned when something leaves it,
           `planning_budget` seconds per re-plan (successors with swap, restarts for long
-          first plans: `coordination.pibt.LACAM_OPTIONS`); a tick without a plan is
+          first plans: `coordination.plan.ARBITER`); a tick without a plan is
           pibt_anchor_swap's step.
   revert  the paper's environment: `grid.env.resolve_moves` on the first choices (a conflicting
           move is reverted to "stay").
@@ -33,18 +33,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mapf_fleet.coordination.pibt import CONFLICT_RULES, make_shield
+from mapf_fleet.coordination.factory import make_shield
+from mapf_fleet.coordination.rules import CONFLICT_RULES, FLEET_RULE, Rule
 from mapf_fleet.grid.actions import NUM_ACTIONS, STAY, actions_between
 
 # The fleet's default: of the PIBT variants, the one that led on every family measured, one-shot
 # and lifelong, with the heuristic and with the learned default (docs/results.md, PIBT variants)
-DEFAULT_CONFLICT_RULE = "pibt_anchor_swap"
+DEFAULT_CONFLICT_RULE = FLEET_RULE
 
 
 def check_conflict_rule(rule: str) -> str:
-    if rule not in CONFLICT_RULES:
-        raise ValueError(f"conflict_rule must be one of {CONFLICT_RULES}, got {rule!r}")
-    return rule
+    return Rule.parse(rule, "conflict_rule").name
 
 
 def single_choice_ranking(action: int) -> list[int]:

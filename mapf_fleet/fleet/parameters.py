@@ -104,7 +104,7 @@ _RUN = {
                            "how the tick's decisions become moves: pibt (PIBT over the robots' "
                            "ranked actions, nothing reverted), pibt_anchor (the same, the "
                            "top-priority robot on its distance order), their _swap / _hindrance "
-                           "variants (coordination.pibt.COORDINATED_RULES), lacam (a kept LaCAM "
+                           "variants (coordination.rules.COORDINATED_RULES), lacam (a kept LaCAM "
                            "plan over the robots' rankings, re-planned when something leaves it) "
                            "or revert (the paper's rules on the first choices)",
                            choices=CONFLICT_RULES, option=Option("--conflict-rule", help=(
