@@ -30,21 +30,17 @@ bookkeeping it shares with the simulator is in `lockstep` (plain Python) and `fl
 
 from __future__ import annotations
 
-import random
 import sys
-import threading
 import time
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
 from mapf_fleet_interfaces.msg import FleetOutcome
-from rclpy.node import Node
 
 from mapf_fleet.entry import one_line_errors
 from mapf_fleet.fleet import parameters
-from mapf_fleet.fleet.arbiter import (check_conflict_rule, check_pose, plan_robot_commands,
-                                      ready_to_send)
-from mapf_fleet.fleet.lockstep import FleetTicker, fleet_run, instance_source
+from mapf_fleet.fleet.arbiter import check_pose, plan_robot_commands, ready_to_send
+from mapf_fleet.fleet.lockstep import fleet_run
 from mapf_fleet.fleet.record import Decisions
 from mapf_fleet.grid.actions import STAY, actions_between
 from mapf_fleet.ros import common, fleet_io
@@ -61,30 +57,19 @@ class StartupError(RuntimeError):
     """The fleet could not start (robots without a pose): one line, exit 2, no traceback."""
 
 
-class FleetStateAggregator(Node):
+class FleetStateAggregator(fleet_io.LockstepNode):
+    NAME = "aggregator"
+    PARAMETERS = PARAMETERS
+
     def __init__(self, **node_kwargs):
-        super().__init__("mapf_aggregator", **node_kwargs)
-        p = self.params = fleet_io.declare_parameters(self, PARAMETERS)
-        source = instance_source(p)
-        instance = source.load()
-        self.grid = np.asarray(instance.grid, dtype=np.uint8)
-        self.instance_goals = np.array(instance.goals, dtype=np.int64)
-        self.num_robots = len(self.instance_goals)
-        self.geometry = common.MapGeometry(*(source.geometry() or (
-            float(p["resolution"]), float(p["origin_x"]), float(p["origin_y"]))))
-        self.episode = random.getrandbits(63)
+        super().__init__(**node_kwargs)
+        self.grid = np.asarray(self.instance.grid, dtype=np.uint8)
+        self.instance_goals = np.array(self.instance.goals, dtype=np.int64)
         self.positions = np.full((self.num_robots, 2), -1, dtype=np.int64)  # last valid cells
         self.waypoints: np.ndarray | None = None  # last commanded cell per robot
-        self.conflict_rule = check_conflict_rule(str(p["conflict_rule"]))
         self.run = None  # the FleetRun, once every robot reported its first pose
-        self.lock = threading.RLock()
         self.rejected = 0  # every rejected pose message (not only those left at a tick's end)
         self.pose_conflicts = 0  # moments two robots reported one cell
-        self.outcome: FleetOutcome | None = None
-        self.exit_code: int | None = None
-        self.finished = threading.Event()
-
-        self.ticker = FleetTicker(self.num_robots, self.episode)
         # the poses are guarded by (and notify) the ticker's condition, so the start-up and the
         # arrival waits see moves, heartbeats and poses alike
         self._cond = self.ticker.cond
@@ -95,7 +80,6 @@ class FleetStateAggregator(Node):
         self._logged_reject: dict[tuple[int, str], float] = {}  # (robot, reason) -> when logged
         self._heard: dict[int, float] = {}  # robot -> when its last pose message came
         self.silent: set[int] = set()  # robots reported silent (held as obstacles)
-        self.channels = fleet_io.FleetChannels(self, self.ticker, self.geometry)
         for i in range(self.num_robots):
             self.create_subscription(PoseStamped, common.rel(common.pose_topic(i)),
                                      lambda msg, i=i: self._on_pose(i, msg),
@@ -105,15 +89,7 @@ class FleetStateAggregator(Node):
         self.goals = GoalServer(self, None, self.lock, self.geometry, self.num_robots,
                                 robot_actions=bool(self.params["robot_actions"]))
         # decision_timeout, arrival_timeout, progress_every apply from the next tick
-        self._thread = fleet_io.tick_thread(self, "aggregator", PARAMETERS)
-
-    @property
-    def tick(self) -> int:
-        return self.ticker.tick
-
-    @property
-    def extra_nodes(self) -> list:
-        return [self.goals.node]
+        self._start_tick_thread()
 
     # ---- pose feeds ----
     def check_pose(self, robot_id: int, x: float, y: float) -> tuple[tuple[int, int] | None, str]:
@@ -177,9 +153,6 @@ class FleetStateAggregator(Node):
         return sorted(self.silent)
 
     # ---- the tick loop (own thread) ----
-    def start(self):
-        self._thread.start()
-
     def _wait_for_poses(self, timeout: float) -> list[int]:
         """Wait for every robot's first valid pose and every policy node; progress every
         WAIT_LOG_PERIOD_S. The robots still without a pose (stopped: at once)."""
@@ -237,12 +210,7 @@ class FleetStateAggregator(Node):
                                f"task source {self.params['task_source']}")
         self.waypoints = starts.copy()
         self._heard = {i: time.monotonic() for i in range(self.num_robots)}
-        self.outcome = fleet_io.run_lockstep(
-            self, self.channels, self.run, self._step, self._publish_state, lock=self.lock,
-            goals=self.goals, decision_timeout=float(self.params["decision_timeout"]),
-            progress_every=int(self.params["progress_every"]),
-            record_file=self.params["record_file"], summary_extra=self._summary_extra,
-            settings=self.params)
+        self.run_ticks(self.run, summary_extra=self._summary_extra)
 
     def _summary_extra(self) -> str:
         self.run.recorder.record.update(pose_conflicts=self.pose_conflicts,

@@ -10,6 +10,7 @@ import numpy as np
 
 # The environment every fleet process runs with lives with the process plumbing (plain Python)
 # and is re-exported here: common imports processes, never the other way round.
+from mapf_fleet.fleet.parameters import DEVICES
 from mapf_fleet.ros.processes import FLEET_ENV, prepare_environment  # noqa: F401
 
 # The fleet's names (MAP_TOPIC ... GOAL_EVENTS_TOPIC, FRAME_ID, `rel`, `in_namespace`), the map
@@ -202,3 +203,20 @@ def split_ros_args(argv: list[str]) -> tuple[list[str], list[str]]:
         index = argv.index("--ros-args")
         return argv[:index], argv[index:]
     return list(argv), []
+
+
+def resolve_device(device: str) -> str:
+    """The torch device of parameter `device` (fleet.parameters.DEVICES): auto is cuda when
+    torch sees a CUDA device, else cpu; ValueError (one line) for cuda without one."""
+    import torch
+
+    available = torch.cuda.is_available()
+    if device == "auto":
+        return "cuda" if available else "cpu"
+    if device == "cuda" and not available:
+        raise ValueError("parameter device is cuda, but torch sees no CUDA device here "
+                         "(torch.cuda.is_available() is false): use device auto or cpu")
+    if device not in DEVICES:
+        raise ValueError(f"parameter device must be one of {', '.join(DEVICES)}, "
+                         f"got {device!r}")
+    return device

@@ -1,12 +1,15 @@
-"""The ROS side the simulator and the aggregator share: parameter declaration, the fleet topics
-they publish and subscribe (map, goals, state, markers, progress, outcome, the robots' waypoints;
-moves, heartbeats), the lockstep tick loop, the tick thread and the process `main`. What differs
-between the two nodes is the `step` they give `run_lockstep`: how a tick's moves, arbitrated by
+"""The ROS side the simulator and the aggregator share: their base class (`LockstepNode`:
+parameters declared once from the table, instance, episode, ticker, topics, tick thread), the
+fleet topics they publish and subscribe (`FleetChannels`: map, goals, state, markers, progress,
+outcome, the robots' waypoints; moves, heartbeats), the tick loop's ROS outlet (`RosOutlet`; the
+loop itself is the ROS-free `fleet.tick_loop.TickLoop`) and the process `main`. What differs
+between the two nodes is the `step` they give the loop: how a tick's moves, arbitrated by
 `arbiter.TickArbiter`, become the next positions.
 """
 
 from __future__ import annotations
 
+import random
 import sys
 import threading
 import time
@@ -20,10 +23,13 @@ from nav_msgs.msg import OccupancyGrid
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.exceptions import InvalidHandle
+from rclpy.node import Node
 from visualization_msgs.msg import Marker, MarkerArray
 
 from mapf_fleet.fleet import parameters
-from mapf_fleet.fleet.lockstep import FleetTicker, parameter_change_problem
+from mapf_fleet.fleet.arbiter import check_conflict_rule
+from mapf_fleet.fleet.lockstep import FleetTicker, instance_source, parameter_change_problem
+from mapf_fleet.fleet.tick_loop import TickLoop
 from mapf_fleet.ros import common
 
 
@@ -167,100 +173,85 @@ class FleetChannels:
         return stamp
 
 
-IDLE_STATE_PERIOD_S = 1.0  # an idle fleet republishes its state this often
+class RosOutlet:
+    """The tick loop's `fleet.tick_loop.FleetOutlet` over ROS: the node's state publisher
+    (`publish_state`, node-specific: the simulator also publishes the poses), the progress and
+    outcome topics of `channels`, the node's logger."""
+
+    def __init__(self, node, channels: FleetChannels, publish_state):
+        self.node, self.channels, self._publish_state = node, channels, publish_state
+
+    def publish_state(self, done: bool) -> None:
+        self._publish_state(done=done)
+
+    def publish_progress(self, progress: dict) -> None:
+        self.channels.progress_pub.publish(FleetProgress(**progress))
+
+    def publish_outcome(self, outcome: dict) -> None:
+        self.channels.outcome_pub.publish(FleetOutcome(**outcome))
+
+    def log(self, level: str, text: str) -> None:
+        getattr(self.node.get_logger(), level)(text)
 
 
-def run_lockstep(node, channels: FleetChannels, run, step, publish_state, *, lock,
-                 goals=None, decision_timeout: float, tick_period: float = 0.0,
-                 progress_every: int = 10, record_file: str = "",
-                 summary_extra=lambda: "", settings: dict | None = None) -> FleetOutcome:
-    """Tick `run` (a `fleet.run.FleetRun`) until it is finished (every robot on its goal for a
-    one-shot instance, the tick limit, every task done) or stopped.
+class LockstepNode(Node):
+    """What the simulator and the aggregator share as nodes: their parameters (declared and
+    checked from their table once), the instance they load, the episode, the conflict rule and
+    the guidance they build their world with, the tick bookkeeping (`lockstep.FleetTicker`),
+    the fleet topics (`FleetChannels`), the tick thread and the run of the ticks
+    (`run_ticks`: the ROS-free `fleet.tick_loop.TickLoop`). A subclass sets NAME and
+    PARAMETERS, builds its run and implements `_run` (the tick thread's body), a `step` and a
+    `publish_state`."""
 
-    Each tick: `publish_state(done=False)`, collect the moves, then `step(decisions) ->
-    (events, overridden robot ids)` makes the next tick (it must call `ticker.advance()` and
-    `run.advance`, under `lock`); the goal events go to `goals` (`ros.goals.GoalServer`, also
-    the action feedback), progress is published and logged every `progress_every` ticks; the
-    record is written once at the first tick (marked incomplete) and every tick goes to its
-    journal as it ends (a killed process leaves what it ran). A continuous fleet with nothing
-    to do (`run.waiting`: every robot idle) does not tick: it waits for a goal. At the end: the
-    final state, the outcome (published, latched; `summary_extra()` is appended to its summary)
-    and the record. `ticker.stop()` (a signal, a failed callback) ends the run before the next
-    tick: the outcome is "stopped at tick k" and the record is written all the same.
-    """
-    logger = node.get_logger()
-    ticker = channels.ticker
-    published, published_at = None, 0.0  # the tick whose state is out, and when
-    checkpointed = False  # the record is written (incomplete) at the first tick only
-    run.recorder.started = time.monotonic()  # run_seconds count from the first tick, not start-up
-    if record_file:  # every tick kept as it ends, whatever happens to this process
-        # a tick leaves memory once in the journal: the record is streamed from it at the end
-        run.recorder.open_journal(record_file, keep_ticks=False)
-    while not run.finished() and rclpy.ok() and not ticker.stopped:
-        if run.waiting and goals is not None:
-            if published != run.tick or time.monotonic() - published_at > IDLE_STATE_PERIOD_S:
-                # the state of this tick goes out (viewers and clients see the fleet; the robots
-                # decide it once, their moves wait in the ticker until a goal comes; the same
-                # tick again is ignored by the hubs and keeps their episode binding alive)
-                if published != run.tick:
-                    logger.info(f"tick {run.tick}: every robot idle: waiting for goals")
-                publish_state(done=False)
-                published, published_at = run.tick, time.monotonic()
-            goals.request_signal.wait(0.2)
-            with lock:
-                events = run.apply_requests()
-                goals.on_tick(events)
-            continue
-        started = time.monotonic()
-        if settings is not None:  # the node's parameters, changed at runtime (lockstep)
-            decision_timeout = float(settings.get("decision_timeout", decision_timeout))
-            tick_period = float(settings.get("tick_period", tick_period))
-            progress_every = int(settings.get("progress_every", progress_every))
-        if published != run.tick:
-            publish_state(done=False)
-            published = run.tick
-        decisions = ticker.collect(decision_timeout)
-        if ticker.stopped:
-            break  # this tick is not played: the record stays consistent
-        if decisions.missing:
-            logger.warning(run.recorder.missing_text(decisions, decision_timeout))
-        with lock:
-            events, overridden = step(decisions)
-            progress = run.progress(decisions.missing)
-            if goals is not None:
-                # the estimated time counts a tick as long as it is paced (tick_period)
-                goals.on_tick(events, overridden,
-                              max(time.monotonic() - started, tick_period))
-        for event in events:
-            if event.event not in ("reached", "assigned") or run.num_robots <= 16:
-                logger.info(event.text())
-        channels.progress_pub.publish(FleetProgress(**progress))
-        if run.steps % progress_every == 0:
-            logger.info(run.progress_text())
-        # the record's head for a process that dies before the end, written once: the journal
-        # holds every tick after it and `read_record` joins them, where rewriting the whole
-        # record would cost more each time as the run grows
-        if record_file and not checkpointed:
-            run.recorder.checkpoint(record_file, run.tick)
-            checkpointed = True
-        if tick_period > 0:
-            time.sleep(max(0.0, tick_period - (time.monotonic() - started)))
-    publish_state(done=True)
-    stopped_at = run.tick if ticker.stopped and not run.finished() else None
-    with lock:
-        reason = (f"the run ended at tick {run.tick}" if stopped_at is None
-                  else f"the run was stopped at tick {run.tick}")
-        events = run.abort_active(reason) if run.tasks.continuous else []
-        if goals is not None:
-            goals.on_tick(events)
-            goals.close(reason)
-        outcome = FleetOutcome(**run.finish(extra=summary_extra(), stopped_at=stopped_at))
-    channels.outcome_pub.publish(outcome)
-    logger.info(outcome.summary)
-    if record_file:
-        run.recorder.write(record_file)
-        run.recorder.close_journal(record_file)
-    return outcome
+    NAME = ""
+    PARAMETERS: dict = {}
+
+    def __init__(self, **node_kwargs):
+        super().__init__(f"mapf_{self.NAME}", **node_kwargs)
+        p = self.params = declare_parameters(self, self.PARAMETERS)
+        self.source = instance_source(p)
+        self.instance = self.source.load()
+        self.num_robots = self.instance.num_agents
+        # a Nav2 map sets the metres of the map frame; else `resolution` (and the origin)
+        self.geometry = common.MapGeometry(*(self.source.geometry() or (
+            float(p["resolution"]), float(p.get("origin_x", 0.0)),
+            float(p.get("origin_y", 0.0)))))
+        self.episode = random.getrandbits(63)
+        self.conflict_rule = check_conflict_rule(str(p["conflict_rule"]))
+        # the guidance file (None: none) every distance of this fleet is to be read from
+        self.guidance = parameters.resolve_guidance(str(p["guidance"]))
+        self.outcome: FleetOutcome | None = None
+        self.exit_code: int | None = None
+        self.finished = threading.Event()
+        self.lock = threading.RLock()  # the run: tick thread and goal inputs
+        self.ticker = FleetTicker(self.num_robots, self.episode, int(p.get("start_tick", 0)))
+        self.channels = FleetChannels(self, self.ticker, self.geometry)
+
+    def _start_tick_thread(self) -> None:
+        """The tick thread (runtime parameter changes from the next tick), not started."""
+        self._thread = tick_thread(self, self.NAME, self.PARAMETERS)
+
+    @property
+    def tick(self) -> int:
+        return self.ticker.tick
+
+    @property
+    def extra_nodes(self) -> list:
+        return [self.goals.node]  # spun by their own executor (`spin_until_finished`)
+
+    def start(self):
+        self._thread.start()
+
+    def run_ticks(self, run, summary_extra=lambda: "") -> FleetOutcome:
+        """Tick `run` with `self._step` and `self._publish_state` until it ends
+        (`fleet.tick_loop.TickLoop`, its docstring the specification); the outcome."""
+        loop = TickLoop(run, self.ticker, self._step,
+                        RosOutlet(self, self.channels, self._publish_state), lock=self.lock,
+                        settings=self.params, goals=self.goals,
+                        record_file=self.params["record_file"], summary_extra=summary_extra,
+                        keep_going=rclpy.ok)
+        self.outcome = FleetOutcome(**loop.run())
+        return self.outcome
 
 
 def tick_thread(node, name: str, table: dict) -> threading.Thread:

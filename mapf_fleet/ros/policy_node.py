@@ -1,6 +1,7 @@
 """PolicyNode: one robot's learned policy as a ROS node: its parameters (robot_id, checkpoint,
-timeouts, conflict_rule, ranking), its move and heartbeat publishers and, for DCC, its
-request and reply services.
+device, guidance, timeouts, conflict_rule, ranking), its move and heartbeat publishers and, for
+DCC, its request and reply services. `make_policy_nodes` builds the nodes of one process (every
+entry point: `policy`, `mapf-fleet node policy --robots`, `up --single-process`).
 
 The robots hosted in one process are driven by one `mapf_fleet.ros.hub.PolicyHub` (shared
 subscriptions, batched inference, one peer message per process and round: DHC hidden vectors,
@@ -34,14 +35,16 @@ from mapf_fleet.ros import common
 PARAMETERS = parameters.POLICY  # name -> Param (fleet.parameters: the one table)
 
 
-def load_policy_model(path: str):
+def load_policy_model(path: str, device: str = "cpu"):
+    """(model in eval mode on `device` (common.resolve_device), checkpoint metadata)."""
     import torch
 
     from mapf_fleet.models.checkpoint import load_checkpoint
 
+    device = common.resolve_device(device)
     torch.set_num_threads(1)  # many robots share the cores: one thread each
     model, metadata = load_checkpoint(path)
-    return model.eval(), metadata
+    return model.to(device).eval(), metadata
 
 
 class PolicyNode(Node):
@@ -84,12 +87,14 @@ class PolicyNode(Node):
         self.status_period = values["status_period"]
         self.episode_timeout = values["episode_timeout"]
         self.conflict_rule = values["conflict_rule"]
+        # the guidance file (None: none) the robot's distances are to be read from
+        self.guidance = parameters.resolve_guidance(values["guidance"])
         given = values["ranking"]
         if model is None:
             path = values["checkpoint"]
             if not path:
                 raise ValueError("parameter 'checkpoint' is required (a checkpoint file path)")
-            model, metadata = load_policy_model(path)
+            model, metadata = load_policy_model(path, values["device"])
         self.model = model
         self.checkpoint_metadata = metadata or {}
         # a ranking given (params file, -p, `up --ranking`) always wins; else the ranking the
@@ -160,6 +165,21 @@ def host_kwargs(count: int) -> dict:
             "parameter_overrides": [Parameter("start_type_description_service", value=False)]}
 
 
+def make_policy_nodes(robot_ids: list[int] | None = None, **node_kwargs) -> list[PolicyNode]:
+    """The policy nodes of one process (the one way to build them): one per robot of
+    `robot_ids` (None: one node whose robot_id comes from its parameters), with the options of
+    `host_kwargs`; the first loads the checkpoint on its `device`, the others share its model
+    (inference only, no state in it) and metadata. `node_kwargs`: rclpy Node options (e.g.
+    context)."""
+    if robot_ids is None:
+        return [PolicyNode(**node_kwargs)]
+    options = {**host_kwargs(len(robot_ids)), **node_kwargs}
+    first = PolicyNode(robot_id=robot_ids[0], **options)
+    return [first] + [PolicyNode(robot_id=i, model=first.model,
+                                 metadata=first.checkpoint_metadata, **options)
+                      for i in robot_ids[1:]]
+
+
 def spin_policy_nodes(nodes: list[PolicyNode], until=None, extra_nodes=(), on_started=None,
                       signals=None, on_stop=None, side_nodes=()) -> int:
     """Spin policy nodes hosted in this process (one PolicyHub for all of them) plus
@@ -226,8 +246,7 @@ def main(argv: list[str] | None = None) -> int:
     args = sys.argv if argv is None else ["policy"] + list(argv)
     signals = common.init_process(args)
     try:
-        node = PolicyNode()
-        return spin_policy_nodes([node], signals=signals)
+        return spin_policy_nodes(make_policy_nodes(), signals=signals)
     finally:
         rclpy.try_shutdown()
         signals.restore()

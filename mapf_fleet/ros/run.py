@@ -51,18 +51,11 @@ def host_policy_nodes(robot_ids: list[int], ros_args: list[str]) -> int:
     import rclpy
 
     from mapf_fleet.ros.common import init_process
-    from mapf_fleet.ros.policy_node import PolicyNode, host_kwargs, spin_policy_nodes
+    from mapf_fleet.ros.policy_node import make_policy_nodes, spin_policy_nodes
 
     signals = init_process(["policy"] + ros_args)  # SIGINT / SIGTERM: exit 130 / 143
     try:
-        options = host_kwargs(len(robot_ids))
-        first = PolicyNode(robot_id=robot_ids[0], **options)
-        # one model object shared by the nodes of this process (inference only, no state in it)
-        model = first.model
-        nodes = [first] + [PolicyNode(robot_id=i, model=model,
-                                      metadata=first.checkpoint_metadata, **options)
-                         for i in robot_ids[1:]]
-        return spin_policy_nodes(nodes, signals=signals)
+        return spin_policy_nodes(make_policy_nodes(robot_ids), signals=signals)
     finally:
         rclpy.try_shutdown()
         signals.restore()

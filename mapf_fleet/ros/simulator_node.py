@@ -4,7 +4,7 @@ Tick k: publish the fleet state of k (and poses, markers); wait for every robot'
 move missing after `decision_timeout` counts as "stay" and is reported, and the robot cannot be
 pushed); arbitrate the moves with `conflict_rule` (`arbiter.TickArbiter`: "pibt" = PIBT over the
 robots' ranked actions, "pibt_anchor" = the same with the top-priority robot on its
-distance order, their "_swap" / "_hindrance" variants (coordination.pibt.COORDINATED_RULES; the
+distance order, their "_swap" / "_hindrance" variants (coordination.rules.COORDINATED_RULES; the
 default `pibt_anchor_swap`),
 "revert" = the paper's grid.resolve_moves on their first choices);
 command each robot's waypoint; publish progress; go on with k + 1. The run itself (cells, goals,
@@ -15,24 +15,20 @@ are the executed actions under the PIBT rules (DCC's last-action input, as the e
 the robots' first choices under "revert" (as the paper's environment). At the end the outcome
 (success, steps, collisions, missed decisions) is published (latched) and optionally written to
 `record_file` as JSON with the whole trajectory. The tick bookkeeping it shares with the
-aggregator is in `lockstep` (plain Python) and `fleet_io` (topics, loop, main).
+aggregator is in `lockstep` and `tick_loop` (plain Python) and `fleet_io` (their
+base node, topics, main).
 """
 
 from __future__ import annotations
 
-import random
 import sys
-import threading
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
-from mapf_fleet_interfaces.msg import FleetOutcome
-from rclpy.node import Node
 
 from mapf_fleet.entry import one_line_errors
 from mapf_fleet.fleet import parameters
-from mapf_fleet.fleet.arbiter import check_conflict_rule
-from mapf_fleet.fleet.lockstep import FleetTicker, fleet_run, instance_source
+from mapf_fleet.fleet.lockstep import fleet_run
 from mapf_fleet.fleet.record import Decisions
 from mapf_fleet.ros import common, fleet_io
 from mapf_fleet.ros.goals import GoalServer
@@ -40,19 +36,13 @@ from mapf_fleet.ros.goals import GoalServer
 PARAMETERS = parameters.SIMULATOR  # name -> Param (fleet.parameters: the one table)
 
 
-class SimulatorNode(Node):
+class SimulatorNode(fleet_io.LockstepNode):
+    NAME = "simulator"
+    PARAMETERS = PARAMETERS
+
     def __init__(self, **node_kwargs):
-        super().__init__("mapf_simulator", **node_kwargs)
-        p = self.params = fleet_io.declare_parameters(self, PARAMETERS)
-        source = instance_source(p)
-        self.instance = source.load()
-        # a Nav2 map sets the metres of the map frame; else `resolution` with the origin at 0
-        self.geometry = common.MapGeometry(*(source.geometry() or (float(p["resolution"]),)))
-        self.num_robots = self.instance.num_agents
-        self.episode = random.getrandbits(63)
-        self.outcome: FleetOutcome | None = None
-        self.finished = threading.Event()
-        self.conflict_rule = check_conflict_rule(str(p["conflict_rule"]))
+        super().__init__(**node_kwargs)
+        p = self.params
         # the run: cells, goals, tasks, arbiter, record (the fleet core, shared with the
         # aggregator and the evaluator's lifelong rollout); who talked to whom: per robot its
         # partners (DHC) / requested peers (DCC), and the peer messages it used
@@ -60,9 +50,6 @@ class SimulatorNode(Node):
                              self.episode, ("collided", "requested", "messages", "executed",
                                             "overridden"),
                              self.geometry, start_tick=int(p["start_tick"]))
-        self.lock = threading.RLock()  # the run: tick thread and goal inputs
-        self.ticker = FleetTicker(self.num_robots, self.episode, int(p["start_tick"]))
-        self.channels = fleet_io.FleetChannels(self, self.ticker, self.geometry)
         quiet = common.quiet_publisher_events()  # per-robot publishers: keep the wait set small
         self.pose_pubs = [self.create_publisher(PoseStamped, common.rel(common.pose_topic(i)),
                                                 common.reliable_qos(10), event_callbacks=quiet)
@@ -75,22 +62,11 @@ class SimulatorNode(Node):
             f"robots, conflict rule {self.conflict_rule}, task source {p['task_source']}, "
             f"episode {self.episode}")
         # tick_period, decision_timeout, progress_every apply from the next tick
-        self._thread = fleet_io.tick_thread(self, "simulator", PARAMETERS)
-
-    @property
-    def tick(self) -> int:
-        return self.ticker.tick
+        self._start_tick_thread()
 
     @property
     def positions(self) -> np.ndarray:
         return self.run.positions
-
-    @property
-    def extra_nodes(self) -> list:
-        return [self.goals.node]  # spun by their own executor (fleet_io.spin_until_finished)
-
-    def start(self):
-        self._thread.start()
 
     # ---- the lockstep loop (own thread) ----
     def _run(self):
@@ -105,12 +81,7 @@ class SimulatorNode(Node):
                                       f"after {self.params['startup_timeout']} s")
         else:
             self.get_logger().info(f"all {self.num_robots} robots ready")
-        self.outcome = fleet_io.run_lockstep(
-            self, self.channels, self.run, self._step, self._publish_state, lock=self.lock,
-            goals=self.goals, decision_timeout=float(self.params["decision_timeout"]),
-            tick_period=float(self.params["tick_period"]),
-            progress_every=int(self.params["progress_every"]),
-            record_file=self.params["record_file"], settings=self.params)
+        self.run_ticks(self.run)
 
     def _step(self, decisions: Decisions):
         """The grid world's move (`FleetRun.step`: the arbiter's rule; robots without a decision

@@ -79,17 +79,14 @@ def _policy_nodes(plan, checkpoint, tmp_path, robots=(0,)):
     import rclpy
 
     from mapf_fleet.fleet import parameters as P
-    from mapf_fleet.ros.policy_node import PolicyNode
+    from mapf_fleet.ros.policy_node import make_policy_nodes
 
-    plan.params_path = str(tmp_path / "merged.yaml")
+    plan = plan.with_run_files(params_path=str(tmp_path / "merged.yaml"))
     P.write_params_file(plan.params_path, plan.values, plan.namespace)
     context = rclpy.Context()
     rclpy.init(args=["policy"] + plan.ros_args(), context=context)
     try:
-        first = PolicyNode(robot_id=robots[0], context=context)
-        nodes = [first] + [PolicyNode(robot_id=i, model=first.model,
-                                      metadata=first.checkpoint_metadata, context=context)
-                           for i in robots[1:]]
+        nodes = make_policy_nodes(list(robots), context=context)
         found = [n.ranking for n in nodes]
         for node in nodes:
             node.destroy_node()
