@@ -5,8 +5,9 @@
     mapf-fleet render --run run.json --out run.gif     # a fleet's run: `up --record run.json`
     mapf-fleet render --run bags/run1 --out run.webp   # or its rosbag2 (`record` / `up --bag`)
 
-Each agent has a colour: its disc is the agent, the hollow square of the same colour its goal;
-a red ring marks an agent whose move was just reverted (a collision); a recorded run also shows
+Each agent has a colour (`robot_colour`: the same as in `mapf-fleet view` and Foxglove): its disc
+is the agent, numbered where the cells are large enough, the hollow square of the same colour its
+goal; a red ring marks an agent whose move was just reverted (a collision); a recorded run also shows
 the paths taken. The format follows --out: .gif, .webp (animated, smaller), .mp4 (only with the
 optional imageio-ffmpeg installed: `pip install imageio-ffmpeg`), else a folder of PNG frames.
 """
@@ -14,20 +15,33 @@ optional imageio-ffmpeg installed: `pip install imageio-ffmpeg`), else a folder 
 from __future__ import annotations
 
 import argparse
+import colorsys
 import os
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from .policies import REFERENCE_NAMES, build_policy, parse_policy
-from .protocol import InstanceSet, ProtocolConfig
-from .runner import lower_bounds, _make_env
+# the policies, the protocol and the runner are imported where used: the live view takes its
+# colours from here (`robot_colour`) and must not load them
+GOLDEN = 0.618033988749895
+LABEL_MIN_CELL_PX = 14  # robots are numbered where a cell is this many pixels (the web view's)
 
 
-def record_episode(spec, instances: InstanceSet, max_steps: int) -> tuple[np.ndarray, np.ndarray, bool]:
+def robot_colour(i: int) -> tuple[int, int, int]:
+    """RGB (0-255) of robot i: hues spread by the golden ratio, so neighbours in id differ. One
+    formula for every picture of a fleet: these renders, `mapf-fleet view` (its page gets the
+    colours from `view.picture`) and the Foxglove scene."""
+    r, g, b = colorsys.hls_to_rgb((i * GOLDEN) % 1.0, 0.45, 0.85)
+    return round(r * 255), round(g * 255), round(b * 255)
+
+
+def record_episode(spec, instances, max_steps: int) -> tuple[np.ndarray, np.ndarray, bool]:
     """Run the first instance of `instances`: positions (T+1, N, 2), collided (T, N), success."""
     from mapf_fleet.coordination.planners import positions_to_actions
+
+    from .policies import build_policy
+    from .runner import _make_env
 
     policy = build_policy(spec)
     env = _make_env(instances, 0, max_steps, getattr(policy, "observation", "paper"))
@@ -69,7 +83,7 @@ def draw_frames(grid: np.ndarray, goals: np.ndarray, positions: np.ndarray, coll
     n = positions.shape[1]
     goals = np.asarray(goals)
     goals_at = (lambda t: goals[t]) if goals.ndim == 3 else (lambda t: goals)
-    colours = plt.get_cmap("hsv")(np.linspace(0, 1, n, endpoint=False))
+    colours = np.array([robot_colour(i) for i in range(n)], dtype=float).reshape(-1, 3) / 255.0
     scale = max(4.0, min(8.0, 480 / max(h, w) / 10))
     fig, ax = plt.subplots(figsize=(scale * w / max(h, w) + 0.5, scale * h / max(h, w) + 0.7), dpi=80)
     # row 0 at the bottom, as in the map frame (y grows with the row), RViz, Foxglove and the
@@ -85,8 +99,16 @@ def draw_frames(grid: np.ndarray, goals: np.ndarray, positions: np.ndarray, coll
     rings = ax.scatter([], [], s=marker * 2.2, facecolors="none", edgecolors="red", linewidths=1.5)
     ax.set_xticks([])
     ax.set_yticks([])
+    # the robots' numbers, as `mapf-fleet goal` and the web view count them, where they fit
+    fig.canvas.draw()
+    cell_px = ax.get_window_extent().width / w
+    labels = [ax.text(0, 0, str(i), ha="center", va="center", color="black",
+                      fontsize=max(5.0, cell_px * (0.28 if n > 99 else 0.4) * 72 / fig.dpi))
+              for i in range(n)] if cell_px >= LABEL_MIN_CELL_PX else []
     for t in range(len(positions)):
         agents.set_offsets(positions[t][:, ::-1])
+        for i, label in enumerate(labels):
+            label.set_position((positions[t, i, 1], positions[t, i, 0]))
         targets.set_offsets(goals_at(t)[:, ::-1])
         for i, line in enumerate(paths):
             line.set_data(positions[: t + 1, i, 1], positions[: t + 1, i, 0])
@@ -140,6 +162,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="mapf-fleet render", description=__doc__.split("\n")[0],
                                 epilog="A fleet's recorded run: mapf-fleet render --run F.json|BAG_DIR --out "
                                        "F.gif (mapf-fleet render --run X --help for its options).")
+    from .policies import REFERENCE_NAMES
+
     p.add_argument("--checkpoint", required=True, help=f"checkpoint file or one of {', '.join(REFERENCE_NAMES)}")
     p.add_argument("--size", type=int, default=40, help="square map size of a generated instance")
     p.add_argument("--agents", type=int, default=16)
@@ -165,6 +189,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"mapf-fleet render: {exc}", file=sys.stderr)
         return 2
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    from .policies import parse_policy
+    from .protocol import InstanceSet, ProtocolConfig
+    from .runner import lower_bounds
+
     config = ProtocolConfig.from_yaml()
     try:
         spec = parse_policy(args.checkpoint, device=args.device, planner_time_limit=config.planner_time_limit)

@@ -26,20 +26,14 @@ Thread safety: ROS callbacks write, the web server's threads read `snapshot()` /
 
 from __future__ import annotations
 
-import colorsys
 import threading
 from collections import deque
 
 import numpy as np
 
-GOLDEN = 0.618033988749895
-
-
-def robot_colour(i: int) -> tuple[int, int, int]:
-    """RGB (0-255) of robot i: hues spread by the golden ratio, so neighbours in id differ. The
-    page (static/index.html, `robotColour`) and the renderer use the same formula."""
-    r, g, b = colorsys.hls_to_rgb((i * GOLDEN) % 1.0, 0.45, 0.85)
-    return round(r * 255), round(g * 255), round(b * 255)
+# robot i's colour: one formula for the page (it gets the colours from `snapshot`), Foxglove and
+# `mapf-fleet render` (evaluation.render, below this layer)
+from mapf_fleet.evaluation.render import robot_colour  # noqa: F401
 
 
 class FleetPicture:
