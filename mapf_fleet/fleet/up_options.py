@@ -33,10 +33,11 @@ from mapf_fleet.fleet.layout import (LARGE_FLEET_PROCESSES, LARGE_FLEET_ROBOTS, 
 DESCRIPTION = """`mapf-fleet up`: start a simulated fleet (simulator + one policy node per robot), show live
 progress, print the outcome and exit 0 on success.
 
-Process layout: by default each policy node runs in its own process; `--nodes-per-process K`
-hosts K robots' nodes per process (needed past ~32 processes: Fast DDS discovery on loopback;
-from 256 robots at most 8 processes, K = ceil(robots / 8), e.g. 64 for 512: the layouts measured
-to get ready, `up` warns otherwise);
+Process layout: `--nodes-per-process K` hosts K robots' nodes per process; without it `up`
+chooses K from the robot count and the memory available and says so (a process per robot up to
+~32 processes, Fast DDS discovery on loopback; from 256 robots 8 processes, K = ceil(robots / 8),
+e.g. 64 for 512: the layouts measured to get ready; fewer, larger processes when memory is
+short); a given layout that would not fit in memory is refused;
 `--single-process` runs the simulator and every policy node in this process. The policy nodes of
 one process share one hub (one subscription per shared topic, batched inference). With
 `--real-robots` the aggregator replaces the simulator: the robots publish their own poses on
@@ -73,7 +74,9 @@ LAUNCH_OPTIONS = {
     "--preference-mode": dict(dest="preference_mode", choices=P.RANKINGS, default=None,
                               help="deprecated spelling of --ranking"),
     "--nodes-per-process": dict(type=int, default=1, help=(
-        "robots' policy nodes hosted per process (one hub each; 32 for large fleets)")),
+        "robots' policy nodes hosted per process (one hub each; default: chosen from the robot "
+        "count and the memory available, and said in one line: a process per robot for small "
+        "fleets, 8 processes from 256 robots, fewer when memory is short)")),
     "--single-process": dict(action="store_true",
                              help="simulator and all policy nodes in this process"),
     "--real-robots": dict(action="store_true", help=(

@@ -19,10 +19,11 @@ from mapf_fleet.fleet.up_options import (MAX_DISCOVERED_PROCESSES, MAX_NODES_PER
                                          build_parser, default_robot_count, layout_problem,
                                          layout_warning, plan_parameters, plan_policy_parameters,
                                          policy_processes, policy_value, record_problem,
-                                         recommended_nodes_per_process,
                                          unknown_as_free_warning)
 from mapf_fleet.paths import data_root
 from mapf_fleet.ros import common
+from mapf_fleet.ros.layout_choice import (available_memory_mb, choose_layout,
+                                          layout_memory_problem, map_size_problem)
 
 # `up`'s API (its options live in fleet.up_options, re-exported here)
 __all__ = ["DATA_ROOT", "DEFAULT_CHECKPOINT", "MAX_DISCOVERED_PROCESSES", "MAX_NODES_PER_PROCESS",
@@ -51,6 +52,7 @@ def prepare(argv: list[str]):
     parser.set_defaults(nodes_per_process=None)  # not given: chosen below (`choose_layout`)
     args = parser.parse_args(own)
     layout_given = args.nodes_per_process is not None
+    budget_given = args.planning_budget is not None  # (plan_parameters fills the defaults in)
     if layout_given and args.single_process:
         raise UpError("--nodes-per-process applies to policy processes; --single-process hosts "
                       "every node in up's own process: give one of them")
@@ -58,7 +60,7 @@ def prepare(argv: list[str]):
         args.nodes_per_process = 1  # for the checks of plan_parameters; chosen below
     plan = plan_parameters(args, ros_argv)
     rule = plan.sim.get("conflict_rule")
-    if args.planning_budget is not None and rule != "lacam":
+    if budget_given and rule != "lacam":
         raise UpError(f"--planning-budget applies to --conflict-rule lacam only (the conflict "
                       f"rule is {rule}): drop it or add --conflict-rule lacam")
     if args.record:
@@ -91,16 +93,16 @@ def prepare(argv: list[str]):
         raise UpError(problem)
     sim = plan.sim
     available = available_memory_mb()
+    if not (sim["instance_file"] or sim["map_file"]):  # before the map takes the memory
+        problem = map_size_problem(int(sim["size"]), available)
+        if problem:
+            raise UpError(problem)
     try:
         if plan.origin[plan.sim_name]["num_robots"] == "default":
             sim["num_robots"] = args.num_robots = default_robot_count(args)
         source = InstanceSource(sim["instance_file"], sim["map_file"], sim["scen_file"],
                                 sim["num_robots"], sim["size"], sim["density"], sim["seed"],
                                 sim["cell_size"])
-        if not (sim["instance_file"] or sim["map_file"]):
-            problem = map_size_problem(int(sim["size"]), available)
-            if problem:
-                raise UpError(problem)
         instance = source.load()
         num_robots = instance.num_agents
     except (ValueError, OSError) as exc:
@@ -108,12 +110,12 @@ def prepare(argv: list[str]):
     except MemoryError:
         raise UpError(f"the instance does not fit in memory (size {sim['size']}, "
                       f"{sim['num_robots']} robots): use a smaller --size or map") from None
-    if layout_given:
+    if layout_given or args.single_process:
         problem = layout_memory_problem(num_robots, args.single_process,
                                         args.nodes_per_process, available)
         if problem:
             raise UpError(problem)
-    elif not args.single_process:
+    else:
         args.nodes_per_process, args.layout_note = choose_layout(num_robots, available,
                                                                  recorder=bool(args.bag))
     warning = unknown_as_free_warning(sim["map_file"])
@@ -147,103 +149,6 @@ def prepare(argv: list[str]):
     except ValueError as exc:
         raise UpError(str(exc)) from None
     return args, plan, num_robots
-
-
-# Memory of one policy process (Python, torch, rclpy, the model: about 290 MB alone here), and
-# what each robot's nodes it hosts add (about 1 MB), the simulator and `up` itself; the share of
-# MemAvailable a fleet may take (the rest: the system, whatever else runs). docs/fleet.md,
-# "Process layouts".
-POLICY_PROCESS_MB = 300.0
-POLICY_ROBOT_MB = 1.5
-FLEET_BASE_MB = 700.0
-MEMORY_SHARE = 0.8
-# Bytes per cell of generating a random map (the uniform draws, the map, its regions' labels)
-MAP_BYTES_PER_CELL = 24
-
-
-def available_memory_mb(meminfo: str = "/proc/meminfo") -> float | None:
-    """MemAvailable in MB (Linux), None when it cannot be read."""
-    try:
-        with open(meminfo) as info:
-            for line in info:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) / 1024.0
-    except (OSError, ValueError, IndexError):
-        pass
-    return None
-
-
-def fleet_memory_mb(num_robots: int, processes: int) -> float:
-    """Estimated memory of a fleet whose policy nodes run in `processes` processes."""
-    return FLEET_BASE_MB + processes * POLICY_PROCESS_MB + num_robots * POLICY_ROBOT_MB
-
-
-def _budget_processes(num_robots: int, available_mb: float) -> int:
-    """The most policy processes `available_mb` holds (MEMORY_SHARE of it) for this fleet."""
-    budget = MEMORY_SHARE * available_mb - FLEET_BASE_MB - num_robots * POLICY_ROBOT_MB
-    return int(budget // POLICY_PROCESS_MB)
-
-
-def choose_layout(num_robots: int, available_mb: float | None,
-                  recorder: bool = False) -> tuple[int, str]:
-    """`--nodes-per-process` for `up` when none is given: the layout recommended for the robot
-    count (`recommended_nodes_per_process`: a process per robot for small fleets, at most 8
-    processes from 256 robots), with fewer, larger processes when the memory available
-    (`available_mb`, None: unknown) does not hold that many. (K, the one line saying so: "" for
-    the plain process per robot); UpError when not even processes of MAX_NODES_PER_PROCESS
-    robots fit."""
-    k = recommended_nodes_per_process(num_robots, recorder)
-    why = "the robot count"
-    if available_mb is not None:
-        fit = _budget_processes(num_robots, available_mb)
-        fewest = -(-num_robots // MAX_NODES_PER_PROCESS)
-        if fit < fewest:
-            raise UpError(
-                f"{num_robots} robots need about {fleet_memory_mb(num_robots, fewest):,.0f} MB "
-                f"(at least {fewest} policy process(es) of about {POLICY_PROCESS_MB:.0f} MB, "
-                f"{MAX_NODES_PER_PROCESS} robots at most each), more than "
-                f"{MEMORY_SHARE:.0%} of the {available_mb:,.0f} MB available: use fewer robots "
-                f"or free memory")
-        if policy_processes(num_robots, False, k) > fit:
-            k = -(-num_robots // fit)
-            why = f"the {available_mb / 1024:.1f} GiB of memory available"
-    if k == 1:
-        return 1, ""
-    processes = policy_processes(num_robots, False, k)
-    note = (f"{num_robots} robots in {processes} policy process(es) of up to {k} robots "
-            f"(--nodes-per-process {k}, chosen for {why}; about "
-            f"{fleet_memory_mb(num_robots, processes) / 1024:.1f} GiB)")
-    return k, note
-
-
-def layout_memory_problem(num_robots: int, single_process: bool, nodes_per_process: int,
-                          available_mb: float | None) -> str:
-    """Why the given layout is refused for memory ("" when it fits or memory is unknown): its
-    estimate (`fleet_memory_mb`) is above MEMORY_SHARE of what is available."""
-    if available_mb is None:
-        return ""
-    processes = policy_processes(num_robots, single_process, nodes_per_process)
-    needed = fleet_memory_mb(num_robots, processes)
-    if needed <= MEMORY_SHARE * available_mb:
-        return ""
-    fit = max(1, _budget_processes(num_robots, available_mb))
-    return (f"--nodes-per-process {nodes_per_process} starts {processes} policy processes of "
-            f"about {POLICY_PROCESS_MB:.0f} MB each, about {needed:,.0f} MB in all, more than "
-            f"{MEMORY_SHARE:.0%} of the {available_mb:,.0f} MB available; use "
-            f"--nodes-per-process {max(nodes_per_process + 1, -(-num_robots // fit))} or more "
-            f"(or leave it out: up chooses)")
-
-
-def map_size_problem(size: int, available_mb: float | None) -> str:
-    """Why a generated map of side `size` is refused ("" when not): generating it takes more
-    than MEMORY_SHARE of the memory available."""
-    if available_mb is None:
-        return ""
-    needed = size * size * MAP_BYTES_PER_CELL / 2**20
-    if needed <= MEMORY_SHARE * available_mb:
-        return ""
-    return (f"--size {size}: generating a {size}x{size} map takes about {needed:,.0f} MB, more "
-            f"than {MEMORY_SHARE:.0%} of the {available_mb:,.0f} MB available")
 
 
 def checkpoint_problem(path: str) -> str:
