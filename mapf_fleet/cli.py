@@ -17,6 +17,8 @@ COMMANDS = {
     "render": ("mapf_fleet.view.replay", "main",
                "an episode, or a fleet's recorded run (--run JSON/rosbag), as GIF/WebP"),
     "card": ("mapf_fleet.evaluation.model_card", "main", "write a checkpoint's model card"),
+    "guidance": ("mapf_fleet.evaluation.guidance_opt", "main",
+                 "learned guidance (CMA-ES, resumable) and guidance files for a map"),
     "up": ("mapf_fleet.ros.launcher", "main", "start a simulated (or real-robot) fleet"),
     "echo": ("mapf_fleet.ros.echo", "main", "print a topic's messages as YAML"),
     "topics": ("mapf_fleet.ros.echo", "topics_main", "list the fleet's topics"),

@@ -275,3 +275,21 @@ def test_anchored_ranking_is_plain_pibts_distance_ranking():
     anchor = run_decentralized(HeuristicBatchPolicy(), instances, 64, conflict_rule="pibt_anchor")
     assert [r.steps for r in plain] == [r.steps for r in anchor]
     assert [r.sum_of_costs for r in plain] == [r.sum_of_costs for r in anchor]
+
+
+def test_anchored_ranking_puts_blocked_moves_last_on_every_numpy():
+    """Issue 40 item 7: the anchored (plain PIBT) ranking keyed blocked moves by int64's max in
+    an int32 array: numpy 2.4 wrapped it to -1 (blocked moves ranked first, so an anchored agent
+    taking its best free move was counted as overridden) and numpy 2.5 raised OverflowError at
+    the first tick. Blocked moves come last, and the agent's best free move is its first choice."""
+    grid = np.array([[1, 1, 1, 1, 1, 0, 1],
+                     [0, 0, 0, 0, 0, 0, 0]])
+    shield = PIBTShield(grid, [(1, 6)], anchor=True)
+    ranking = shield.anchored_ranking(0, 1 * 7 + 2).tolist()
+    assert ranking[0] == 4  # right: closer to (1, 6)
+    assert set(ranking[-2:]) == {1, 2}  # up (an obstacle) and down (off the map) last
+    from mapf_fleet.coordination.plan import distance_rankings
+
+    positions = np.array([(1, 2)])
+    step = shield.step(positions, distance_rankings(shield, positions))
+    assert step.actions.tolist() == [4] and not step.overridden[0]

@@ -262,7 +262,7 @@ def test_swap_follows_a_learned_ranking_and_reverses_it_only_when_needed():
     step = shield.step(positions, distance_rankings(shield, positions))
     # the higher-priority agent 1 backs away to the right, pulling agent 0 into (1, 3)
     assert tuple(step.positions[1]) == (1, 4) and tuple(step.positions[0]) == (1, 3)
-    assert step.overridden[0]  # pulled: it wanted (1, 2), held by nobody but agent 1's way
+    assert not step.overridden[0]  # pulled into (1, 3): its own first choice (right)
     assert step.overridden[1]  # not its first choice (it wanted (1, 2))
 
 

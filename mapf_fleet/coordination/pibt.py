@@ -247,7 +247,9 @@ class PIBTShield:
         dist = self._distance_list(agent)
         targets = self._targets[cell].tolist()
         unreachable = self.distances.unreachable
-        key = [dist[t] if t >= 0 and dist[t] < unreachable else -1 for t in targets]  # EQUIV-OLD
+        # blocked moves last; plain Python numbers: no integer type to overflow (numpy 2.5
+        # refuses int64's max in an int32 array, and 2.4 wrapped it to -1: blocked moves first)
+        key = [dist[t] if t >= 0 else unreachable for t in targets]
         if self._step_costs is not None:
             costs = self._step_costs[cell].tolist()
             key = [k + c for k, c in zip(key, costs)]

@@ -43,6 +43,7 @@ from mapf_fleet.fleet.arbiter import DEFAULT_CONFLICT_RULE, single_choice_rankin
 from mapf_fleet.fleet.record import Decisions
 from mapf_fleet.fleet.run import FleetRun
 from mapf_fleet.fleet.tasks import LifelongTasks
+from mapf_fleet.grid.guidance_made import GuidanceSource
 
 from .policies import parse_policy, unique_names, with_conflict_rule
 from .protocol import InstanceSet
@@ -76,6 +77,7 @@ class LifelongResult:
     overridden: list = field(default_factory=list)
     fallbacks: int = 0  # lacam: agent-ticks whose move came from PIBT (no plan in time)
     ranking: str | None = None  # the ranking under a coordinated rule (None: planners, revert)
+    guidance: str = "none"  # the guidance graph every distance read (`GuidanceSource.label`)
     seconds: float = 0.0
 
     @property
@@ -87,7 +89,7 @@ class LifelongResult:
         return float(np.std(np.asarray(self.goals) / self.steps)) if self.goals else 0.0
 
     def row(self) -> dict:
-        return {"policy": self.policy, "ranking": self.ranking,
+        return {"policy": self.policy, "ranking": self.ranking, "guidance": self.guidance,
                 "scenario": self.scenario, "agents": self.num_agents,
                 "steps": self.steps, "episodes": len(self.goals),
                 "throughput": round(self.throughput, 4),
@@ -112,12 +114,15 @@ def lifelong_instances(kind: str, size: int, num_agents: int, count: int, seed: 
 
 
 def lifelong_runs(instances: InstanceSet, steps: int, rule: str, seed: int,
-                  series=("overridden",), planning_budget: float | None = None) -> list[FleetRun]:
-    """One lifelong `FleetRun` per instance; episode k's goal generator is seeded (seed, k)."""
+                  series=("overridden",), planning_budget: float | None = None,
+                  guidance=None) -> list[FleetRun]:
+    """One lifelong `FleetRun` per instance; episode k's goal generator is seeded (seed, k).
+    guidance: a `GuidanceSource` (or a value it parses; None: none), its graph per map."""
+    source = GuidanceSource.parse(guidance)
     return [FleetRun(instances.maps[k], instances.starts[k],
                      LifelongTasks(grid=instances.maps[k], seed=episode_seed(seed, k)),
                      instances.goals[k], rule=rule, max_steps=steps, series=series,
-                     planning_budget=planning_budget)
+                     planning_budget=planning_budget, guidance=source.for_map(instances.maps[k]))
             for k in range(len(instances))]
 
 
@@ -143,7 +148,8 @@ def _observer(run: FleetRun, observation: str):
 
     mine = _OBSERVERS.setdefault(run, {})
     if observation not in mine:
-        mine[observation] = GoalObserver(run.grid, observation=observation)
+        mine[observation] = GoalObserver(run.grid, observation=observation,
+                                         guidance=run.guidance)
     return mine[observation]
 
 
@@ -241,6 +247,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--instances", type=int, default=16, help="episodes per scenario (default 16)")
     p.add_argument("--steps", type=int, default=256, help="episode length in steps (default 256)")
     p.add_argument("--seed", type=int, default=0, help="seed of maps, starts and goal streams")
+    p.add_argument("--guidance", nargs="+", default=["none"], type=_guidance_arg, metavar="G",
+                   help="guidance graph(s) every distance reads, one row each: none, highways "
+                        "(hand-made crisscross lanes), a guidance file (*.guidance.npz, --map "
+                        "with one map) or a cost model (*.costmodel.json, any map) "
+                        "(default: none)")
     p.add_argument("--planner-time-limit", type=float, default=1.0,
                    help="lacam: seconds per replanning call (default 1)")
     p.add_argument("--planning-budget", type=float, metavar="S",
@@ -251,6 +262,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--markdown", metavar="OUT")
     p.add_argument("--quiet", action="store_true")
     return p
+
+
+def _guidance_arg(value: str) -> GuidanceSource:
+    try:
+        return GuidanceSource.parse(value)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def scenarios(args) -> list[tuple[str, InstanceSet]]:
@@ -288,15 +306,18 @@ def evaluate_lifelong(args) -> list[LifelongResult]:
             spec = base if base.is_planner else with_conflict_rule(base, rule, args.ranking)
             spec = unique_names([spec])[0]
             policy = None if base.is_planner else build_policy(spec)
-            for label, instances in scenarios(args):
+            for label, instances, guidance in ((label, instances, guidance)
+                                               for guidance in dict.fromkeys(args.guidance)
+                                               for label, instances in scenarios(args)):
                 began = time.perf_counter()
                 # a plan's moves are conflict-free: plain PIBT passes them unchanged (the anchor
                 # would put the top agent on its distance order instead of its plan)
                 rule_of_run = "pibt" if base.is_planner else rule
                 runs = lifelong_runs(instances, args.steps, rule_of_run, args.seed,
-                                     planning_budget=args.planning_budget)
+                                     planning_budget=args.planning_budget, guidance=guidance)
                 result = LifelongResult(spec.name, label.rsplit(" ", 1)[0],
-                                        instances.starts.shape[1], args.steps)
+                                        instances.starts.shape[1], args.steps,
+                                        guidance=guidance.label)
                 if not base.is_planner and rule != REVERT:
                     result.ranking = spec.resolved_ranking
                 if base.is_planner:
@@ -310,19 +331,20 @@ def evaluate_lifelong(args) -> list[LifelongResult]:
                 results.append(result)
                 if not args.quiet:
                     row = result.row()
-                    print(f"[lifelong] {row['policy']} on {label}: throughput "
+                    print(f"[lifelong] {row['policy']} ({guidance.label} guidance) on {label}: throughput "
                           f"{row['throughput']:.3f} ({row['seconds']:.1f} s)", file=sys.stderr,
                           flush=True)
     return results
 
 
 def markdown(results: list[LifelongResult]) -> str:
-    lines = ["| policy | ranking | maps | agents | steps | episodes | throughput (goals/step) | "
-             "goals per agent | collisions | overridden |",
-             "|---|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = ["| policy | ranking | guidance | maps | agents | steps | episodes | throughput "
+             "(goals/step) | goals per agent | collisions | overridden |",
+             "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|"]
     for r in results:
         row = r.row()
-        lines.append(f"| {row['policy']} | {row['ranking'] or '-'} | {row['scenario']} "
+        lines.append(f"| {row['policy']} | {row['ranking'] or '-'} | {row['guidance']} "
+                     f"| {row['scenario']} "
                      f"| {row['agents']} | {row['steps']} "
                      f"| {row['episodes']} | {row['throughput']:.3f} ± {row['throughput_std']:.3f}"
                      f" | {row['goals_per_agent']:.2f} | {row['collisions']:.1f} | "

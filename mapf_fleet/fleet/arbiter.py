@@ -102,6 +102,7 @@ class TickArbiter:
     goals: np.ndarray
     rule: str = DEFAULT_CONFLICT_RULE
     planning_budget: float | None = None  # lacam: seconds per re-plan (None: the default)
+    guidance: object = None  # a grid.guidance.Guidance for the map (None: BFS distances)
     overridden_total: int = field(default=0, init=False)
     collided_total: int = field(default=0, init=False)
 
@@ -110,7 +111,7 @@ class TickArbiter:
         self.grid = np.asarray(self.grid) != 0
         self.goals = np.array(self.goals, dtype=np.int64)  # own copy: `set_goals` replaces it
         self.shield = make_shield(self.rule, self.grid, self.goals,
-                                  planning_budget=self.planning_budget)
+                                  planning_budget=self.planning_budget, guidance=self.guidance)
 
     def set_goals(self, goals) -> None:
         """New goals without rebuilding the arbiter (a fleet that takes goals at run time): the

@@ -52,12 +52,15 @@ class FleetRun:
     grid (H, W) nonzero = obstacle; starts (N, 2) cells; goals (N, 2) the instance's goals (for
     the instance and lifelong sources; None otherwise); tasks: a `TaskSource`; max_steps: the tick
     limit (0: none, a continuous run until stopped); series: the adapter's own per-tick record
-    entries ("executed", "overridden" and "collided" are filled in by `step`).
+    entries ("executed", "overridden" and "collided" are filled in by `step`); guidance: a
+    `grid.guidance.Guidance` for the map (None: BFS distances), read by the rule and every
+    distance the run takes.
     """
 
     def __init__(self, grid, starts, tasks: TaskSource, goals=None, *,
                  rule: str = DEFAULT_CONFLICT_RULE, max_steps: int = 256, episode: int = 0,
-                 start_tick: int = 0, series=(), planning_budget: float | None = None):
+                 start_tick: int = 0, series=(), planning_budget: float | None = None,
+                 guidance=None):
         self.grid = np.asarray(grid) != 0
         self.positions = np.array(starts, dtype=np.int64).reshape(-1, 2)
         self.num_robots = len(self.positions)
@@ -80,13 +83,18 @@ class FleetRun:
         self.reached_per_robot = np.zeros(self.num_robots, dtype=np.int64)
         self.tasks_done = np.zeros(self.num_robots, dtype=np.int64)
         self._requests: dict[int, tuple[tuple[int, int] | None, str, str]] = {}  # robot -> req
-        self._distances: dict[tuple[int, int], np.ndarray] = {}
+        # every distance of the run (goal checks, "any robot" tasks, the rule) from the map's
+        # shared table under the guidance graph
+        from mapf_fleet.grid.heuristic import distance_table
+
+        self.guidance = guidance
+        self.distances = distance_table(self.grid, guidance)
         self._counted: set[str] = set()  # one-shot goals whose arrival was counted
         self._evacuating: dict[int, tuple[int, int]] = {}  # idle robot -> cell it clears to
         padded = np.pad(~self.grid, 1)
         self._free_neighbours = (padded[:-2, 1:-1].astype(int) + padded[2:, 1:-1]
                                  + padded[1:-1, :-2] + padded[1:-1, 2:])
-        self.arbiter = TickArbiter(self.grid, self.goals, rule, planning_budget)
+        self.arbiter = TickArbiter(self.grid, self.goals, rule, planning_budget, guidance)
         self.recorder = RunRecorder(episode, self.num_robots, self.max_steps, series=series,
                                     conflict_rule=rule, task_source=tasks.name)
         # goal changes of the tick boundaries since the adapter last took them (`advance`,
@@ -140,16 +148,10 @@ class FleetRun:
 
     # ---- goals at run time --------------------------------------------------------------------
     def distance_to(self, cell) -> np.ndarray:
-        """(H, W) BFS distances to `cell` (-1 unreachable), cached per cell."""
-        key = (int(cell[0]), int(cell[1]))
-        found = self._distances.get(key)
-        if found is None:
-            from mapf_fleet.grid.heuristic import bfs_distances
-
-            found = self._distances[key] = bfs_distances(self.grid, key)
-            if len(self._distances) > 4096:
-                del self._distances[next(iter(self._distances))]
-        return found
+        """(H, W) distances to `cell` (-1 unreachable): BFS steps, or guided costs under the
+        run's guidance (`DistanceTable`, cached per cell)."""
+        h, w = self.grid.shape
+        return self.distances.array(int(cell[0]) * w + int(cell[1])).reshape(h, w)
 
     def goal_problem(self, robot, cell, *, ignore_robot: int | None = None) -> str:
         """Why `cell` cannot be `robot`'s goal now ("" when it can); robot None: any robot."""

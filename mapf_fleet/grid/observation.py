@@ -217,12 +217,16 @@ class GoalObserver:
     appears; slots of goals no agent holds any more are kept for `spare` goals (goals repeat:
     idle robots, task stations) and reused least recently used first. Memory: one padded map
     (one byte a cell, three with distances on maps under 32,767 cells) per current goal plus `spare`.
+    guidance: a `grid.guidance.Guidance` for the map: the heuristic bits (and distances) are the
+    guided ones (`heuristic.DistanceTable`); None: BFS steps.
     """
 
-    def __init__(self, grid, radius: int = 4, observation: str = "paper", spare: int = 256):
-        from .heuristic import _as_grid
+    def __init__(self, grid, radius: int = 4, observation: str = "paper", spare: int = 256,
+                 guidance=None):
+        from .heuristic import _as_grid, distance_table
 
         self.blocked = _as_grid(grid)
+        self.table = distance_table(self.blocked, guidance)
         self.channels = observation_channels(observation)
         self.observation = observation
         self.radius = r = int(radius)
@@ -251,7 +255,8 @@ class GoalObserver:
         if self.channels > NUM_OBS_CHANNELS:
             # int16 while every distance fits (compact_distances' rule)
             fits = self.blocked.size < np.iinfo(np.int16).max
-            dist = np.empty((cap, self.hp * self.wp), dtype=np.int16 if fits else np.int32)
+            dtype = np.float32 if self.table.guided else np.int16 if fits else np.int32
+            dist = np.empty((cap, self.hp * self.wp), dtype=dtype)
             if old:
                 dist[:old] = self._distances
             self._distances = dist
@@ -259,7 +264,7 @@ class GoalObserver:
 
     def slots(self, goals) -> np.ndarray:
         """int64 (M,) the pool slots of `goals` (M, 2), searching the goals not in the pool."""
-        from .heuristic import _as_goals, _bits_from_distances, _distances
+        from .heuristic import _as_goals
 
         h, w = self.blocked.shape
         goals = _as_goals(goals, self.blocked.shape)
@@ -281,8 +286,8 @@ class GoalObserver:
             for start in range(0, len(missing), 64):  # bounded temporaries
                 chunk = missing[start:start + 64]
                 cells = np.array([divmod(g, w) for g in chunk], dtype=np.int64)
-                dist = _distances(self.blocked, cells)
-                bits = _bits_from_distances(dist)
+                dist = self.table.many(cells)
+                bits = self.table.bits(dist)
                 for k, g in enumerate(chunk):
                     slot = self._free.pop()
                     static = self._static[slot].reshape(self.hp, self.wp)

@@ -1,0 +1,289 @@
+"""`mapf-fleet guidance`: learned guidance for continuous operation.
+
+    mapf-fleet guidance optimize --kinds dense --agents 64 --out runs/guidance/dense64
+    mapf-fleet guidance make --map M.map --guidance highways --out M.guidance.npz
+
+`optimize` learns a `grid.guidance_made.CostModel` (edge costs from local map features) with
+CMA-ES (the `cmaes` package; GGO's recipe, Zhang et al., IJCAI 2024) against lifelong throughput:
+each candidate runs `--episodes` lifelong episodes of plain PIBT under the fleet's rule on maps of
+the family (`--kinds` / `--sizes`, a new draw of maps and goal streams every generation, the same
+draw for every candidate of a generation) or on one `--map`. The objective is exactly what
+`mapf-fleet evaluate --lifelong --checkpoint heuristic --guidance MODEL` measures (the same
+`lifelong_runs` and `rollout`). CMA-ES starts from theta = 0, unit costs: no guidance.
+
+Rollouts run on Ray's local pool (`--workers N`, nice'd by the caller) or a cluster (`--address`),
+in this process with `--workers 1`. The state (the optimiser, history, best, CPU seconds) is
+written atomically after every generation to `OUT/state.pkl`; the same command resumes it after
+Ctrl-C or kill -9 (at most one generation lost). At the end the CMA-ES mean is measured on held-out
+seeds beside no guidance and the hand-made highways, and written as `OUT/NAME.costmodel.json`
+plus its card `OUT/NAME.md` (family, agents, throughput before and after, CPU-hours, command).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import pickle
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from mapf_fleet.coordination.rules import FLEET_RULE
+from mapf_fleet.grid.guidance_made import FEATURES, HIGHWAYS, CostModel, GuidanceSource
+
+KINDS = ("dense", "random", "maze", "rooms", "warehouse")
+# held-out draws are this far from the training seeds (never drawn by a generation)
+HELD_OUT_OFFSET = 1_000_003
+
+
+def task_instances(task: dict, seed: int):
+    """The `InstanceSet` of one evaluation: `task["episodes"]` instances of the family (or of
+    the one map) drawn from `seed`."""
+    from .lifelong import lifelong_instances
+    from .protocol import InstanceSet
+
+    if task.get("map"):
+        from mapf_fleet.grid.maps import place_agents
+        from mapf_fleet.grid.movingai import read_map
+
+        grid = read_map(task["map"])
+        made = [place_agents(grid, task["agents"], np.random.default_rng([seed, i]))
+                for i in range(task["episodes"])]
+        return InstanceSet.from_instances(made, f"MovingAI {Path(task['map']).name}")
+    return lifelong_instances(task["kind"], task["size"], task["agents"], task["episodes"], seed)
+
+
+def throughput(guidance, task: dict, seed: int) -> tuple[float, float]:
+    """(mean goals per step, CPU seconds) of plain PIBT under `task["rule"]` with `guidance` (a
+    `GuidanceSource`, a `CostModel`, or a parameter vector) on the task's instances of `seed`."""
+    from .lifelong import lifelong_runs, rollout
+    from .policies import build_policy, parse_policy, with_conflict_rule
+
+    began = time.process_time()
+    if isinstance(guidance, CostModel):
+        source = GuidanceSource("model", model=guidance)
+    elif isinstance(guidance, GuidanceSource):
+        source = guidance
+    else:
+        source = GuidanceSource("model", model=CostModel.from_vector(guidance))
+    instances = task_instances(task, seed)
+    runs = lifelong_runs(instances, task["steps"], task["rule"], seed, series=(),
+                         guidance=source)
+    policy = build_policy(with_conflict_rule(parse_policy("heuristic"), task["rule"]))
+    rollout(policy, runs, shielded=True)
+    value = float(np.mean([run.goals_reached for run in runs])) / task["steps"]
+    return value, time.process_time() - began
+
+
+def _remote_throughput(vector, task, seed):
+    return throughput(np.asarray(vector), task, seed)
+
+
+class Evaluator:
+    """Candidates' throughputs, on Ray (`workers` > 1 or an `address`) or in this process."""
+
+    def __init__(self, workers: int, address: str | None):
+        self.ray = None
+        if workers > 1 or address:
+            import ray
+
+            from mapf_fleet.training.ray_pool import init_ray
+
+            init_ray(address, workers)
+            self.ray = ray
+            self.remote = ray.remote(num_cpus=1)(_remote_throughput)
+
+    def __call__(self, vectors, task, seed) -> list[tuple[float, float]]:
+        if self.ray is None:
+            return [throughput(np.asarray(v), task, seed) for v in vectors]
+        return self.ray.get([self.remote.remote(list(map(float, v)), task, seed)
+                             for v in vectors])
+
+
+def _save(path: Path, state: dict) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        pickle.dump(state, f)
+        f.flush()
+        os.fsync(f.fileno())
+    tmp.replace(path)
+
+
+def _task(args) -> dict:
+    return {"kind": args.kinds[0] if not args.map else None, "size": args.size,
+            "agents": args.agents, "episodes": args.episodes, "steps": args.steps,
+            "rule": args.conflict_rule, "map": args.map}
+
+
+def optimize(args) -> int:
+    from cmaes import CMA
+
+    from mapf_fleet.stop_signals import StopSignals
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    state_path = out / "state.pkl"
+    task = _task(args)
+    command = shlex.join(["mapf-fleet", "guidance", *args.argv])
+    if state_path.exists():
+        with open(state_path, "rb") as f:
+            state = pickle.load(f)
+        if state["task"] != task:
+            print(f"mapf-fleet guidance optimize: {state_path} holds a run of another task "
+                  f"({state['task']}); use another --out", file=sys.stderr)
+            return 2
+        print(f"[guidance] resuming {state_path} at generation {state['generation']}",
+              file=sys.stderr, flush=True)
+    else:
+        dim = len(FEATURES) + 1
+        state = {"task": task, "command": command, "generation": 0, "history": [],
+                 "best": None, "cpu_seconds": 0.0, "wall_seconds": 0.0,
+                 "optimizer": CMA(mean=np.zeros(dim), sigma=args.sigma, seed=args.seed,
+                                  population_size=args.popsize)}
+    evaluate = Evaluator(args.workers, args.address)
+    opt = state["optimizer"]
+    with StopSignals() as stop:
+        while state["generation"] < args.generations and not stop.requested:
+            began = time.perf_counter()
+            gen = state["generation"]
+            seed = args.seed * 100_003 + gen  # one draw per generation, shared by its candidates
+            xs = [opt.ask() for _ in range(opt.population_size)]
+            results = evaluate(xs, task, seed)
+            if stop.requested:
+                break  # a generation cut short is not told (the resumed run redoes it)
+            opt.tell([(x, -value) for x, (value, _) in zip(xs, results)])
+            values = [value for value, _ in results]
+            k = int(np.argmax(values))
+            if state["best"] is None or values[k] > state["best"][0]:
+                state["best"] = (values[k], xs[k].tolist(), gen)
+            state["history"].append({"generation": gen, "mean": float(np.mean(values)),
+                                     "max": float(values[k]), "sigma": float(opt._sigma)})
+            state["cpu_seconds"] += sum(cpu for _, cpu in results)
+            state["wall_seconds"] += time.perf_counter() - began
+            state["generation"] = gen + 1
+            _save(state_path, state)
+            print(f"[guidance] generation {gen + 1}/{args.generations}: throughput mean "
+                  f"{np.mean(values):.3f} max {values[k]:.3f} sigma {opt._sigma:.3f} "
+                  f"({time.perf_counter() - began:.0f} s, {state['cpu_seconds'] / 3600:.2f} "
+                  f"CPU-h)", file=sys.stderr, flush=True)
+        if stop.requested:
+            print(f"[guidance] stopped ({stop.name}); state in {state_path}: run the same "
+                  f"command to resume", file=sys.stderr)
+            return stop.exit_code or 130
+    return finish(args, state, evaluate, out)
+
+
+def finish(args, state: dict, evaluate, out: Path) -> int:
+    """Measure the CMA-ES mean on held-out draws beside none and highways; write the model and
+    its card."""
+    task = dict(state["task"], episodes=args.held_out)
+    seed = args.seed * 100_003 + HELD_OUT_OFFSET
+    model = CostModel.from_vector(state["optimizer"].mean, meta={
+        "family": _family(task), "agents": task["agents"], "rule": task["rule"],
+        "generations": state["generation"], "command": state["command"]})
+    rows = {}
+    for name, guidance in (("none", GuidanceSource.parse("none")),
+                           (HIGHWAYS, GuidanceSource.parse(HIGHWAYS)), ("learned", model)):
+        value, cpu = throughput(guidance, task, seed)
+        rows[name] = value
+        state["cpu_seconds"] += cpu
+    name = args.name or f"{_family(task).replace(' ', '_')}_{task['agents']}"
+    model.meta.update({"held_out_throughput": rows, "cpu_hours": state["cpu_seconds"] / 3600})
+    model_path = model.save(out / f"{name}.costmodel.json")
+    card = out / f"{name}.md"
+    card.write_text(card_text(name, task, rows, state, model, args))
+    print(card.read_text())
+    print(f"[guidance] wrote {model_path} and {card}", file=sys.stderr)
+    return 0
+
+
+def _family(task: dict) -> str:
+    if task.get("map"):
+        return Path(task["map"]).stem
+    return f"{task['kind']} {task['size']}x{task['size']}"
+
+
+def card_text(name, task, rows, state, model, args) -> str:
+    gain = rows["learned"] / rows["none"] - 1 if rows["none"] else float("nan")
+    vs_hand = rows["learned"] / rows[HIGHWAYS] - 1 if rows[HIGHWAYS] else float("nan")
+    theta = ", ".join(f"{f} {v:+.3f}" for f, v in zip(FEATURES, model.theta))
+    return (f"# Guidance cost model `{name}`\n\n"
+            f"Learned by CMA-ES against lifelong throughput of plain PIBT under `{task['rule']}`.\n\n"
+            f"- maps: {_family(task)}; agents: {task['agents']}; {task['steps']} steps per "
+            f"episode, {task['episodes']} episodes per held-out row ({args.episodes} per "
+            f"candidate in training)\n"
+            f"- CMA-ES: {state['generation']} generations of {state['optimizer'].population_size}"
+            f" candidates, sigma0 {args.sigma}; {state['cpu_seconds'] / 3600:.2f} CPU-hours, "
+            f"{state['wall_seconds'] / 3600:.2f} h wall\n"
+            f"- parameters: {theta}; wait {model.wait:+.3f}\n\n"
+            f"| guidance | throughput (goals/step, held-out draws) |\n|---|---:|\n"
+            f"| none (plain PIBT) | {rows['none']:.3f} |\n"
+            f"| highways (hand-made) | {rows[HIGHWAYS]:.3f} |\n"
+            f"| learned (this model) | {rows['learned']:.3f} |\n\n"
+            f"Learned over none: {gain:+.1%}; over highways: {vs_hand:+.1%}.\n\n"
+            f"Command: `{state['command']}`\n")
+
+
+def make(args) -> int:
+    """Write a map's guidance file from a source (highways, a cost model)."""
+    from mapf_fleet.grid.movingai import read_map
+
+    grid = read_map(args.map)
+    guidance = GuidanceSource.parse(args.guidance).for_map(grid)
+    if guidance is None:
+        print("mapf-fleet guidance make: --guidance none has no file to write", file=sys.stderr)
+        return 2
+    print(f"wrote {guidance.save(args.out)}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="mapf-fleet guidance", description=__doc__.split("\n")[0])
+    sub = p.add_subparsers(dest="action", required=True)
+    o = sub.add_parser("optimize", help="learn a guidance cost model by CMA-ES (resumable)")
+    o.add_argument("--kinds", nargs=1, default=["dense"], choices=KINDS,
+                   help="map family (default dense: random maps of 17-21 cells)")
+    o.add_argument("--size", type=int, default=21, help="map side (default 21)")
+    o.add_argument("--map", help="one MovingAI .map instead of a family")
+    o.add_argument("--agents", type=int, default=64)
+    o.add_argument("--steps", type=int, default=128, help="steps per episode (default 128)")
+    o.add_argument("--episodes", type=int, default=4, help="episodes per candidate (default 4)")
+    o.add_argument("--held-out", type=int, default=32,
+                   help="episodes of the final held-out comparison (default 32)")
+    o.add_argument("--generations", type=int, default=40)
+    o.add_argument("--popsize", type=int, default=10)
+    o.add_argument("--sigma", type=float, default=0.5, help="CMA-ES initial step (default 0.5)")
+    o.add_argument("--conflict-rule", default=FLEET_RULE)
+    o.add_argument("--seed", type=int, default=0)
+    o.add_argument("--workers", type=int, default=1, help="rollout processes (Ray when > 1)")
+    o.add_argument("--address", help="a Ray cluster's address (default: a local Ray)")
+    o.add_argument("--name", help="the model's name (default: family and agents)")
+    o.add_argument("--out", required=True, help="run directory (state, model, card)")
+    m = sub.add_parser("make", help="write a map's guidance file (highways or a cost model)")
+    m.add_argument("--map", required=True, help="MovingAI .map file")
+    m.add_argument("--guidance", required=True, help="highways or a *.costmodel.json")
+    m.add_argument("--out", required=True, help="*.guidance.npz to write")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = build_parser().parse_args(argv)
+    args.argv = argv
+    if args.action == "make":
+        return make(args)
+    from mapf_fleet.coordination.rules import Rule
+
+    args.conflict_rule = Rule.parse(args.conflict_rule, "--conflict-rule").name
+    for name in ("agents", "steps", "episodes", "held_out", "generations", "popsize", "workers"):
+        if getattr(args, name) < 1:
+            print(f"mapf-fleet guidance optimize: --{name.replace('_', '-')} must be >= 1",
+                  file=sys.stderr)
+            return 2
+    return optimize(args)
+
+
+__all__ = ["throughput", "optimize", "main"]

@@ -1,0 +1,208 @@
+"""Where guidance graphs come from (numpy only): hand-made ones, a learned cost model, and the
+`--guidance` value that names one.
+
+- `highways(grid)`: one-way-leaning lanes in a crisscross (the League of Robot Runners' hand-made
+  guidance): on even rows moving right is cheap and left dear, on odd rows the reverse; on even
+  columns moving down is cheap, on odd columns up. Soft costs (`against` > 1), never forbidden,
+  so every cell keeps every path and narrow corridors still serve both ways.
+- `CostModel`: a small map-agnostic model of edge costs, cost(u -> v) = exp(theta . f(u, v)) with
+  local features f (the crisscross lane agreement, how many free neighbours the cells have,
+  corridors and dead ends, moving toward the map's centre). theta = 0 is unit costs (no guidance).
+  Its parameters are learned by CMA-ES against lifelong throughput on a family of maps
+  (`mapf-fleet guidance optimize`, GGO's recipe: Zhang et al., IJCAI 2024, who optimise a
+  guidance policy over local patterns the same way); being a function of the local map, it gives
+  guidance for maps it never saw.
+- `GuidanceSource.parse(value)`: "none", "highways", a guidance file (`*.guidance.npz`, one map)
+  or a cost model (`*.costmodel.json`, any map), parsed once where a value enters (the CLI, a
+  ROS parameter); `source.for_map(grid)` gives the map's `Guidance` (None for "none").
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .actions import NUM_ACTIONS, move_targets
+from .guidance import NONE, SUFFIX, Guidance, GuidanceError
+
+HIGHWAYS = "highways"
+MODEL_SUFFIX = ".costmodel.json"
+# the cost of moving against a highway lane (with it: 1); chosen by measurement
+# (docs/results.md, "Continuous operation with guidance")
+HIGHWAY_AGAINST = 2.0
+# the model's log-costs are clipped to this range: costs stay within [e^-C, e^C]
+LOG_COST_CLIP = 2.0
+
+FEATURES = ("bias", "lane", "target_degree", "source_degree", "corridor", "dead_end",
+            "to_centre", "turn_free")
+
+
+def _lane_agreement(h: int, w: int) -> np.ndarray:
+    """(H, W, 4) +1 where a move (up, down, left, right) follows its crisscross lane, -1 against."""
+    rows = np.arange(h)[:, None]
+    cols = np.arange(w)[None, :]
+    right = np.where(rows % 2 == 0, 1.0, -1.0) * np.ones((1, w))
+    down = np.where(cols % 2 == 0, 1.0, -1.0) * np.ones((h, 1))
+    return np.stack([-down, down, -right, right], axis=-1)
+
+
+def highways(grid, against: float = HIGHWAY_AGAINST) -> Guidance:
+    """Crisscross highway guidance for `grid` (module docstring): cost 1 with the lane, `against`
+    against it, waits 1."""
+    blocked = np.asarray(grid) != 0
+    h, w = blocked.shape
+    costs = np.ones((h, w, NUM_ACTIONS))
+    costs[..., 1:] = np.where(_lane_agreement(h, w) > 0, 1.0, float(against))
+    return Guidance.from_costs(blocked, costs, {"kind": HIGHWAYS, "against": float(against)},
+                               source="highways")
+
+
+def features(grid) -> np.ndarray:
+    """(H, W, 4, F) the `FEATURES` of every move (up, down, left, right) from every cell."""
+    blocked = np.asarray(grid) != 0
+    h, w = blocked.shape
+    targets = move_targets(blocked)[:, 1:]  # (H*W, 4)
+    padded = np.pad(~blocked, 1)
+    degree = (padded[:-2, 1:-1].astype(float) + padded[2:, 1:-1] + padded[1:-1, :-2]
+              + padded[1:-1, 2:]).ravel()
+    valid = targets >= 0
+    t = np.where(valid, targets, 0)
+    target_degree = np.where(valid, degree[t], 0.0)
+    source_degree = np.repeat(degree[:, None], 4, axis=1)
+    rows, cols = np.divmod(np.arange(h * w), w)
+    centre = np.array([(h - 1) / 2, (w - 1) / 2])
+    here = np.abs(rows - centre[0]) + np.abs(cols - centre[1])
+    there = np.abs(rows[t] - centre[0]) + np.abs(cols[t] - centre[1])
+    # a move whose target lets a robot turn (a free cell beside the way on): crossings
+    turn = np.where(valid, (target_degree >= 3).astype(float), 0.0)
+    f = np.stack([
+        np.ones((h * w, 4)),
+        _lane_agreement(h, w).reshape(h * w, 4),
+        target_degree / 4.0,
+        source_degree / 4.0,
+        (target_degree == 2).astype(float),
+        (target_degree == 1).astype(float),
+        np.sign(here[:, None] - there),
+        turn,
+    ], axis=-1)
+    return np.where(valid[..., None], f, 0.0).reshape(h, w, 4, len(FEATURES))
+
+
+@dataclass
+class CostModel:
+    """cost(u -> v) = exp(clip(theta . features(u, v))), waits exp(wait); `theta` over
+    `FEATURES`. `meta`: how it was made (the card's facts)."""
+
+    theta: np.ndarray
+    wait: float = 0.0
+    meta: dict = field(default_factory=dict)
+
+    @classmethod
+    def zeros(cls) -> "CostModel":
+        return cls(np.zeros(len(FEATURES)))
+
+    @classmethod
+    def from_vector(cls, x, meta: dict | None = None) -> "CostModel":
+        """The model of a flat parameter vector (theta, then the wait's log-cost)."""
+        x = np.asarray(x, dtype=np.float64)
+        if x.shape != (len(FEATURES) + 1,):
+            raise ValueError(f"a cost model has {len(FEATURES) + 1} parameters, got {x.shape}")
+        return cls(x[:-1].copy(), float(x[-1]), dict(meta or {}))
+
+    def vector(self) -> np.ndarray:
+        return np.append(self.theta, self.wait)
+
+    def guidance(self, grid) -> Guidance:
+        blocked = np.asarray(grid) != 0
+        logc = np.clip(features(blocked) @ self.theta, -LOG_COST_CLIP, LOG_COST_CLIP)
+        costs = np.empty((*blocked.shape, NUM_ACTIONS))
+        costs[..., 0] = np.exp(np.clip(self.wait, -LOG_COST_CLIP, LOG_COST_CLIP))
+        costs[..., 1:] = np.exp(logc)
+        return Guidance.from_costs(blocked, costs, {"kind": "costmodel", **self.meta},
+                                   source="cost model")
+
+    def save(self, path) -> Path:
+        path = Path(path)
+        data = {"features": list(FEATURES), "theta": self.theta.tolist(), "wait": self.wait,
+                "meta": self.meta}
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_text(json.dumps(data, indent=1) + "\n")
+        tmp.replace(path)
+        return path
+
+    @classmethod
+    def load(cls, path) -> "CostModel":
+        path = Path(path)
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise GuidanceError(f"{path}: cannot read a cost model ({exc})") from None
+        if not isinstance(data, dict) or data.get("features") != list(FEATURES):
+            raise GuidanceError(f"{path}: field 'features' must be {list(FEATURES)}")
+        theta = np.asarray(data.get("theta"), dtype=np.float64)
+        if theta.shape != (len(FEATURES),) or not np.isfinite(theta).all():
+            raise GuidanceError(f"{path}: field 'theta' must be {len(FEATURES)} finite numbers")
+        wait = data.get("wait", 0.0)
+        if not isinstance(wait, (int, float)) or not np.isfinite(wait):
+            raise GuidanceError(f"{path}: field 'wait' must be a finite number, got {wait!r}")
+        return cls(theta, float(wait), dict(data.get("meta") or {}))
+
+
+@dataclass(frozen=True)
+class GuidanceSource:
+    """What a `--guidance` value names: `kind` none, highways, file or model; `path` for the
+    last two. Parse once with `GuidanceSource.parse`; `for_map(grid)` per map."""
+
+    kind: str
+    path: str = ""
+    model: "CostModel | None" = field(default=None, compare=False, hash=False)  # in memory
+
+    @classmethod
+    def parse(cls, value) -> "GuidanceSource":
+        if isinstance(value, GuidanceSource):
+            return value
+        text = "" if value is None else str(value).strip()
+        if text in ("", NONE):
+            return cls(NONE)
+        if text == HIGHWAYS:
+            return cls(HIGHWAYS)
+        path = Path(text)
+        if not path.is_file():
+            raise GuidanceError(f"guidance must be 'none', 'highways', a guidance file "
+                                f"(*{SUFFIX}) or a cost model (*{MODEL_SUFFIX}); no such file: "
+                                f"{text}")
+        if text.endswith(MODEL_SUFFIX):
+            CostModel.load(path)  # refused here, before anything starts
+            return cls("model", str(path))
+        return cls("file", str(path))
+
+    def __str__(self) -> str:
+        return self.path or self.kind
+
+    @property
+    def label(self) -> str:
+        """Short name for tables: none, highways, or the file's stem."""
+        if self.model is not None and not self.path:
+            return "learned"
+        if not self.path:
+            return self.kind
+        name = Path(self.path).name
+        for suffix in (MODEL_SUFFIX, SUFFIX):
+            name = name.removesuffix(suffix)
+        return name
+
+    def for_map(self, grid) -> Guidance | None:
+        if self.kind == NONE:
+            return None
+        if self.kind == HIGHWAYS:
+            return highways(grid)
+        if self.kind == "model":
+            return (self.model or CostModel.load(self.path)).guidance(grid)
+        return Guidance.load(self.path, grid)
+
+
+__all__ = ["highways", "features", "CostModel", "GuidanceSource", "FEATURES", "HIGHWAYS",
+           "MODEL_SUFFIX", "HIGHWAY_AGAINST"]
