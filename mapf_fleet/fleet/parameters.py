@@ -406,9 +406,12 @@ def merged_values(node_names: list[str], namespace: str, user_files: list[str],
         return key_applies(key, node, namespace) or (
             node == "mapf_policy_0" and last.startswith("mapf_policy"))
 
+    # a section for the lockstep node of the other mode (one file serves both: the shipped
+    # config/fleet/fleet.yaml) is checked against that node's table, not this run's
+    other = [(n, t) for n, t in NODE_TABLES.items() if n != node_names[0] and t is not POLICY]
     for path, entries in file_entries.items():  # unknown keys: refused, whatever the node
         for key, params in entries:
-            named = [t for n, t in kinds if names_kind(key, n)]
+            named = [t for n, t in kinds + other if names_kind(key, n)]
             for name in params:
                 if not _known_anywhere(name, named or tables):
                     known = sorted(set().union(*(named or tables)))
