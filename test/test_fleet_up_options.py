@@ -30,7 +30,7 @@ def test_every_option_of_the_tables_is_an_up_option_with_its_default():
         assert action.default is None  # not given: the table, a params file or -p decide
         if entry.param.type in (int, float) and "default" not in (entry.option.help or ""):
             assert f"(default: {entry.param.default})" in " ".join(action.help.split())
-    assert "--device {auto,cpu,cuda}" in shown and "--guidance FILE|none" in shown
+    assert "--device {auto,cpu,cuda}" in shown and "--guidance none|highways|FILE" in shown
 
 
 def test_adding_a_parameter_is_one_entry_in_the_table(monkeypatch):
@@ -93,8 +93,11 @@ def test_guidance_is_none_or_an_existing_file_and_one_value_for_the_fleet(tmp_pa
     assert plan.guidance is None and plan.sim["guidance"] == "none"
     with pytest.raises(U.UpError) as caught:
         _plan(["--guidance", str(tmp_path / "missing.yaml")])
-    assert str(caught.value) == (f"--guidance must be none or an existing file, got "
+    assert str(caught.value) == (f"--guidance must be none, highways, an existing "
+                                 f"*.guidance.npz or *.costmodel.json, got "
                                  f"'{tmp_path / 'missing.yaml'}'")
+    _, plan = _plan(["--guidance", "highways"])
+    assert plan.guidance == "highways"
     path = tmp_path / "lanes.yaml"
     path.write_text("{}\n")
     _, plan = _plan(["--guidance", str(path)])

@@ -57,10 +57,14 @@ def fleet_run(params: dict, grid, starts, goals, episode: int, series, geometry=
     tasks = make_task_source(str(params["task_source"]), grid, seed=seed,
                              task_file=str(params["task_file"]), num_robots=len(starts),
                              cell_of=cell_of, starts=starts)
+    from mapf_fleet.grid.guidance_made import GuidanceSource
+
+    guidance = GuidanceSource.parse(params.get("guidance", "none")).for_map(grid)
     return FleetRun(grid, starts, tasks, goals, rule=str(params["conflict_rule"]),
                     max_steps=int(params["max_steps"]), episode=episode, series=series,
                     start_tick=start_tick,
-                    planning_budget=float(params.get("planning_budget", 1.0)))
+                    planning_budget=float(params.get("planning_budget", 1.0)),
+                    guidance=guidance)
 
 
 class EpisodeBinding:

@@ -47,15 +47,28 @@ DEVICES = ("auto", "cpu", "cuda")
 
 
 def resolve_guidance(value: str) -> str | None:
-    """The guidance file a node builds its world with (None: no guidance, "none")."""
+    """The guidance a node builds its world with (None: no guidance, "none"): "highways", a
+    guidance file or a cost model (`grid.guidance_made.GuidanceSource`)."""
     return None if value in ("none", "") else str(value)
 
 
+def _guidance_ok(value: str) -> bool:
+    from mapf_fleet.grid.guidance_made import GuidanceSource
+
+    try:
+        GuidanceSource.parse(value)
+    except ValueError:
+        return False
+    return True
+
+
 # the simulator's, the aggregator's and the policy nodes' guidance: one value for the fleet
-GUIDANCE = Param("none", "guidance file (costs on the grid's directed edges, read by every "
-                         "distance to a goal) or none; every node of the fleet gets the same",
-                 lambda v: v == "none" or Path(v).is_file(), "none or an existing file",
-                 option=Option("--guidance", metavar="FILE|none"))
+GUIDANCE = Param("none", "guidance graph read by every distance to a goal (the rule's order, "
+                         "the robots' heuristic channels): none, highways (hand-made crisscross "
+                         "lanes), a guidance file (*.guidance.npz) or a cost model "
+                         "(*.costmodel.json); every node of the fleet gets the same",
+                 _guidance_ok, "none, highways, an existing *.guidance.npz or *.costmodel.json",
+                 option=Option("--guidance", metavar="none|highways|FILE"))
 
 
 # both lockstep nodes (simulator, aggregator) take their instance and their tick from these

@@ -58,8 +58,13 @@ class PolicyExchange:
     and delivers what comes from the others to `receive_hidden`, `receive_announce`,
     `receive`."""
 
-    def __init__(self, model, ids, comm_timeout: float, ranking: str, link):
+    def __init__(self, model, ids, comm_timeout: float, ranking: str, link, guidance=None):
         self.model = model.eval()
+        # the guidance graph the robots' heuristic channels read (a `GuidanceSource` value or
+        # None), the fleet's one value: the simulator's rule reads the same distances
+        from mapf_fleet.grid.guidance_made import GuidanceSource
+
+        self.guidance = GuidanceSource.parse(guidance)
         self.algo = model.config.algo
         self.radius = int(model.config.obs_radius)
         self.ids = np.array(ids, dtype=np.int64)
@@ -123,7 +128,8 @@ class PolicyExchange:
         observation = self.model.config.observation
         key = (grid.shape, grid.tobytes(), observation)
         if self._observer is None or self._observer_key != key:  # goals: searched when new
-            self._observer = GoalObserver(grid, self.radius, observation)
+            self._observer = GoalObserver(grid, self.radius, observation,
+                                          guidance=self.guidance.for_map(grid))
             self._observer_key = key
         obs = self._observer.observe(positions, local_goals, self.ids)
         self.timing.begin(started, arrived, stamp)

@@ -110,7 +110,7 @@ class PolicyHub:
         # the exchange's numbers; this hub is its ROS link (publish_hidden, publish_announce,
         # send, warn)
         self.exchange = PolicyExchange(model, ids, first.comm_timeout, first.ranking,
-                                       self)
+                                       self, guidance=first.guidance)
         self.algo = self.exchange.algo
         self.ids = self.exchange.ids
         self.index_of = self.exchange.index_of
