@@ -117,6 +117,8 @@ class GoalClient:
 
         self.node = node
         self.args = args
+        # --timeout bounds the whole command, not each of its waits (they used to add up)
+        self.deadline = time.monotonic() + args.timeout
         self.map_msg = None
         self.events: list = []
         self.cond = threading.Condition()
@@ -147,6 +149,10 @@ class GoalClient:
             self.events.append(msg)
             self.cond.notify_all()
 
+    def left(self) -> float:
+        """Seconds left of --timeout."""
+        return max(0.0, self.deadline - time.monotonic())
+
     def _wait(self, predicate, timeout: float, signals) -> bool:
         deadline = time.monotonic() + timeout
         with self.cond:
@@ -167,7 +173,7 @@ class GoalClient:
         if self.args.xy is not None:
             msg.pose.position.x, msg.pose.position.y = self.args.xy
             return msg
-        if not self._wait(lambda: self.map_msg is not None, self.args.timeout, signals):
+        if not self._wait(lambda: self.map_msg is not None, self.left(), signals):
             return None
         _, geometry = common.occupancy_to_grid(self.map_msg)
         msg.pose.position.x, msg.pose.position.y = geometry.cell_to_xy(*self.args.cell)
@@ -185,7 +191,7 @@ class GoalClient:
         args = self.args
         # goal events are volatile: hear the fleet's publisher first, so a rejection's reason
         # is not missed (a fleet without goal events still gets the goal)
-        _wait_for(lambda: self.events_sub.get_publisher_count() > 0, min(args.timeout, 5.0),
+        _wait_for(lambda: self.events_sub.get_publisher_count() > 0, min(self.left(), 5.0),
                   signals)
         if args.tasks:
             return self._submit_file(args.tasks, signals)
@@ -201,7 +207,7 @@ class GoalClient:
             return self._cancel(robot, signals)
         # the fleet's state names its robots (a tick, or every few seconds when idle): an id
         # past them is refused at once instead of after --timeout
-        self._wait(lambda: self.robots is not None, min(args.timeout, STATE_WAIT_S), signals)
+        self._wait(lambda: self.robots is not None, min(self.left(), STATE_WAIT_S), signals)
         if self.robots is not None and robot >= self.robots:
             print(f"mapf-fleet goal: robot {robot}: the fleet has {self.robots} robots "
                   f"(0..{self.robots - 1})", file=sys.stderr)
@@ -223,7 +229,7 @@ class GoalClient:
 
         pub = self.node.create_publisher(PoseStamped, common.rel(goal_pose_topic(robot)),
                                          common.reliable_qos(5))
-        if not _wait_for(lambda: pub.get_subscription_count() > 0, self.args.timeout, signals):
+        if not _wait_for(lambda: pub.get_subscription_count() > 0, self.left(), signals):
             print(f"mapf-fleet goal: nobody subscribes to {goal_pose_topic(robot)} within "
                   f"{self.args.timeout} s", file=sys.stderr)
             return 3
@@ -247,7 +253,7 @@ class GoalClient:
         from mapf_fleet.ros.goals import FLEET_NAVIGATE_ACTION
 
         client = ActionClient(self.node, NavigateRobotToPose, common.rel(FLEET_NAVIGATE_ACTION))
-        if not client.wait_for_server(timeout_sec=self.args.timeout):
+        if not client.wait_for_server(timeout_sec=self.left()):
             print(f"mapf-fleet goal: no action server {FLEET_NAVIGATE_ACTION} within "
                   f"{self.args.timeout} s (is the fleet up, in this namespace?)", file=sys.stderr)
             return 3
@@ -264,7 +270,7 @@ class GoalClient:
         # (discovery on a loaded machine): ask again; a goal sent twice preempts its twin
         sent = _ask(lambda: client.send_goal_async(
             NavigateRobotToPose.Goal(robot_id=robot, pose=pose),
-            feedback_callback=feedback if self.args.wait else None), self.args.timeout, signals)
+            feedback_callback=feedback if self.args.wait else None), self.left(), signals)
         if sent is None:
             print(f"mapf-fleet goal: the goal was not answered within {self.args.timeout:g} s",
                   file=sys.stderr)
@@ -299,7 +305,7 @@ class GoalClient:
         from mapf_fleet.ros.goals import CANCEL_GOAL_SERVICE
 
         client = self.node.create_client(CancelRobotGoal, common.rel(CANCEL_GOAL_SERVICE))
-        if not client.wait_for_service(timeout_sec=self.args.timeout):
+        if not client.wait_for_service(timeout_sec=self.left()):
             print(f"mapf-fleet goal: no service {CANCEL_GOAL_SERVICE} within "
                   f"{self.args.timeout:g} s (is the fleet up, in this namespace?)",
                   file=sys.stderr)
@@ -307,7 +313,7 @@ class GoalClient:
         # a cancel asked twice is harmless: the second finds the robot idle, so only the first
         # answer counts and a lost reply is asked again
         future = _ask(lambda: client.call_async(CancelRobotGoal.Request(robot_id=robot)),
-                      self.args.timeout, signals)
+                      self.left(), signals)
         if future is None:
             print(f"mapf-fleet goal: {CANCEL_GOAL_SERVICE} did not answer within "
                   f"{self.args.timeout:g} s", file=sys.stderr)
@@ -340,7 +346,7 @@ class GoalClient:
         from mapf_fleet.ros.goals import SUBMIT_TASKS_SERVICE
 
         client = self.node.create_client(SubmitTasks, common.rel(SUBMIT_TASKS_SERVICE))
-        if not client.wait_for_service(timeout_sec=self.args.timeout):
+        if not client.wait_for_service(timeout_sec=self.left()):
             print(f"mapf-fleet goal: no service {SUBMIT_TASKS_SERVICE} within "
                   f"{self.args.timeout} s (is the fleet up?)", file=sys.stderr)
             return 3
@@ -349,7 +355,7 @@ class GoalClient:
         # (a second request would queue them twice)
         arrived = lambda: any(e.source == "submit_tasks" for e in self.events[since:])  # noqa
         future = _ask(lambda: client.call_async(SubmitTasks.Request(tasks=text)),
-                      self.args.timeout, signals, stop=arrived)
+                      self.left(), signals, stop=arrived)
         if future is None and arrived():
             with self.cond:
                 seen = [e for e in self.events[since:] if e.source == "submit_tasks"]
