@@ -57,6 +57,16 @@ class StartupError(RuntimeError):
     """The fleet could not start (robots without a pose): one line, exit 2, no traceback."""
 
 
+def arrival_warning(tick: int, robots: list[int], waited: float, timeout: float,
+                    stopping: bool) -> str:
+    """The warning for robots not at their waypoints when the tick's wait ended: the time it
+    really waited (it used to say `arrival_timeout` whatever the wait), and why it ended early."""
+    why = ("" if waited >= timeout else
+           f" (the run is stopping; arrival_timeout {timeout:g} s)" if stopping else
+           f" (arrival_timeout {timeout:g} s)")
+    return (f"tick {tick}: robots {robots} not at their waypoints after {waited:.1f} s{why}")
+
+
 class FleetStateAggregator(fleet_io.LockstepNode):
     NAME = "aggregator"
     PARAMETERS = PARAMETERS
@@ -248,7 +258,9 @@ class FleetStateAggregator(fleet_io.LockstepNode):
             self.get_logger().warning(f"tick {decisions.tick}: robots {late_live} still in "
                                       f"transit: they hold both cells")
         commanded, executed, late = plan.waypoints.copy(), plan.executed.copy(), plan.late
+        waited = time.monotonic()
         sent = self._dispatch_and_wait(commanded, arrival_timeout, skip=set(silent))
+        waited = time.monotonic() - waited
         # never sent a new waypoint (its cell was not vacated in time): it stayed; a robot in
         # transit had its waypoint before and keeps it
         unsent = np.flatnonzero(~sent & ~late).tolist()
@@ -271,10 +283,12 @@ class FleetStateAggregator(fleet_io.LockstepNode):
                 if i not in self._rejected_reason:
                     self.positions[i] = cell
             self.ticker.advance()
-        not_there = [i for i in np.flatnonzero(~arrived).tolist() if i not in silent]
+        # robots that went silent during the wait are reported as silent, not as late
+        not_there = [i for i in np.flatnonzero(~arrived).tolist()
+                     if i not in silent and i not in self.silent]
         if not_there:
-            self.get_logger().warning(f"tick {decisions.tick}: robots {not_there} not at their "
-                                      f"waypoints after {arrival_timeout} s")
+            self.get_logger().warning(arrival_warning(decisions.tick, not_there, waited,
+                                                      arrival_timeout, self.ticker.stopped))
         _, counts = np.unique(self.positions, axis=0, return_counts=True)
         overridden = np.flatnonzero((executed != decisions.actions)
                                     & ~plan.resolution.held).tolist()
