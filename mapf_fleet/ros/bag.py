@@ -32,6 +32,7 @@ stops it with `stop_recorder(proc)`.
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import signal
 import subprocess
@@ -69,6 +70,7 @@ OUTCOME_PREFIX = "mapf-fleet record: outcome recorded"  # printed once, on the f
 RECORDER_NODE = "mapf_fleet_recorder"  # the simulator waits for its state subscription
 DISCOVERY_PERIOD_S = 0.25
 FLUSH_PERIOD_S = 1.0  # longest time a received message stays in memory only
+OUTCOME_WAIT_S = 5.0  # `up` gone: how long the recorder waits for its stopped fleet's outcome
 
 
 class RecordError(RuntimeError):
@@ -238,7 +240,7 @@ class BagRecorder:
                     or time.monotonic() - self._flushed >= FLUSH_PERIOD_S:
                 self._flush()  # a tick's state ends the tick: its messages reach the file
         if first_outcome and self.announce:
-            print(f"{OUTCOME_PREFIX} on {connection.topic}", flush=True)
+            _say(f"{OUTCOME_PREFIX} on {connection.topic}")
 
     @property
     def message_count(self) -> int:
@@ -251,6 +253,29 @@ class BagRecorder:
                 return
             self._closed = True
             self.writer.close()
+
+
+def _parent_dies(within: float = 1.0) -> bool:
+    """Whether the `up` that started this recorder is gone, or goes within `within` s. Its death
+    sends SIGTERM (PR_SET_PDEATHSIG) when the thread that started the recorder ends, which under
+    `kill -9` comes a moment before the process is gone and this one re-parented."""
+    from mapf_fleet.stop_signals import PARENT_PID_ENV, parent_gone
+
+    if not os.environ.get(PARENT_PID_ENV):
+        return False  # not started by `up`
+    deadline = time.monotonic() + within
+    while not parent_gone():
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.05)
+    return True
+
+
+def _wait_for_outcome(recorder: BagRecorder, timeout: float) -> None:
+    outcome = [t for t in recorder.counts if t.endswith(common.OUTCOME_TOPIC)]
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and not any(recorder.counts[t] for t in outcome):
+        time.sleep(0.1)
 
 
 def recorder_command(bag_dir, topics: list[str] | None = None, namespace: str = "",
@@ -317,9 +342,21 @@ def main(argv: list[str] | None = None) -> int:
             while not stop.wait(0.2):
                 if deadline is not None and time.monotonic() >= deadline:
                     break
+            if stop.signum == signal.SIGTERM and _parent_dies():  # `up` was killed: the
+                _wait_for_outcome(recorder, OUTCOME_WAIT_S)  # simulator, stopped with it, still
+                # says how the run ended; keep that
         finally:
             recorder.close()
     counts = {topic: n for topic, n in recorder.counts.items()}
-    print(f"mapf-fleet record: wrote {sum(counts.values())} messages on {len(counts)} topics to "
-          f"{args.bag_dir}", flush=True)
+    _say(f"mapf-fleet record: wrote {sum(counts.values())} messages on {len(counts)} topics to "
+         f"{args.bag_dir}")
     return 0
+
+
+def _say(line: str) -> None:
+    """A line on stdout, which is `up`'s pipe when it started the recorder: gone with a killed
+    `up`, and the bag must still be closed."""
+    try:
+        print(line, flush=True)
+    except (BrokenPipeError, OSError):
+        pass

@@ -73,3 +73,45 @@ def test_a_bag_killed_with_sigkill_keeps_every_tick_but_the_last(tmp_path, ros_e
     assert f"ends at tick {TICKS - 1} without the run's outcome" in done.stderr \
         or f"ends at tick {TICKS - 2} without the run's outcome" in done.stderr, done.stderr
     assert len(list(out.glob("frame_*.png"))) >= TICKS - 1  # at most the last tick lost
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_kill_9_of_up_bag_keeps_the_last_tick_and_the_outcome(tmp_path, ros_env, checkpoints):
+    """`up` killed with SIGKILL: its children get SIGTERM (PR_SET_PDEATHSIG); the recorder,
+    seeing `up` gone, waits for the stopped simulator's outcome before it closes the bag."""
+    bag, record = tmp_path / "bag", tmp_path / "run.json"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mapf_fleet.cli", "up", "--checkpoint", checkpoints["dhc"],
+         "--num-robots", "2", "--size", "8", "--max-steps", "500", "--task-source", "lifelong",
+         "--nodes-per-process", "2",
+         "--record", str(record), "--bag", str(bag), "--ros-args", "-p", "tick_period:=0.2",
+         "-p", "progress_every:=2"],
+        env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        for line in proc.stdout:
+            if "tick 6:" in line:
+                break
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    deadline = time.monotonic() + 60  # the recorder closes the bag on its own
+    while not (bag / "metadata.yaml").exists() and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert (bag / "metadata.yaml").exists(), "the recorder did not close the bag"
+    from rosbags.rosbag2 import Reader
+
+    from mapf_fleet.fleet.record import read_record
+    from mapf_fleet.ros.bag import fleet_typestore
+
+    typestore = fleet_typestore()
+    with Reader(bag) as reader:
+        got = [(c.topic, typestore.deserialize_cdr(raw, c.msgtype))
+               for c, _, raw in reader.messages() if c.topic in ("/fleet/state", "/fleet/outcome")]
+    outcomes = [m for topic, m in got if topic == "/fleet/outcome"]
+    assert outcomes and outcomes[-1].summary.startswith("stopped at tick"), "no outcome"
+    last = max(m.tick for topic, m in got if topic == "/fleet/state")
+    assert last == len(read_record(record)["positions"]) - 1  # the last tick is in
