@@ -331,7 +331,7 @@ class GoalClient:
         from mapf_fleet.fleet.tasks import TaskFileError, entry_lines, load_task_file
 
         try:
-            load_task_file(path)
+            load_task_file(path, cell_of=lambda x, y: (0, 0))  # its form; metres: the fleet's map
             text = open(path, encoding="utf-8").read()
         except (TaskFileError, OSError, UnicodeDecodeError) as exc:
             print(f"mapf-fleet goal: {exc}", file=sys.stderr)
@@ -372,10 +372,10 @@ class GoalClient:
                 if res.events[k] == "rejected" and not reason.startswith("not queued"):
                     print(f"{name(k)}" + (f" ({res.task_ids[k]})" if k < len(res.task_ids)
                                           else "") + f": rejected: {reason}", file=sys.stderr)
-            count = len(res.events)
-            print(f"mapf-fleet goal: nothing queued ({count} task{'s' if count != 1 else ''} "
-                  f"sent, queued whole or not at all): fix the task named and send again",
-                  file=sys.stderr)
+            if len(res.events) > 1:
+                print(f"mapf-fleet goal: nothing queued ({len(res.events)} tasks sent, queued "
+                      f"whole or not at all): fix the task named and send again",
+                      file=sys.stderr)
             return 2
         queued = []
         for k, event in enumerate(res.events):

@@ -129,11 +129,12 @@ def test_a_task_file_is_queued_whole_or_not_at_all(ros_env, fleet, tmp_path):
         in done.stderr and "nothing queued" in done.stderr
     time.sleep(0.3)
     assert not f.run.queue and not f.run.active.any()  # the good task does not run
-    path.write_text("- goal: [2, 2]\n- goal: [3, 4]\n")
+    path.write_text("- goal: [2, 2]\n- goal: [3, 4]\n- xy: [4.5, 2.5]\n")  # metres too
     done = goal(ros_env, "--tasks", path)
     assert done.returncode == 0, done.stdout + done.stderr
     time.sleep(0.3)
-    assert sorted(map(tuple, (e["cell"] for e in f.events("assigned")))) == [(2, 2), (3, 4)]
+    assert sorted(map(tuple, (e["cell"] for e in f.events("assigned")))) == [(2, 2), (2, 4),
+                                                                             (3, 4)]
     path.write_text("- goal: [2, 2]\n- goal: [3, 4\n")
     done = goal(ros_env, "--tasks", path)
     assert done.returncode == 2 and f"{path}:3:" in done.stderr and "not valid YAML" in done.stderr
