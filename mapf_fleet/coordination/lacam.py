@@ -114,6 +114,7 @@ class LaCAM:
     def distances(self, goals_flat: list[int]) -> list:
         """Per agent the distance row (`DistanceTable.row`, flat cells) to its goal; unreachable
         cells hold `self.table.unreachable`."""
+        self.table.reserve(len(goals_flat))  # every agent's row is read at every node
         row = self.table.row
         return [row(g) for g in goals_flat]
 

@@ -153,6 +153,7 @@ class PIBTShield:
         # observation on this map: a fleet that hands out new goals at run time reuses a cell's
         # distances whichever agent heads there
         self.distances = distance_table(self.grid, guidance)
+        self.distances.reserve(2 * len(goals))  # this tick's goals and the last ones
         self._step_costs = self.distances.step_costs  # None unguided
         # the flat cell each action leads to; -1 off the map, into an obstacle, against a lane
         self._targets = self.distances.move_targets()

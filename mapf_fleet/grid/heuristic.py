@@ -118,6 +118,12 @@ class DistanceTable:
         dist[~np.isfinite(dist)] = UNREACHABLE
         return dist
 
+    def reserve(self, goals: int) -> None:
+        """Keep at least `goals` goals' distances (a fleet of N robots asks for N goals every
+        tick: fewer kept would search them again and again), whatever `RECENT_BYTES` says."""
+        with self._lock:
+            self.keep = max(self.keep, int(goals))
+
     def array(self, goal: int) -> np.ndarray:
         """(H*W,) read-only distances to flat cell `goal` (`UNREACHABLE` where none)."""
         with self._lock:
@@ -142,7 +148,10 @@ class DistanceTable:
             if found is not None:
                 self._rows.move_to_end(goal)
                 return found
-        dist = self.array(goal)
+        with self._lock:
+            dist = self._arrays.get(goal)
+        if dist is None:  # the rules read rows only: the array is not kept for them
+            dist = self._search(int(goal))
         if self.guided:
             found = array("d", np.where(dist >= 0, dist, np.inf).tobytes())
         else:

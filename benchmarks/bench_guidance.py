@@ -1,0 +1,93 @@
+"""What guidance costs: guided distances for a new goal beside today's BFS, and the PIBT tick with
+and without a guidance graph (issue 41's targets: a new goal's guided distances no slower than 2x
+BFS; a tick at 64 agents <= 50 ms, at 2,048 agents lifelong <= 1 s, guidance included).
+
+    python benchmarks/bench_guidance.py [--sizes 40 80 256] [--goals 200] [--json OUT]
+
+Per map side: median milliseconds per goal of `DistanceTable` without guidance (BFS) and under
+the hand-made highways and a cost model (Dijkstra on float costs), fresh tables each time (no
+cache hits); then the plain PIBT tick (fleet rule, distance rankings) at 64 and 2,048 agents.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from mapf_fleet.coordination.factory import make_shield  # noqa: E402
+from mapf_fleet.coordination.plan import distance_rankings  # noqa: E402
+from mapf_fleet.coordination.rules import FLEET_RULE  # noqa: E402
+from mapf_fleet.grid.guidance_made import CostModel, highways  # noqa: E402
+from mapf_fleet.grid.heuristic import DistanceTable  # noqa: E402
+from mapf_fleet.grid.maps import place_agents  # noqa: E402
+
+
+def per_goal_ms(blocked, guidance, goals) -> float:
+    table = DistanceTable(blocked, guidance)
+    times = []
+    for g in goals:
+        began = time.perf_counter()
+        table.array(int(g))
+        times.append(time.perf_counter() - began)
+    return 1e3 * statistics.median(times)
+
+
+def tick_ms(blocked, agents, guidance, ticks, rng) -> float:
+    inst = place_agents(blocked.astype(np.uint8), agents, rng)
+    shield = make_shield(FLEET_RULE, blocked, inst.goals, guidance=guidance)
+    positions = np.asarray(inst.starts)
+    shield.step(positions, distance_rankings(shield, positions))  # distances searched
+    times = []
+    for _ in range(ticks):
+        began = time.perf_counter()
+        step = shield.step(positions, distance_rankings(shield, positions))
+        times.append(time.perf_counter() - began)
+        positions = step.positions
+    return 1e3 * statistics.median(times)
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--sizes", nargs="+", type=int, default=[40, 80, 256])
+    p.add_argument("--goals", type=int, default=200)
+    p.add_argument("--ticks", type=int, default=20)
+    p.add_argument("--json")
+    args = p.parse_args()
+    rng = np.random.default_rng(0)
+    model = CostModel.from_vector(rng.normal(0, 0.5, len(CostModel.zeros().vector())))
+    rows = []
+    for n in args.sizes:
+        blocked = rng.random((n, n)) < 0.2
+        free = np.flatnonzero(~blocked.ravel())
+        goals = rng.choice(free, min(args.goals, len(free)), replace=False)
+        row = {"side": n, "bfs_ms": per_goal_ms(blocked, None, goals),
+               "highways_ms": per_goal_ms(blocked, highways(blocked), goals),
+               "costmodel_ms": per_goal_ms(blocked, model.guidance(blocked), goals)}
+        row["guided_over_bfs"] = max(row["highways_ms"], row["costmodel_ms"]) / row["bfs_ms"]
+        rows.append(row)
+        print(f"{n}x{n}: a new goal's distances {row['bfs_ms']:.2f} ms BFS, "
+              f"{row['highways_ms']:.2f} ms highways, {row['costmodel_ms']:.2f} ms cost model "
+              f"({row['guided_over_bfs']:.2f}x)", flush=True)
+    ticks = []
+    for side, agents in ((21, 64), (128, 2048)):
+        blocked = np.random.default_rng(1).random((side, side)) < 0.2
+        for name, guidance in (("none", None), ("highways", highways(blocked))):
+            ms = tick_ms(blocked, agents, guidance, args.ticks, np.random.default_rng(2))
+            ticks.append({"side": side, "agents": agents, "guidance": name, "tick_ms": ms})
+            print(f"PIBT tick ({FLEET_RULE}, distance rankings), {side}x{side}, {agents} agents, "
+                  f"guidance {name}: {ms:.1f} ms", flush=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps({"distances": rows, "ticks": ticks}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
