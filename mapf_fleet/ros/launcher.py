@@ -225,7 +225,9 @@ def main(argv: list[str] | None = None) -> int:
             from mapf_fleet.ros.processes import clean_zombie_shm
 
             clean_zombie_shm()
-        signals.restore()
+        # the handlers stay to the process's exit (not restored): a signal that comes while
+        # `up` exits, its children already stopped, is neither a KeyboardInterrupt traceback
+        # nor a death by signal after a run that ended
 
 
 def keep_logs(work: str, log_dir: str, failed: bool) -> None:
