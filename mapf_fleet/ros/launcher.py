@@ -226,8 +226,8 @@ def main(argv: list[str] | None = None) -> int:
 
             clean_zombie_shm()
         # the handlers stay to the process's exit (not restored): a signal that comes while
-        # `up` exits, its children already stopped, is neither a KeyboardInterrupt traceback
-        # nor a death by signal after a run that ended
+        # `up` returns, its children already stopped, is no KeyboardInterrupt traceback (only
+        # Python's own finalization resets them)
 
 
 def keep_logs(work: str, log_dir: str, failed: bool) -> None:
