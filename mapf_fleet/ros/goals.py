@@ -232,7 +232,7 @@ class GoalServer:
                 event = run.cancel(robot, "", "cancel_goal")
                 response.cancelled, response.goal_id = True, event.goal_id
             else:
-                response.reason = f"robot {robot} has no goal to cancel: it is idle"
+                response.reason = "it has no goal (it is idle)"
         if response.cancelled:
             self.node.get_logger().info(f"robot {robot}: goal {response.goal_id} cancelled")
             self.on_request()

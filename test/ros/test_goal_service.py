@@ -113,7 +113,8 @@ def test_cancel_stops_a_goal_from_the_fleets_action_without_per_robot_actions(ro
             waiter.kill()
     assert not f.run.active[1] and f.events("cancelled")
     again = goal(ros_env, 1, "--cancel", "--timeout", "8")
-    assert again.returncode == 1 and "no goal to cancel" in again.stdout, again.stdout
+    assert again.returncode == 1, again.stdout
+    assert "robot 1: nothing to cancel: it has no goal (it is idle)" in again.stdout
     unknown = goal(ros_env, 9, "--cancel", "--timeout", "8")
     assert unknown.returncode == 2 and "unknown robot 9" in unknown.stdout
 
