@@ -32,7 +32,7 @@ def test_cli_smoke_writes_every_output(tmp_path, small_checkpoint, capsys):
     out = tmp_path / "out"
     code = mapf_fleet([
         "evaluate", "--checkpoint", small_checkpoint, "--sizes", "40", "--agents", "4", "--instances", "3",
-        "--cache-dir", str(tmp_path / "cache"), "--quiet",
+        "--conflict-rule", "revert", "--cache-dir", str(tmp_path / "cache"), "--quiet",
         "--json", f"{out}.json", "--csv", f"{out}.csv", "--markdown", f"{out}.md", "--plot", f"{out}.png",
     ])
     assert code == 0
@@ -81,7 +81,8 @@ def test_movingai_instances_round_trip(tmp_path):
         scen_files.append(str(tmp_path / f"m-{k}.scen"))
 
     path = tmp_path / "mai.json"
-    code = mapf_fleet(["evaluate", "--checkpoint", "heuristic", "lacam", "--no-references", "--map",
+    code = mapf_fleet(["evaluate", "--checkpoint", "heuristic", "lacam", "--no-references",
+                       "--conflict-rule", "revert", "--map",
                        str(tmp_path / "m.map"), "--scen", *scen_files, "--agents", "6", "--quiet", "--json", str(path)])
     assert code == 0
     via_files = json.loads(path.read_text())["results"]
@@ -163,3 +164,25 @@ def test_structured_families_refuse_what_does_not_fit(capsys):
     assert mapf_fleet(["evaluate", "--checkpoint", "heuristic", "--kinds", "maze", "--map", "x.map",
                        "--agents", "4"]) == 2
     assert "--kinds and --map" in capsys.readouterr().err
+
+
+def test_evaluate_measures_what_up_runs_by_default():
+    """One default everywhere (issue 41 item 7): with no --conflict-rule, --ranking or guidance,
+    `evaluate` runs the rule `up` runs, and a checkpoint ranks as the fleet's policy nodes rank
+    it (the same `default_ranking` of the same recorded metadata)."""
+    from mapf_fleet.coordination.ranking import default_ranking
+    from mapf_fleet.evaluation.cli import build_parser
+    from mapf_fleet.evaluation.lifelong import build_parser as lifelong_parser
+    from mapf_fleet.evaluation.policies import parse_policy, with_conflict_rule
+    from mapf_fleet.fleet import parameters
+    from mapf_fleet.models.checkpoint import read_checkpoint
+
+    args = build_parser().parse_args([])
+    fleet_rule = parameters.SIMULATOR["conflict_rule"].default
+    assert args.conflict_rule == [fleet_rule]
+    life = lifelong_parser().parse_args(["--lifelong"])
+    assert life.conflict_rule == [fleet_rule] and [str(g) for g in life.guidance] == ["none"]
+    assert parameters.GUIDANCE.default == "none"
+    spec = with_conflict_rule(parse_policy("models/default.pt"), fleet_rule)
+    recorded = read_checkpoint("models/default.pt")[1].get("rankings")
+    assert spec.resolved_ranking == default_ranking(fleet_rule, recorded)

@@ -162,7 +162,7 @@ def evaluated(tmp_path_factory):
     trained = _trainer_like_checkpoint(root / "dhc_coop.pt")
     other = save_random_checkpoint(root / "other.pt", "dhc", "small", seed=3)
     eval_json = root / "dhc_coop_eval.json"
-    code = evaluate_main(["--checkpoint", str(trained), "--sizes", "40", "80", "--agents", "4",
+    code = evaluate_main(["--conflict-rule", "revert", "--checkpoint", str(trained), "--sizes", "40", "80", "--agents", "4",
                           "--instances", "2", "--cache-dir", str(root / "cache"),
                           "--json", str(eval_json), "--quiet"])
     assert code == 0
@@ -233,7 +233,7 @@ def test_card_of_a_random_checkpoint_without_run_dir(tmp_path):
     torch.set_num_threads(1)
     checkpoint = save_random_checkpoint(tmp_path / "rand.pt", "dcc", "small")
     eval_json = tmp_path / "rand.json"
-    assert evaluate_main(["--checkpoint", str(checkpoint), "--sizes", "40", "--agents", "4",
+    assert evaluate_main(["--conflict-rule", "revert", "--checkpoint", str(checkpoint), "--sizes", "40", "--agents", "4",
                           "--instances", "2", "--no-references", "--json", str(eval_json), "--quiet"]) == 0
     card = build_card(checkpoint, eval_json)
     value = json.loads(eval_json.read_text())["results"][0]["success_rate"]
@@ -351,7 +351,7 @@ def test_compare_puts_other_checkpoints_of_the_same_evaluation_side_by_side(tmp_
     scratch = save_checkpoint(tmp_path / "scratch.pt", model, meta)
     unrelated = _trainer_like_checkpoint(tmp_path / "unrelated.pt")
     eval_json = tmp_path / "both.json"
-    assert evaluate_main(["--checkpoint", str(warm), str(scratch), "--sizes", "40", "--agents", "4",
+    assert evaluate_main(["--conflict-rule", "revert", "--checkpoint", str(warm), str(scratch), "--sizes", "40", "--agents", "4",
                           "--instances", "2", "--no-references", "--json", str(eval_json), "--quiet"]) == 0
     card = build_card(warm, eval_json, compare=[scratch])
     rows = {r["policy"]: r["success_rate"] for r in json.loads(eval_json.read_text())["results"]}
@@ -386,9 +386,9 @@ def test_several_evaluation_files_are_read_as_one(tmp_path):
     other = save_random_checkpoint(tmp_path / "other.pt", "dhc", "small", seed=2)
     first, second = tmp_path / "first.json", tmp_path / "second.json"
     common = ["--sizes", "40", "--agents", "4", "--instances", "2", "--quiet"]
-    assert evaluate_main(["--checkpoint", str(mine), "heuristic", "--no-references", *common,
+    assert evaluate_main(["--conflict-rule", "revert", "--checkpoint", str(mine), "heuristic", "--no-references", *common,
                           "--json", str(first)]) == 0
-    assert evaluate_main(["--checkpoint", str(other), "heuristic", "--no-references", *common,
+    assert evaluate_main(["--conflict-rule", "revert", "--checkpoint", str(other), "heuristic", "--no-references", *common,
                           "--json", str(second)]) == 0
     card = build_card(mine, [first, second], compare=[other])
     rows = {(r["policy"], json_name): r["success_rate"]
@@ -404,7 +404,7 @@ def test_several_evaluation_files_are_read_as_one(tmp_path):
     clash.mkdir()
     save_random_checkpoint(clash / "other.pt", "dhc", "small", seed=3)
     third = tmp_path / "third.json"
-    assert evaluate_main(["--checkpoint", str(clash / "other.pt"), "--no-references", *common,
+    assert evaluate_main(["--conflict-rule", "revert", "--checkpoint", str(clash / "other.pt"), "--no-references", *common,
                           "--json", str(third)]) == 0
     with pytest.raises(CardError, match="policy 'other' is .*other.pt in .*second.json but .*clash"):
         build_card(mine, [first, second, third])
@@ -477,7 +477,7 @@ def test_append_adds_the_shielded_rows_to_an_existing_card(tmp_path):
     checkpoint = save_random_checkpoint(tmp_path / "rand.pt", "dcc", "small")
     plain, shielded = tmp_path / "plain.json", tmp_path / "shielded.json"
     common = ["--sizes", "40", "--agents", "4", "--instances", "2", "--quiet"]
-    assert evaluate_main(["--checkpoint", str(checkpoint), "--no-references", "--json", str(plain), *common]) == 0
+    assert evaluate_main(["--conflict-rule", "revert", "--checkpoint", str(checkpoint), "--no-references", "--json", str(plain), *common]) == 0
     assert evaluate_main(["--checkpoint", str(checkpoint), "heuristic", "--no-references", "--conflict-rule", "pibt",
                           "--json", str(shielded), *common]) == 0
     card = tmp_path / "rand.md"
@@ -577,7 +577,7 @@ def test_hand_written_notes_are_included_verbatim_and_survive_regeneration(tmp_p
     torch.set_num_threads(1)
     checkpoint = save_random_checkpoint(tmp_path / "rand.pt", "dcc", "small")
     eval_json = tmp_path / "rand.json"
-    assert evaluate_main(["--checkpoint", str(checkpoint), "--sizes", "40", "--agents", "4",
+    assert evaluate_main(["--conflict-rule", "revert", "--checkpoint", str(checkpoint), "--sizes", "40", "--agents", "4",
                           "--instances", "1", "--no-references", "--json", str(eval_json), "--quiet"]) == 0
     out = tmp_path / "cards" / "rand.md"
     args = ["--checkpoint", str(checkpoint), "--eval", str(eval_json), "--out", str(out)]
