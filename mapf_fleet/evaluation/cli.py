@@ -31,7 +31,7 @@ from mapf_fleet.aliases import renamed_options
 from mapf_fleet.coordination.rules import CONFLICT_RULES, FLEET_RULE, REVERT
 from mapf_fleet.coordination.ranking import DEFAULT_RANKING_BY_RULE, RANKINGS
 
-from .policies import REFERENCE_NAMES, parse_policy, unique_names, with_conflict_rule
+from .policies import REFERENCE_NAMES, parse_policy, unique_names, with_conflict_rule, with_guidance
 from .protocol import (
     DEFAULT_CACHE,
     DEFAULT_CONFIG,
@@ -74,6 +74,11 @@ def build_parser() -> argparse.ArgumentParser:
                         f"else the rule's: "
                         + ", ".join(f"{m} under {r}" for r, m in DEFAULT_RANKING_BY_RULE.items())
                         + "; distance for the heuristic; deprecated: --preferences)")
+    p.add_argument("--guidance", nargs="+", default=["none"], metavar="G",
+                   help="guidance graph(s) the observations and the conflict rule read, one row "
+                        "each: none, highways (hand-made crisscross lanes), a guidance file "
+                        "(*.guidance.npz, one map) or a cost model (*.costmodel.json) "
+                        "(default: none, what `up` runs by default)")
     p.add_argument("--config", default=str(DEFAULT_CONFIG), help="protocol YAML (default %(default)s)")
     p.add_argument("--sizes", nargs="+", type=int, help="map sizes to run (default: all of the protocol)")
     p.add_argument("--agents", nargs="+", type=int, help="agent counts to run (with --map: exactly one)")
@@ -257,6 +262,7 @@ def main(argv: list[str] | None = None) -> int:
 
             specs = [replace(s, planning_budget=args.planning_budget)
                      if s.conflict_rule == "lacam" else s for s in specs]
+        specs = with_guidance(specs, args.guidance)
         specs = unique_names(specs)
         scenarios = _scenarios(args, config)
     except (ProtocolError, FileNotFoundError, ValueError) as exc:

@@ -49,6 +49,8 @@ class PolicySpec:
     # a checkpoint's recorded rankings (metadata `rankings`), ((rule, ranking), ...): its default
     rankings: tuple[tuple[str, str], ...] = ()
     planning_budget: float | None = None  # rule "lacam": seconds per re-plan (None: default)
+    # the guidance graph every distance reads (`GuidanceSource` spelling): observations, rule
+    guidance: str = "none"
 
     @property
     def is_planner(self) -> bool:
@@ -82,6 +84,27 @@ def with_conflict_rule(spec: PolicySpec, rule: str, ranking: str | None = None) 
     named = ranking if ranking is not None else recorded_ranking(rule, dict(spec.rankings))
     label = RULE_LABELS.get(rule, "+" + rule) + ("" if named is None else f"({named})")
     return replace(spec, name=f"{spec.name} {label}", conflict_rule=rule, ranking=ranking)
+
+
+def with_guidance(specs: list[PolicySpec], values) -> list[PolicySpec]:
+    """Each decentralized spec once per guidance value (`GuidanceSource`, parsed here: a bad
+    value is refused before any worker starts), labelled " +G" unless "none"; planners plan
+    unguided (one row)."""
+    from dataclasses import replace
+
+    from mapf_fleet.grid.guidance_made import GuidanceSource
+
+    sources = list(dict.fromkeys(GuidanceSource.parse(v) for v in values))
+    out = []
+    for spec in specs:
+        for k, source in enumerate(sources):
+            if spec.is_planner or spec.conflict_rule == REVERT and spec.kind != "checkpoint":
+                if k == 0:
+                    out.append(spec)
+                continue
+            label = "" if source.kind == "none" else f" +{source.label}"
+            out.append(replace(spec, name=spec.name + label, guidance=str(source)))
+    return out
 
 
 def parse_policy(arg: str, *, device: str = "cpu", planner_time_limit: float = 10.0, planner_seed: int = 0) -> PolicySpec:

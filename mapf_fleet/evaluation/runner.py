@@ -58,15 +58,17 @@ def lower_bounds(instances: InstanceSet) -> np.ndarray:
     return bounds
 
 
-def _make_env(instances: InstanceSet, k: int, max_steps: int, observation: str = "paper"):
+def _make_env(instances: InstanceSet, k: int, max_steps: int, observation: str = "paper",
+              guidance: str = "none"):
     from mapf_fleet.grid.env import EnvConfig, MAPFEnv
 
-    return MAPFEnv(instances.instance(k), EnvConfig(max_steps=max_steps, observation=observation))
+    return MAPFEnv(instances.instance(k), EnvConfig(max_steps=max_steps, observation=observation,
+                                                    guidance=str(guidance)))
 
 
 def run_decentralized(policy, instances: InstanceSet, max_steps: int, conflict_rule: str = "revert",
-                      planning_budget: float | None = None, stats: list | None = None
-                      ) -> list[EpisodeRecord]:
+                      planning_budget: float | None = None, stats: list | None = None,
+                      guidance: str = "none") -> list[EpisodeRecord]:
     """Step all episodes of `instances` together with a batch policy (reset/act[/keep]).
 
     Only live episodes are passed to `act`; when some end, `policy.keep(rows)` (if the policy
@@ -78,10 +80,12 @@ def run_decentralized(policy, instances: InstanceSet, max_steps: int, conflict_r
     those are executed (and reported back with `policy.executed`), and the overridden
     agent-steps are counted. "lacam": the planning arbiter (`coordination.plan.PlanKeeper`)
     with `planning_budget` seconds per re-plan; its counters (`PlanKeeper.stats`) are appended
-    to `stats` when given, one dict per episode."""
+    to `stats` when given, one dict per episode. guidance: the guidance graph (a
+    `GuidanceSource` spelling) the observations and the rule read, per map."""
     bounds = lower_bounds(instances)
     observation = getattr(policy, "observation", "paper")
-    envs = [_make_env(instances, k, max_steps, observation) for k in range(len(instances))]
+    envs = [_make_env(instances, k, max_steps, observation, guidance)
+            for k in range(len(instances))]
     obs = np.stack([env.reset() for env in envs]).astype(np.float32)
     positions = np.stack([np.asarray(env.positions) for env in envs])
     trackers = [EpisodeTracker(positions[k], instances.goals[k], max_steps, bounds[k]) for k in range(len(envs))]
@@ -90,7 +94,8 @@ def run_decentralized(policy, instances: InstanceSet, max_steps: int, conflict_r
 
     rule = Rule.parse(conflict_rule, "conflict_rule")
     shields = None if not rule.coordinated else [
-        make_shield(conflict_rule, instances.maps[k], instances.goals[k], planning_budget=planning_budget)
+        make_shield(conflict_rule, instances.maps[k], instances.goals[k], planning_budget=planning_budget,
+                    guidance=envs[k].guidance)
         for k in range(len(envs))]
     policy.reset(len(envs), instances.starts.shape[1])
     live = list(range(len(envs)))
@@ -190,7 +195,7 @@ def run_job(job: Job) -> tuple[list[EpisodeRecord], float, float | None, int]:
     else:
         records, plan_time, failures = run_decentralized(
             policy, job.instances, job.scenario.max_steps, job.spec.conflict_rule,
-            planning_budget=job.spec.planning_budget), None, 0
+            planning_budget=job.spec.planning_budget, guidance=job.spec.guidance), None, 0
     return records, time.perf_counter() - began, plan_time, failures
 
 

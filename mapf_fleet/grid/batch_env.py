@@ -14,7 +14,7 @@ from typing import Sequence
 import numpy as np
 
 from .actions import NUM_ACTIONS, STAY
-from .env import EnvConfig, _resolve_flat, step_rewards
+from .env import EnvConfig, _resolve_flat, guidance_for, step_rewards
 from .heuristic import HeuristicCache, default_cache
 from .instance import Instance
 from .observation import ObservationBuilder
@@ -67,10 +67,13 @@ class BatchMAPFEnv:
         self._blocked_flat = (self.grids != 0).reshape(-1)
         self._goal_flat = (self.goals[..., 0] * w + self.goals[..., 1]).reshape(-1)
         distances = None
+        guidance = [guidance_for(self.config, inst.grid) for inst in instances]
         if self.config.observation == "cost_to_go":
-            distances = np.concatenate([self._cache.distances(inst.grid, inst.goals)
-                                        for inst in instances]) if n else np.zeros((0, h, w))
-        bits = np.concatenate([self._cache.bits(inst.grid, inst.goals) for inst in instances]) \
+            distances = np.concatenate([self._cache.distances(inst.grid, inst.goals, g)
+                                        for inst, g in zip(instances, guidance)]) \
+                if n else np.zeros((0, h, w))
+        bits = np.concatenate([self._cache.bits(inst.grid, inst.goals, g)
+                               for inst, g in zip(instances, guidance)]) \
             if n else np.zeros((0, h, w), np.uint8)
         self._obs = ObservationBuilder(self.grids, bits, self.config.obs_radius,
                                        self._map_of_agent, distances)

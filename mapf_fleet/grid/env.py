@@ -36,6 +36,8 @@ class EnvConfig:
         stands on its goal at once.
     observation: "paper" (6 channels) or "cost_to_go" (a 7th: `cost_to_go_channel`); a model
         says which it reads (`ModelConfig.observation`).
+    guidance: the guidance graph the heuristic channels read (`guidance_made.GuidanceSource`:
+        "none", "highways", a guidance file or a cost model); "none": BFS steps, the paper's.
     """
 
     obs_radius: int = 4
@@ -47,6 +49,7 @@ class EnvConfig:
     reward_finish: float = 3.0
     finish_reward: str = "team"
     observation: str = "paper"  # one of OBSERVATIONS: the channels `reset` / `step` return
+    guidance: str = "none"
 
     def __post_init__(self):
         if not isinstance(self.obs_radius, (int, np.integer)) or self.obs_radius < 1:
@@ -65,6 +68,27 @@ class EnvConfig:
         if self.observation not in OBSERVATIONS:
             raise ValueError(f"EnvConfig.observation must be one of {OBSERVATIONS}, "
                              f"got {self.observation!r}")
+        from .guidance_made import GuidanceSource
+
+        GuidanceSource.parse(self.guidance)  # refused here, before any episode
+
+
+def guidance_for(config: EnvConfig, grid):
+    """The `Guidance` of `config.guidance` on `grid` (None for "none"), built once per map."""
+    if config.guidance in ("none", ""):
+        return None
+    from .guidance_made import GuidanceSource
+
+    key = (config.guidance, np.asarray(grid).shape, np.asarray(grid).tobytes())
+    found = _GUIDANCE.get(key)
+    if found is None:
+        found = _GUIDANCE[key] = GuidanceSource.parse(config.guidance).for_map(grid)
+        while len(_GUIDANCE) > 64:
+            del _GUIDANCE[next(iter(_GUIDANCE))]
+    return found
+
+
+_GUIDANCE: dict = {}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -229,8 +253,10 @@ class MAPFEnv:
         h, w = self.grid.shape
         self._blocked_flat = (self.grid != 0).ravel()
         self._goal_flat = self.goals[:, 0] * w + self.goals[:, 1]
+        self.guidance = guidance_for(self.config, self.grid)
         self._obs = ObservationBuilder.for_goals(self.grid, self.goals, self.config.obs_radius,
-                                                 self.config.observation, self._cache)
+                                                 self.config.observation, self._cache,
+                                                 self.guidance)
 
     def reset(self, instance: Instance | None = None) -> np.ndarray:
         if instance is not None:

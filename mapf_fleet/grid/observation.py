@@ -136,13 +136,15 @@ class ObservationBuilder:
 
     @classmethod
     def for_goals(cls, grid, goals, radius: int = 4, observation: str = "paper",
-                  cache: HeuristicCache | None = None) -> "ObservationBuilder":
+                  cache: HeuristicCache | None = None, guidance=None) -> "ObservationBuilder":
         """The builder of agents heading to `goals` (N, 2) on one map, for `observation`, with
-        the heuristic bits (and distances) from `cache` (the process-wide one by default)."""
+        the heuristic bits (and distances) from `cache` (the process-wide one by default), under
+        `guidance` (a `grid.guidance.Guidance`; None: BFS steps)."""
         cache = default_cache if cache is None else cache
         channels = observation_channels(observation)
-        distances = cache.distances(grid, goals) if channels > NUM_OBS_CHANNELS else None
-        bits = cache.bits(grid, goals)  # found by the distances' search
+        distances = cache.distances(grid, goals, guidance) if channels > NUM_OBS_CHANNELS \
+            else None
+        bits = cache.bits(grid, goals, guidance)  # found by the distances' search
         builder = cls(np.asarray(grid), bits, radius, distances=distances)
         builder.key = (np.asarray(grid).shape, np.asarray(grid).tobytes(),
                        np.asarray(goals).tobytes(), observation)

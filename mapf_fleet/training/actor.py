@@ -122,7 +122,7 @@ class EpisodeWorker:
             instance = generate_instance(task.map_size, task.num_agents, density, self.rng)
             kind, size = "random", task.map_size
         env_cfg = EnvConfig(max_steps=self.cfg.episode_step_limit(size),
-                            finish_reward=self.cfg.finish_reward)
+                            finish_reward=self.cfg.finish_reward, guidance=self.cfg.guidance)
         if slot < len(self.envs) and self.envs[slot] is not None \
                 and self.envs[slot]["env"].config == env_cfg:
             env = self.envs[slot]["env"]
@@ -133,7 +133,8 @@ class EpisodeWorker:
         hidden = np.zeros((instance.num_agents, self.hidden_dim), np.float32)
         from mapf_fleet.coordination.factory import make_shield
 
-        shield = make_shield(self.cfg.conflict_rule, instance.grid, instance.goals)
+        shield = make_shield(self.cfg.conflict_rule, instance.grid, instance.goals,
+                             guidance=env.guidance)
         state = {"env": env, "obs": obs, "hidden": hidden, "shield": shield,
                  "map_kind": kind, "map_size": int(size),
                  "rec": _Recorder(pack_obs(obs), env.positions.astype(np.int16),

@@ -38,7 +38,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", help="checkpoint file written by --export")
     parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                         help="override a config field (repeatable)")
+    parser.add_argument("--guidance", metavar="G",
+                        help="the guidance graph the actors' observations and rule read: none, "
+                             "highways, a *.guidance.npz or a *.costmodel.json (same as --set "
+                             "guidance=G)")
     args = parser.parse_args(argv)
+    if args.guidance is not None:
+        args.set.append(f"guidance={args.guidance}")
     if args.export:
         if not args.out or args.config or args.run_dir or args.resume or args.set:
             parser.error("--export RUN takes only --out FILE")

@@ -56,6 +56,9 @@ class TrainConfig:
     # (`PIBTShield(anchor=True)`, the fleet's `--conflict-rule pibt_anchor`).
     conflict_rule: str = "revert"
     ranking: str = "q"
+    # the guidance graph the observations' heuristic channels and the conflict rule read
+    # (grid.guidance_made.GuidanceSource: none, highways, a guidance file, a cost model)
+    guidance: str = "none"
     # Under a coordinated conflict rule ("pibt", ...), which action the replay trains Q on.
     # "executed" (above): Q of the move PIBT let happen; a first choice PIBT overrode is never
     # trained, so a policy that keeps asking for blocked moves is never told (it did not beat
@@ -211,6 +214,12 @@ class TrainConfig:
             rule = Rule.parse(self.conflict_rule)
         except ValueError as exc:
             raise bad("conflict_rule", str(exc)) from None
+        from mapf_fleet.grid.guidance_made import GuidanceSource
+
+        try:
+            GuidanceSource.parse(self.guidance)
+        except ValueError as exc:
+            raise bad("guidance", str(exc)) from None
         if rule.is_lacam:
             raise bad("conflict_rule", "the planning arbiter executes its plan, not the "
                                        "policy's moves: train under 'pibt' or 'pibt_anchor'")

@@ -34,6 +34,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="with --compare: also draw the runs' success per round to this PNG")
     parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                         help="override a config field (repeatable; also on a resume)")
+    parser.add_argument("--guidance", metavar="G",
+                        help="the guidance graph the rollouts' observations and rule read: none, "
+                             "highways, a *.guidance.npz or a *.costmodel.json (same as --set "
+                             "guidance=G)")
     parser.add_argument("--expert-ceiling", action="store_true",
                         help="run the configured labeller as the policy under the configured "
                              "conflict rule beside plain PIBT on the config's `ceiling` suites "
@@ -44,6 +48,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", metavar="OUT",
                         help="with --expert-ceiling: also write the rows to this JSON file")
     args = parser.parse_args(argv)
+    if args.guidance is not None:
+        args.set.append(f"guidance={args.guidance}")
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     if args.compare:
         try:

@@ -56,7 +56,10 @@ class DaggerConfig:
     # --- policy ------------------------------------------------------------------------------
     # the checkpoint DAgger starts from (its network is kept: DCC or DHC as the paper built it)
     init_checkpoint: str = "models/default.pt"
-    conflict_rule: str = "pibt_anchor"  # the arbiter the rollouts run under (coordination.pibt)
+    conflict_rule: str = "pibt_anchor"  # the arbiter the rollouts run under (coordination.rules)
+    # the guidance graph the rollouts' observations and rule read (GuidanceSource spelling);
+    # the labellers' planners plan unguided
+    guidance: str = "none"
     # the anchor's patience (ticks the top agent may go without getting closer before the anchor
     # ranks it by distance; coordination.pibt.PIBTShield): None = the rule's (0, every tick, for
     # `pibt_anchor...`; ANCHOR_PATIENCE for `pibt_patient...`)
@@ -178,6 +181,12 @@ class DaggerConfig:
             raise bad("conflict_rule", str(exc)) from None
         if not rule.coordinated:
             raise bad("conflict_rule", "DAgger rolls out under a coordinating rule, not 'revert'")
+        from mapf_fleet.grid.guidance_made import GuidanceSource
+
+        try:
+            GuidanceSource.parse(self.guidance)
+        except ValueError as exc:
+            raise bad("guidance", str(exc)) from None
         if rule.is_lacam:
             raise bad("conflict_rule", "the planning arbiter executes its plan, not the policy's "
                                        "moves: roll out under a PIBT rule such as 'pibt_anchor'")

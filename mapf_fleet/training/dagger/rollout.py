@@ -25,7 +25,7 @@ def play_episode(model, instance, max_steps: int, conflict_rule: str, ranking: s
                  label_interval: int = 1, rng: np.random.Generator | None = None,
                  seq_len: int = 16, burn_in: int = 8, record: bool = True,
                  backoff_max: int = 1, shadow: Labeller | None = None,
-                 anchor_patience: int | None = None) -> dict:
+                 anchor_patience: int | None = None, guidance: str = "none") -> dict:
     """One episode of `model` under `conflict_rule` (its Q-values ranked by `ranking`); with a
     labeller, the visited states are labelled (and the expert's ranking executed with
     probability `beta` at labelled steps). Returns the outcome and, with `record`, the arrays of
@@ -47,11 +47,12 @@ def play_episode(model, instance, max_steps: int, conflict_rule: str, ranking: s
         raise ValueError("play_episode: model None (plain PIBT) records nothing: record=False")
     observation = "paper" if model is None else model.config.observation
     cost_to_go = observation == "cost_to_go"
-    env = MAPFEnv(instance, EnvConfig(max_steps=max_steps, observation=observation))
+    env = MAPFEnv(instance, EnvConfig(max_steps=max_steps, observation=observation,
+                                      guidance=guidance))
     obs = env.reset()
     n = instance.num_agents
     shield = make_shield(conflict_rule, instance.grid, instance.goals,
-                         anchor_patience=anchor_patience)
+                         anchor_patience=anchor_patience, guidance=env.guidance)
     policy = None if model is None else LearnedPolicy(model, device)
     if policy is not None:
         policy.reset(1, n)
@@ -189,7 +190,7 @@ class DaggerWorker:
                            cfg.label_interval, np.random.default_rng(job["seed_words"] + [1]),
                            cfg.seq_len, cfg.burn_in, record=True,
                            backoff_max=cfg.label_backoff_max,
-                           anchor_patience=cfg.anchor_patience)
+                           anchor_patience=cfg.anchor_patience, guidance=cfg.guidance)
         return {**out, "job": job, "pid": os.getpid(),
                 "process_cpu_seconds": time.process_time()}
 
@@ -199,20 +200,20 @@ class DaggerWorker:
         instance = make_instance(job["task"], job["seed_words"])
         if job.get("heuristic"):
             out = play_plain_pibt(instance, job["task"]["max_steps"], cfg.conflict_rule,
-                                  cfg.anchor_patience)
+                                  cfg.anchor_patience, cfg.guidance)
         else:
             out = play_episode(self.model, instance, job["task"]["max_steps"], cfg.conflict_rule,
                                cfg.ranking, self.device, record=False,
-                               anchor_patience=cfg.anchor_patience)
+                               anchor_patience=cfg.anchor_patience, guidance=cfg.guidance)
         return {**out, "job": job, "pid": os.getpid(),
                 "process_cpu_seconds": time.process_time()}
 
 
 def play_plain_pibt(instance, max_steps: int, conflict_rule: str,
-                    anchor_patience: int | None = None) -> dict:
+                    anchor_patience: int | None = None, guidance: str = "none") -> dict:
     """The baseline: the shield over distance rankings (the heuristic checkpoint's rows)."""
     out = play_episode(None, instance, max_steps, conflict_rule, "distance", None, record=False,
-                       anchor_patience=anchor_patience)
+                       anchor_patience=anchor_patience, guidance=guidance)
     return {"success": out["success"], "steps": out["steps"], "num_agents": out["num_agents"]}
 
 

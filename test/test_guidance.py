@@ -1,0 +1,173 @@
+"""Guidance graphs (issue 41 item 1): the file format and its refusals, guided distances, the
+heuristic channels under guidance, and `none` / unit costs reproducing the unguided world."""
+
+from __future__ import annotations
+
+import heapq
+import json
+
+import numpy as np
+import pytest
+
+from mapf_fleet.coordination.factory import make_shield
+from mapf_fleet.coordination.plan import distance_rankings
+from mapf_fleet.grid.actions import ACTION_DELTAS
+from mapf_fleet.grid.guidance import Guidance, GuidanceError
+from mapf_fleet.grid.guidance_made import (FEATURES, CostModel, GuidanceSource, features,
+                                           highways)
+from mapf_fleet.grid.heuristic import DistanceTable, bfs_distances_many, distance_table
+from mapf_fleet.grid.instance import generate_instance
+
+
+def brute_dijkstra(blocked, costs, goal):
+    """Least cost from every cell to `goal` (a plain heap Dijkstra over reversed moves)."""
+    h, w = blocked.shape
+    dist = np.full((h, w), np.inf)
+    dist[goal] = 0.0
+    heap = [(0.0, goal)]
+    while heap:
+        d, (r, c) = heapq.heappop(heap)
+        if d > dist[r, c]:
+            continue
+        for a in range(1, 5):  # a move u -> (r, c) with action a comes from u = (r, c) - delta
+            ur, uc = r - ACTION_DELTAS[a, 0], c - ACTION_DELTAS[a, 1]
+            if 0 <= ur < h and 0 <= uc < w and not blocked[ur, uc]:
+                nd = d + costs[ur, uc, a]
+                if nd < dist[ur, uc]:
+                    dist[ur, uc] = nd
+                    heapq.heappush(heap, (nd, (int(ur), int(uc))))
+    return np.where(np.isfinite(dist), dist, -1.0)
+
+
+def test_guided_distances_are_least_path_costs():
+    inst = generate_instance(12, 4, 0.25, np.random.default_rng(3))
+    rng = np.random.default_rng(0)
+    costs = rng.uniform(0.5, 3.0, (12, 12, 5))
+    guidance = Guidance.from_costs(inst.grid, costs)
+    table = DistanceTable(inst.grid != 0, guidance)
+    for goal in inst.goals:
+        got = table.many([goal])[0]
+        np.testing.assert_allclose(got, brute_dijkstra(inst.grid != 0, guidance.costs,
+                                                       tuple(goal)))
+
+
+def test_unit_costs_and_none_are_the_bfs_tables_exactly():
+    inst = generate_instance(16, 6, 0.3, np.random.default_rng(1))
+    bfs = bfs_distances_many(inst.grid, inst.goals)
+    unit = distance_table(inst.grid, Guidance.unit(inst.grid))
+    assert not unit.guided and unit is distance_table(inst.grid)  # the same shared table
+    assert np.array_equal(unit.many(inst.goals), bfs)
+    assert CostModel.zeros().guidance(inst.grid).is_unit  # theta = 0: no guidance
+    assert GuidanceSource.parse("none").for_map(inst.grid) is None
+
+
+def test_a_unit_guided_shield_moves_as_the_unguided_one():
+    """`none` reproduces today's behaviour: a lifelong-style run of the fleet's rule with unit
+    guidance makes exactly the moves of the unguided rule."""
+    inst = generate_instance(14, 24, 0.2, np.random.default_rng(7))
+    a = make_shield("pibt_anchor_swap", inst.grid, inst.goals)
+    b = make_shield("pibt_anchor_swap", inst.grid, inst.goals, guidance=Guidance.unit(inst.grid))
+    pa = pb = np.asarray(inst.starts)
+    for _ in range(30):
+        sa = a.step(pa, distance_rankings(a, pa))
+        sb = b.step(pb, distance_rankings(b, pb))
+        assert np.array_equal(sa.positions, sb.positions)
+        pa, pb = sa.positions, sb.positions
+
+
+def test_guidance_changes_the_rule_and_the_heuristic_channels():
+    grid = np.zeros((3, 6), dtype=np.uint8)
+    costs = np.ones((3, 6, 5))
+    costs[1, :, 4] = 10.0  # moving right along the middle row is dear: go round it
+    guidance = Guidance.from_costs(grid, costs)
+    table = DistanceTable(grid != 0, guidance)
+    dist = table.many([(1, 5)])
+    bits = table.bits(dist)[0]
+    assert bits[1, 0] & (1 << 3) == 0  # right from (1, 0): not on a least-cost path
+    assert bits[1, 0] & 1 or bits[1, 0] & 2  # up or down is
+    shield = make_shield("pibt_anchor", grid, [(1, 5)], guidance=guidance)
+    ranking = shield.anchored_ranking(0, 1 * 6 + 0).tolist()
+    assert ranking[0] in (1, 2) and ranking.index(4) > ranking.index(1)
+
+
+@pytest.mark.parametrize("mangle, message", [
+    (lambda c, o: (c[:, :-1], o), "costs must have shape"),
+    (lambda c, o: (np.where(np.arange(5) == 1, -1.0, c), o), "must be > 0"),
+    (lambda c, o: (np.where(np.arange(5) == 2, np.nan, c), o), "is NaN"),
+    (lambda c, o: (c, o[:-1]), "made for a"),
+])
+def test_bad_guidance_files_are_refused_in_one_line(tmp_path, mangle, message):
+    inst = generate_instance(8, 2, 0.2, np.random.default_rng(0))
+    path = tmp_path / "bad.guidance.npz"
+    costs, obstacles = mangle(np.ones((8, 8, 5)), inst.grid.astype(np.uint8))
+    np.savez(path, costs=costs, obstacles=obstacles, meta=np.array("{}"))
+    with pytest.raises(GuidanceError, match=message) as caught:
+        Guidance.load(path, inst.grid)
+    assert "\n" not in str(caught.value)
+    if message != "costs must have shape":
+        assert str(path) in str(caught.value)
+
+
+def test_a_lane_layout_that_cuts_a_cell_off_is_refused():
+    grid = np.zeros((1, 4), dtype=np.uint8)  # a corridor: one-way to the right strands cell 3
+    costs = np.ones((1, 4, 5))
+    costs[0, :, 3] = np.inf  # no moving left anywhere
+    with pytest.raises(GuidanceError, match=r"cut cell \(0, \d\) off"):
+        Guidance.from_costs(grid, costs)
+    ring = np.ones((3, 3), dtype=np.uint8)
+    ring[0, :] = ring[2, :] = ring[:, 0] = ring[:, 2] = 0  # a loop round one obstacle
+    costs = np.ones((3, 3, 5))
+    costs[0, :, 3] = costs[2, :, 4] = costs[:, 0, 2] = costs[:, 2, 1] = np.inf
+    Guidance.from_costs(ring, costs)  # one way round the loop: every cell still reaches all
+
+
+def test_a_guidance_file_round_trips_and_names_its_map(tmp_path):
+    inst = generate_instance(10, 3, 0.2, np.random.default_rng(2))
+    made = highways(inst.grid)
+    path = made.save(tmp_path / "m.guidance.npz")
+    back = Guidance.load(path, inst.grid)
+    assert np.array_equal(back.costs, made.costs) and back.key == made.key
+    assert back.meta["kind"] == "highways"
+    other = generate_instance(10, 3, 0.2, np.random.default_rng(5))
+    with pytest.raises(GuidanceError, match="made for another map"):
+        Guidance.load(path, other.grid)
+
+
+def test_guidance_values_are_parsed_once_with_one_refusal(tmp_path):
+    assert GuidanceSource.parse("highways").kind == "highways"
+    with pytest.raises(GuidanceError, match="no such file: nowhere.costmodel.json"):
+        GuidanceSource.parse("nowhere.costmodel.json")
+    bad = tmp_path / "x.costmodel.json"
+    bad.write_text(json.dumps({"features": list(FEATURES), "theta": [0.0]}))
+    with pytest.raises(GuidanceError, match="field 'theta'"):
+        GuidanceSource.parse(str(bad))
+    model = CostModel.from_vector(np.linspace(-0.5, 0.5, len(FEATURES) + 1))
+    path = model.save(tmp_path / "m.costmodel.json")
+    source = GuidanceSource.parse(str(path))
+    assert source.kind == "model" and source.label == "m"
+    inst = generate_instance(9, 2, 0.2, np.random.default_rng(4))
+    assert np.allclose(source.for_map(inst.grid).costs[~(inst.grid != 0)],
+                       model.guidance(inst.grid).costs[~(inst.grid != 0)])
+
+
+def test_cost_model_features_are_local_and_finite():
+    inst = generate_instance(11, 2, 0.3, np.random.default_rng(6))
+    f = features(inst.grid)
+    assert f.shape == (11, 11, 4, len(FEATURES)) and np.isfinite(f).all()
+    g = highways(inst.grid)
+    free = ~(inst.grid != 0)
+    assert set(np.unique(g.costs[free][:, 1:][np.isfinite(g.costs[free][:, 1:])])) <= {1.0, 2.0}
+
+
+def test_lifelong_evaluation_with_guidance_none_is_the_unguided_run():
+    from mapf_fleet.evaluation.lifelong import lifelong_instances, lifelong_runs, rollout
+    from mapf_fleet.evaluation.policies import build_policy, parse_policy, with_conflict_rule
+
+    instances = lifelong_instances("dense", 17, 24, 2, seed=3)
+    goals = []
+    for guidance in (None, "none", GuidanceSource("model", model=CostModel.zeros())):
+        runs = lifelong_runs(instances, 40, "pibt_anchor_swap", 3, guidance=guidance)
+        rollout(build_policy(with_conflict_rule(parse_policy("heuristic"), "pibt_anchor_swap")),
+                runs, shielded=True)
+        goals.append([run.goals_reached for run in runs])
+    assert goals[0] == goals[1] == goals[2]
