@@ -5,11 +5,12 @@
 #      missing and apt-get can run (root or sudo); without them set-up only warns, except under
 #      CI (CI=true), whose suite needs the browser;
 #   2. the venv (<repo>/.venv, or $MAPF_FLEET_VENV) with python3.11;
-#   3. pinned PyPI packages (requirements.txt + constraints.txt);
+#   3. pinned PyPI packages (requirements.txt + constraints.txt); 3b. POGEMA (requirements-pogema.txt)
+#      into <venv>/pogema, a folder of its own (MAPF_FLEET_POGEMA=0 skips it);
 #   4. the repair of the ROS wheels' CMake export files (DESIGN.md section 2);
 #   5. mapf_fleet_interfaces built with CMake (out of tree in build/) into the venv prefix;
 #   6. mapf_fleet installed in editable mode.
-# Steps 1b, 3, 5 and 6 leave a hash stamp in <venv>/.mapf_fleet_setup/ and are skipped while their
+# Steps 1b, 3, 3b, 5 and 6 leave a hash stamp in <venv>/.mapf_fleet_setup/ and are skipped while their
 # inputs are unchanged, so a second run takes seconds. Downloads come only from PyPI and Debian.
 set -euo pipefail
 
@@ -115,6 +116,23 @@ else
   say "pip install -r requirements.txt -c constraints.txt"
   run_pip install -q -r "$REPO/requirements.txt" -c "$REPO/constraints.txt"
   write_stamp requirements "$REQ_HASH"
+fi
+
+# ---- 3b. POGEMA, the field's benchmark environment (mapf_fleet/evaluation/pogema_bench.py) ---
+# Into <venv>/pogema with --no-deps: a folder of its own that only the benchmark puts on
+# sys.path, so its old pins (numpy<=1.26.4, pydantic 1) change nothing in the venv. Set
+# MAPF_FLEET_POGEMA=0 to skip (the benchmark and its test then say how to install it).
+POGEMA_DIR="$VENV/pogema"
+POGEMA_HASH="$(inputs_hash "$VENV" "$REPO/requirements-pogema.txt")"
+if [ "${MAPF_FLEET_POGEMA:-1}" = "0" ]; then
+  say "MAPF_FLEET_POGEMA=0: not installing POGEMA"
+elif stamp_matches pogema "$POGEMA_HASH" && [ -d "$POGEMA_DIR/pogema" ]; then
+  say "POGEMA unchanged: skipping pip"
+else
+  say "pip install --no-deps --target $POGEMA_DIR -r requirements-pogema.txt"
+  rm -rf "$POGEMA_DIR"
+  run_pip install -q --no-deps --target "$POGEMA_DIR" -r "$REPO/requirements-pogema.txt"
+  write_stamp pogema "$POGEMA_HASH"
 fi
 
 # From here on, run the venv as a ROS prefix (and without the bootstrapper's re-exec).

@@ -1,0 +1,338 @@
+"""The field's yardstick: the project's conflict rules inside POGEMA, on POGEMA's benchmark maps.
+
+    python -m mapf_fleet.evaluation.pogema_bench --family random --agents 64 --instances 32 \\
+        --mode lifelong --conflict-rule pibt_anchor_swap --guidance none highways
+
+POGEMA (pogema 1.4.0, `requirements-pogema.txt`; scripts/setup.sh installs it into
+<venv>/pogema, which only this module puts on sys.path) is the environment of the learned-MAPF
+field's benchmark (pogema-benchmark, ICLR 2025). Each step, the project's coordination layer
+computes the joint move (`coordination.factory.make_shield(rule, grid, goals, guidance=...)`;
+rankings `coordination.plan.distance_rankings`: plain PIBT under the rule) and POGEMA executes
+it. Every step is checked three ways:
+
+- `rule mismatches`: the project's own conflict rules (`grid.env.resolve_moves`, the paper's
+  rules that the simulator runs) applied to the same actions give other cells than the shield
+  chose (a move they revert: a collision in the project's sense, counted as `collisions`);
+- `pogema mismatches`: the cells POGEMA reports after its step differ from the shield's
+  (POGEMA's `soft` collision system, the benchmark's, reverts conflicting moves on its own);
+- the claim is 0 of both on every step; the table prints them beside each figure.
+
+Lifelong (`on_target="restart"`): POGEMA draws an agent's next goal when it arrives; the new
+goals are fed to the shield with `set_goals`. Figure: POGEMA's own `avg_throughput` (goals
+reached by all agents / episode steps). One-shot (`on_target="nothing"`, the benchmark's MAPF
+setting): success (CSR: all agents on their goals at once within 128 steps).
+
+Maps and published figures (`data/pogema_benchmark/`, Apache-2.0, README.md there): the
+benchmark's 128 random maps (17-21 cells a side) and 128 mazes (instance k: map k, seed 0), and
+the 33x46 warehouse (instance k: seed k), with the benchmark's episode lengths, collision system
+and obstacle padding (obs_radius 5). Published figures are per instance from the benchmark's raw
+data: the table averages them over exactly the instances measured here.
+The published runs used pogema 1.3.0; 1.4.0 gives the same maps, starts and first goals, but
+its lifelong generator draws again when a new goal falls on the agent's own cell (1.3.0 kept
+it), so later goal sequences may differ. MAPF-GPT publishes no per-instance data (only plots):
+it is not in the table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shlex
+import sys
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from mapf_fleet.coordination.factory import make_shield
+from mapf_fleet.coordination.plan import distance_rankings
+from mapf_fleet.coordination.rules import Rule
+from mapf_fleet.grid.actions import actions_between
+from mapf_fleet.grid.env import resolve_moves
+from mapf_fleet.grid.guidance_made import GuidanceSource
+
+POGEMA_VERSION = "1.4.0"
+DATA = Path(__file__).resolve().parent / "data" / "pogema_benchmark"
+OBS_RADIUS = 5  # the benchmark's padding (pogema-toolbox's Environment default)
+COLLISION_SYSTEM = "soft"  # the benchmark's
+
+
+@dataclass(frozen=True)
+class Family:
+    maps_file: str
+    lifelong_steps: int
+    one_shot_steps: int
+    instances: int
+    single_map: str | None = None  # warehouse: one map, instance k = seed k
+
+    def instance(self, maps: dict, k: int) -> tuple[str, str, int]:
+        """(map name, map text, seed) of instance k."""
+        if self.single_map:
+            return self.single_map, maps[self.single_map], k
+        name = sorted(maps)[k]
+        return name, maps[name], 0
+
+
+FAMILIES = {
+    "random": Family("random.yaml", 256, 128, 128),
+    "mazes": Family("mazes.yaml", 128, 128, 128),
+    "warehouse": Family("warehouse.yaml", 256, 128, 128, single_map="wfi_warehouse"),
+}
+# The headline published figures (64 agents; warehouse 192), means over all 128 instances of
+# pogema-benchmark's raw data (commit 3303133, raw_data_LMAPF / raw_data_MAPF); the table
+# recomputes each over the instances measured (`published_mean`). Tested against the data file.
+PUBLISHED_SOURCE = "pogema-benchmark raw data (github.com/CognitiveAISystems/pogema-benchmark)"
+RHCR_RANDOM_64 = 3.819
+RHCR_MAZES_64 = 2.587
+FOLLOWER_RANDOM_64 = 2.465
+MATS_LP_RANDOM_64 = 2.431
+FOLLOWER_WAREHOUSE_192 = 3.937
+LACAM_MAZES_64_SUCCESS = 0.906
+
+
+class PogemaMissing(RuntimeError):
+    """pogema is not installed where the benchmark looks, or another version is."""
+
+
+def pogema_dir() -> Path:
+    return Path(os.environ.get("MAPF_FLEET_POGEMA_DIR", Path(sys.prefix) / "pogema"))
+
+
+def import_pogema():
+    """The pogema module, from `pogema_dir()` (first on sys.path, so its pydantic 1 and gymnasium
+    are the ones it gets); PogemaMissing (one line) when absent or of another version."""
+    where = pogema_dir()
+    if where.is_dir() and str(where) not in sys.path:
+        sys.path.insert(0, str(where))
+    try:
+        import pogema
+    except ImportError as err:
+        raise PogemaMissing(f"pogema is not installed in {where} ({err}): run `bash "
+                            f"scripts/setup.sh` (it installs requirements-pogema.txt there)") from None
+    if pogema.__version__ != POGEMA_VERSION:
+        raise PogemaMissing(f"pogema {pogema.__version__} found in {Path(pogema.__file__).parent}; "
+                            f"this benchmark is pinned to {POGEMA_VERSION} (requirements-pogema.txt)")
+    return pogema
+
+
+def load_maps(family: str) -> dict:
+    import yaml
+
+    return yaml.safe_load((DATA / FAMILIES[family].maps_file).read_text())
+
+
+def load_published() -> dict:
+    return json.loads((DATA / "published.json").read_text())
+
+
+def published_mean(published: dict, mode: str, family: str, method: str, agents: int,
+                   instances) -> tuple[float | None, int]:
+    """(the method's published mean over `instances`, how many of them it has): throughput
+    (goals / steps) for lifelong, success rate for one-shot."""
+    table = published[mode][family]
+    values = table["methods"].get(method, {}).get(str(agents))
+    if values is None:
+        return None, 0
+    got = [values[k] for k in instances if values[k] is not None]
+    if not got:
+        return None, 0
+    scale = table["steps"] if mode == "lifelong" else 1
+    return float(np.mean(got)) / scale, len(got)
+
+
+@dataclass
+class EpisodeResult:
+    figure: float  # lifelong: avg_throughput; one-shot: 1.0 solved / 0.0
+    steps: int
+    rule_mismatches: int = 0  # agent-steps where resolve_moves disagrees with the shield
+    collisions: int = 0  # agent-steps resolve_moves reverts
+    pogema_mismatches: int = 0  # agent-steps where POGEMA's cell differs from the shield's
+    seconds: float = 0.0  # the coordination layer's time (shield + rankings)
+
+
+def make_env(pogema, mode: str, family: str, map_text: str, map_name: str, seed: int,
+             agents: int):
+    fam = FAMILIES[family]
+    lifelong = mode == "lifelong"
+    config = pogema.GridConfig(
+        map=map_text, map_name=map_name, seed=seed, num_agents=agents,
+        max_episode_steps=fam.lifelong_steps if lifelong else fam.one_shot_steps,
+        on_target="restart" if lifelong else "nothing", collision_system=COLLISION_SYSTEM,
+        obs_radius=OBS_RADIUS, observation_type="POMAPF")
+    return pogema.pogema_v0(grid_config=config)
+
+
+def run_episode(pogema, mode: str, family: str, map_name: str, map_text: str, seed: int,
+                agents: int, rule: Rule, guidance: GuidanceSource,
+                planning_budget: float | None = None) -> EpisodeResult:
+    """One episode in POGEMA with the shield of `rule` making every move (module docstring)."""
+    env = make_env(pogema, mode, family, map_text, map_name, seed, agents)
+    env.reset(seed=seed)
+    grid_obj = env.unwrapped.grid
+    grid = grid_obj.get_obstacles(ignore_borders=True).astype(np.uint8)
+
+    def cells(xy) -> np.ndarray:
+        return np.asarray(xy, dtype=np.int64).reshape(-1, 2)
+
+    positions = cells(grid_obj.get_agents_xy(ignore_borders=True))
+    goals = cells(grid_obj.get_targets_xy(ignore_borders=True))
+    began = time.perf_counter()
+    shield = make_shield(rule, grid, goals, planning_budget=planning_budget,
+                         guidance=guidance.for_map(grid))
+    spent = time.perf_counter() - began
+    result = EpisodeResult(figure=0.0, steps=0)
+    while True:
+        began = time.perf_counter()
+        step = shield.step(positions, distance_rankings(shield, positions))
+        spent += time.perf_counter() - began
+        ours = np.asarray(step.positions, dtype=np.int64)
+        actions = actions_between(positions, ours)
+        by_rules, collided = resolve_moves(grid, positions, actions)
+        result.rule_mismatches += int((by_rules != ours).any(axis=1).sum())
+        result.collisions += int(collided.sum())
+        _, _, terminated, truncated, infos = env.step(actions.tolist())
+        result.steps += 1
+        positions = cells(grid_obj.get_agents_xy(ignore_borders=True))
+        result.pogema_mismatches += int((positions != ours).any(axis=1).sum())
+        if all(terminated) or all(truncated):
+            metrics = infos[0].get("metrics", {})
+            result.figure = float(metrics["avg_throughput"] if mode == "lifelong"
+                                  else metrics["CSR"])
+            break
+        if mode == "lifelong":
+            new_goals = cells(grid_obj.get_targets_xy(ignore_borders=True))
+            if (new_goals != shield.goals).any():
+                began = time.perf_counter()
+                shield.set_goals(new_goals)
+                spent += time.perf_counter() - began
+    result.seconds = spent
+    return result
+
+
+@dataclass
+class Row:
+    family: str
+    mode: str
+    agents: int
+    rule: str
+    guidance: str
+    instances: list
+    episodes: list = field(default_factory=list)
+
+    def summary(self) -> dict:
+        e = self.episodes
+        ticks = sum(r.steps for r in e)
+        return {"family": self.family, "mode": self.mode, "agents": self.agents,
+                "rule": self.rule, "guidance": self.guidance, "episodes": len(e),
+                "figure": round(float(np.mean([r.figure for r in e])), 4) if e else None,
+                "rule_mismatches": sum(r.rule_mismatches for r in e),
+                "collisions": sum(r.collisions for r in e),
+                "pogema_mismatches": sum(r.pogema_mismatches for r in e),
+                "ms_per_tick": round(1000 * sum(r.seconds for r in e) / max(ticks, 1), 2)}
+
+
+PUBLISHED_METHODS = {"lifelong": ("RHCR", "Follower", "MATS-LP"),
+                     "one_shot": ("LaCAM", "DCC", "SCRIMP")}
+
+
+def table(rows: list[Row], published: dict) -> str:
+    """Our figures beside the published ones on the same instances."""
+    lines = []
+    for mode in ("lifelong", "one_shot"):
+        mine = [r for r in rows if r.mode == mode]
+        if not mine:
+            continue
+        what = "goals per step" if mode == "lifelong" else "success rate"
+        methods = PUBLISHED_METHODS[mode]
+        lines.append(f"{mode} ({what}; published: {PUBLISHED_SOURCE}, same instances)")
+        lines.append(f"{'family':10} {'agents':>6} {'rule':22} {'guidance':10} {'n':>4} "
+                     f"{'ours':>7} " + " ".join(f"{m:>9}" for m in methods)
+                     + f" {'rule mism.':>10} {'pogema mism.':>12} {'ms/tick':>8}")
+        for r in mine:
+            s = r.summary()
+            pubs = []
+            for m in methods:
+                value, count = published_mean(published, mode, r.family, m, r.agents,
+                                              r.instances[:len(r.episodes)])
+                pubs.append("      n/a" if value is None else
+                            f"{value:9.3f}" if count == len(r.episodes) else f"{value:6.3f}/{count:<2}")
+            lines.append(f"{r.family:10} {r.agents:>6} {r.rule:22} {r.guidance:10} "
+                         f"{s['episodes']:>4} {s['figure']:>7.3f} " + " ".join(pubs)
+                         + f" {s['rule_mismatches']:>10} {s['pogema_mismatches']:>12} "
+                         f"{s['ms_per_tick']:>8.2f}")
+    return "\n".join(lines)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m mapf_fleet.evaluation.pogema_bench",
+                                description=__doc__.split("\n")[0])
+    p.add_argument("--family", nargs="+", choices=sorted(FAMILIES), default=["random"])
+    p.add_argument("--mode", nargs="+", choices=("lifelong", "one_shot"), default=["lifelong"])
+    p.add_argument("--agents", nargs="+", type=int, default=[64])
+    p.add_argument("--instances", type=int, default=8,
+                   help="the first N instances of the family (at most 128)")
+    p.add_argument("--first", type=int, default=0, help="the first instance index")
+    p.add_argument("--conflict-rule", nargs="+", default=["pibt_anchor_swap"],
+                   help="coordinated rules of coordination.rules (revert has no shield)")
+    p.add_argument("--guidance", nargs="+", default=["none"],
+                   help="none | highways | MODEL.costmodel.json (a guidance file fits one map only)")
+    p.add_argument("--planning-budget", type=float, default=None,
+                   help="seconds per re-plan of the lacam rule")
+    p.add_argument("--out", type=Path, help="write the rows as JSON here")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    prog = "python -m mapf_fleet.evaluation.pogema_bench"
+    try:
+        if not 1 <= args.instances or args.first < 0 or args.first + args.instances > 128:
+            raise ValueError(f"--first {args.first} --instances {args.instances}: the families "
+                             f"have 128 instances (0..127)")
+        rules = [Rule.parse(r) for r in args.conflict_rule]
+        for r in rules:
+            if not r.coordinated:
+                raise ValueError(f"--conflict-rule {r}: has no shield to make the moves")
+        sources = [GuidanceSource.parse(g) for g in args.guidance]
+        pogema = import_pogema()
+    except (ValueError, PogemaMissing) as err:
+        print(f"{prog}: error: {err}", file=sys.stderr)
+        return 2
+    published = load_published()
+    instances = list(range(args.first, args.first + args.instances))
+    rows = []
+    for family in args.family:
+        maps = load_maps(family)
+        for mode in args.mode:
+            for agents in args.agents:
+                for rule in rules:
+                    for source in sources:
+                        row = Row(family, mode, agents, str(rule), source.label, instances)
+                        for k in instances:
+                            name, text, seed = FAMILIES[family].instance(maps, k)
+                            with warnings.catch_warnings():
+                                warnings.simplefilter("ignore")  # pogema's own notices
+                                row.episodes.append(run_episode(
+                                    pogema, mode, family, name, text, seed, agents, rule, source,
+                                    args.planning_budget))
+                        rows.append(row)
+                        s = row.summary()
+                        print(f"{family} {mode} {agents} {rule} {source.label}: {s['figure']} "
+                              f"(rule mismatches {s['rule_mismatches']}, pogema mismatches "
+                              f"{s['pogema_mismatches']})", flush=True)
+    print()
+    print(table(rows, published))
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps({"command": " ".join([prog, *map(shlex.quote, argv or
+                                                                        sys.argv[1:])]),
+                                        "pogema": POGEMA_VERSION,
+                                        "rows": [r.summary() for r in rows]}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
