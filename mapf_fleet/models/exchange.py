@@ -60,6 +60,9 @@ class PolicyExchange:
 
     def __init__(self, model, ids, comm_timeout: float, ranking: str, link, guidance=None):
         self.model = model.eval()
+        # where the model runs (the `device` parameter: cpu, or cuda when there is one); the
+        # exchange's numpy inputs go there and its outputs come back to numpy
+        self.device = next(model.parameters()).device
         # the guidance graph the robots' heuristic channels read (a `GuidanceSource` value or
         # None), the fleet's one value: the simulator's rule reads the same distances
         from mapf_fleet.grid.guidance_made import GuidanceSource
@@ -81,6 +84,9 @@ class PolicyExchange:
         self.decisions = 0
         self.sent = {"local": 0, "service": 0, "batches": 0, "unsent": 0}
         self.timing = TickTiming()
+
+    def _tensor(self, array) -> torch.Tensor:
+        return torch.as_tensor(array, device=self.device)
 
     @property
     def episode(self):
@@ -141,9 +147,10 @@ class PolicyExchange:
         every robot's cell (N, 2) and last action (N,) (None or -1: none)."""
         tick = self._tick
         positions = self._fleet_array(positions, "positions")
-        obs = torch.as_tensor(np.asarray(obs, dtype=np.float32))
+        obs = self._tensor(np.asarray(obs, dtype=np.float32))
         if self._hidden is None:
-            self._hidden = torch.zeros(len(self.ids), self.model.config.hidden_dim)
+            self._hidden = torch.zeros(len(self.ids), self.model.config.hidden_dim,
+                                       device=self.device)
         with torch.no_grad():
             if self.algo == "dhc":
                 h, requested, received, missing = self._dhc(tick, obs, positions)
@@ -151,10 +158,10 @@ class PolicyExchange:
                 last = np.full(len(positions), -1, dtype=np.int64) if last_actions is None \
                     else np.asarray(last_actions, dtype=np.int64)
                 h, requested, received, missing = self._dcc(
-                    tick, obs, torch.as_tensor(last[self.ids]), positions)
-            q = self.model.head(h).numpy()
+                    tick, obs, self._tensor(last[self.ids]), positions)
+            q = self.model.head(h).cpu().numpy()
         self.timing.mark("network")
-        rankings = rank_actions(obs.numpy(), q, self.ranking,
+        rankings = rank_actions(obs.cpu().numpy(), q, self.ranking,
                                    ties=tie_breakers(self.ids, tick))
         if self.mailbox.current_tick != tick:
             return None  # the fleet moved on while we waited: this decision is stale
@@ -182,7 +189,7 @@ class PolicyExchange:
         missing = [set() for _ in range(m_count)]
         received = [0] * m_count
         for r in range(model.config.comm_rounds):
-            vectors = h.numpy().copy()
+            vectors = h.cpu().numpy().copy()
             self.mailbox.put_many(self._episode, f"dhc{r}", tick, zip(self.ids.tolist(), vectors))
             self.link.publish_hidden(self._episode, tick, r, self.ids, vectors)
             self.timing.mark("send")
@@ -201,10 +208,10 @@ class PolicyExchange:
                         received[m] += 1
                     else:
                         missing[m].add(int(j))
-            rows = torch.from_numpy(np.flatnonzero(valid[:, 1:].any(1)))
+            rows = self._tensor(np.flatnonzero(valid[:, 1:].any(1)))
             if rows.numel():
-                updated = model.round_batch(h[rows], torch.from_numpy(members)[rows],
-                                       torch.from_numpy(valid)[rows])
+                updated = model.round_batch(h[rows], self._tensor(members)[rows],
+                                       self._tensor(valid)[rows])
                 h = h.index_put((rows,), updated)
             self.timing.mark("network")
         requested = [[int(j) for j in row if j >= 0] for row in partners]
@@ -218,16 +225,16 @@ class PolicyExchange:
         inside[np.arange(m_count), self.ids] = False
         owner, neighbour = np.nonzero(inside)  # index order per robot, as the batched step
         h, variant_actions = model.encode_with_variants(
-            obs, last, self._hidden, torch.from_numpy(owner),
-            torch.from_numpy(delta[owner, neighbour]))
-        own_actions = model.greedy_actions(h).numpy()
-        chosen = variant_actions.numpy() != own_actions[owner]
+            obs, last, self._hidden, self._tensor(owner),
+            self._tensor(delta[owner, neighbour]))
+        own_actions = model.greedy_actions(h).cpu().numpy()
+        chosen = variant_actions.cpu().numpy() != own_actions[owner]
         targets = [[] for _ in range(m_count)]
         for m, j in zip(owner[chosen], neighbour[chosen]):
             targets[m].append(int(j))
         missing = [set() for _ in range(m_count)]
         received = [0] * m_count
-        vectors = h.numpy().copy()
+        vectors = h.cpu().numpy().copy()
         self.timing.mark("network")
         self.mailbox.put_many(self._episode, "announce", tick, zip(self.ids.tolist(), targets))
         self.link.publish_announce(self._episode, tick, self.ids, targets)
@@ -250,7 +257,7 @@ class PolicyExchange:
             requests.append(got)
         self.timing.mark("wait")
         h1 = self._aggregate(model.request_comm, h, requests, positions)
-        vectors1 = h1.numpy().copy()
+        vectors1 = h1.cpu().numpy().copy()
         self.timing.mark("network")
         self._dispatch("reply", tick, [(int(r), i, vectors1[m])
                                        for m, r in enumerate(self.ids) for i in requests[m]])
@@ -281,9 +288,9 @@ class PolicyExchange:
                 sender_h[k, s] = messages[m][sender]
                 offsets[k, s] = positions[sender] - positions[self.ids[m]]
                 valid[k, s] = True
-        index = torch.as_tensor(rows)
-        updated = self.model.receive(layer, h[index], torch.from_numpy(sender_h),
-                                     torch.from_numpy(offsets), torch.from_numpy(valid))
+        index = self._tensor(rows)
+        updated = self.model.receive(layer, h[index], self._tensor(sender_h),
+                                     self._tensor(offsets), self._tensor(valid))
         return h.index_put((index,), updated)
 
     def _dispatch(self, kind: str, tick: int, messages) -> None:
