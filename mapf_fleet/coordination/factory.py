@@ -5,11 +5,13 @@ the layer: it knows every rule's class).
 resolution), a `pibt.PIBTShield` with the options the rule carries, or for `lacam` a
 `plan.PlanKeeper` with the `plan.ARBITER` options. Every arbiter has the same interface (`step`,
 `set_goals`, `reset`, `advance_priorities`, `goals`, `priorities`, `base_priority`, `tick`) and
-reads its distances from the map's shared table under `guidance`.
+reads its distances from the map's shared table under `guidance`. An `_epibt` rule's arbiter is
+an `epibt.EPIBTShield` (a `PIBTShield` whose rankings EPIBT's operations reorder).
 """
 
 from __future__ import annotations
 
+from .epibt import EPIBTShield
 from .pibt import PIBTShield
 from .plan import ARBITER, PlanKeeper
 from .rules import Rule
@@ -27,6 +29,9 @@ def make_shield(rule: "Rule | str", grid, goals, planning_budget: float | None =
     if rule.is_lacam:
         return PlanKeeper(grid, goals, ARBITER, guidance=guidance,
                           planning_budget=planning_budget)
+    if rule.epibt:
+        return EPIBTShield(grid, goals, **rule.pibt_options(), anchor_patience=anchor_patience,
+                           guidance=guidance, horizon=rule.horizon)
     return PIBTShield(grid, goals, **rule.pibt_options(), anchor_patience=anchor_patience,
                       guidance=guidance)
 

@@ -8,6 +8,10 @@ A conflict rule says what stands between the robots' ranked moves and the moves 
                 anchor (the top agent follows its distance order), patient (an anchor that waits
                 `ANCHOR_PATIENCE` ticks), swap (lacam3's corridor swap), hindrance (equally short
                 moves ordered by the neighbours they block); docs/coordination.md
+  pibt[_anchor|_patient][_swap]_epibt
+                the same PIBT rules with EPIBT's longer horizon: each agent's first move is the
+                first of a multi-step operation chosen in priority order (`EPIBT_HORIZON` moves;
+                `epibt.EPIBTShield`; no hindrance: both order the first moves)
   lacam         the planning arbiter: a kept LaCAM plan, the anchored PIBT step with swap as its
                 fallback (`plan.PlanKeeper`)
 
@@ -32,7 +36,10 @@ PIBT_RULES = ("pibt", "pibt_anchor", "pibt_swap", "pibt_anchor_swap", "pibt_hind
               "pibt_patient", "pibt_patient_swap", "pibt_patient_hindrance",
               "pibt_patient_swap_hindrance")
 COORDINATED_RULES = (*PIBT_RULES, LACAM)
-CONFLICT_RULES = (*COORDINATED_RULES, REVERT)
+# The PIBT rules with EPIBT's multi-step operations (suffix "_epibt"; hindrance excluded)
+EPIBT = "epibt"
+EPIBT_RULES = tuple(f"{rule}_{EPIBT}" for rule in PIBT_RULES if "hindrance" not in rule)
+CONFLICT_RULES = (*COORDINATED_RULES, REVERT, *EPIBT_RULES)
 # The fleet's rule: what `mapf-fleet up` runs and `evaluate` measures by default
 FLEET_RULE = "pibt_anchor_swap"
 # `patient`: the anchor waits until the top agent has gone this many ticks without getting closer
@@ -40,6 +47,12 @@ FLEET_RULE = "pibt_anchor_swap"
 # its goal within (patience + 1) x its distance ticks (docs/coordination.md; the value was chosen
 # by the expert ceiling, docs/results.md)
 ANCHOR_PATIENCE = 32
+# EPIBT's moves per operation (`epibt.EPIBTShield`). 3: long enough to see a head-on meeting or
+# a stopping queue one cell beyond the next step (what one-step PIBT walks into), the length of
+# the LoRR 2024 EPIBT's operations, and the operation set stays small (85 operations; each extra
+# move multiplies it by about 4) so that a 2,048-agent tick stays within its budget in plain
+# Python (measured: docs/results.md, "A longer horizon per tick (EPIBT)")
+EPIBT_HORIZON = 3
 # The learned rankings a rule picks by default (`Rule.default_ranking`; chosen by measurement,
 # docs/results.md, "Which ranking under which rule")
 ANCHORED_RANKING = "confidence"
@@ -56,6 +69,7 @@ class Rule:
     swap: bool = False
     hindrance: bool = False
     patient: bool = False
+    horizon: int = 0  # EPIBT's moves per operation; 0: one-step PIBT (not an `_epibt` rule)
 
     @classmethod
     def parse(cls, value: "Rule | str", what: str = "conflict rule") -> "Rule":
@@ -70,15 +84,17 @@ class Rule:
         parts = value.split("_")[1:]
         patient = "patient" in parts
         return cls(value, "pibt", anchor="anchor" in parts or patient, swap="swap" in parts,
-                   hindrance="hindrance" in parts, patient=patient)
+                   hindrance="hindrance" in parts, patient=patient,
+                   horizon=EPIBT_HORIZON if EPIBT in parts else 0)
 
     @classmethod
     def pibt(cls, anchor: bool = False, swap: bool = False, hindrance: bool = False,
-             patient: bool = False) -> "Rule":
+             patient: bool = False, epibt: bool = False) -> "Rule":
         """The PIBT rule with these options."""
         flags = {"anchor": anchor and not patient, "swap": swap, "hindrance": hindrance}
         names = [o for o in RULE_OPTIONS if flags[o]]
-        return cls.parse("_".join(["pibt", *(["patient"] if patient else []), *names]))
+        return cls.parse("_".join(["pibt", *(["patient"] if patient else []), *names,
+                                   *([EPIBT] if epibt else [])]))
 
     def __str__(self) -> str:
         return self.name
@@ -93,11 +109,17 @@ class Rule:
         return self.kind == "pibt"
 
     @property
+    def epibt(self) -> bool:
+        """A PIBT rule with EPIBT's multi-step operations (`epibt.EPIBTShield`)."""
+        return self.horizon > 0
+
+    @property
     def is_lacam(self) -> bool:
         return self.kind == LACAM
 
     def pibt_options(self) -> dict[str, bool]:
-        """{"anchor", "swap", "hindrance", "patient"}: `PIBTShield`'s keyword options."""
+        """{"anchor", "swap", "hindrance", "patient"}: `PIBTShield`'s keyword options (an
+        `_epibt` rule's shield, `epibt.EPIBTShield`, takes `horizon` besides)."""
         if not self.is_pibt:
             raise ValueError(f"{self.name!r} is not a PIBT rule")
         return {"anchor": self.anchor, "swap": self.swap, "hindrance": self.hindrance,
@@ -112,8 +134,8 @@ class Rule:
 
     @property
     def base(self) -> "Rule":
-        """The rule without swap and hindrance: what a checkpoint's recorded ranking was stored
-        under for a swap or hindrance variant (the same arbiter for the ranking's purpose)."""
+        """The rule without swap, hindrance and EPIBT: what a checkpoint's recorded ranking was
+        stored under for such a variant (the same arbiter for the ranking's purpose)."""
         rule = self.ranking_rule
         return Rule.pibt(anchor=rule.anchor) if rule.is_pibt else rule
 
@@ -132,4 +154,5 @@ def parse_rules(values, what: str = "conflict rule") -> list[Rule]:
 
 
 __all__ = ["Rule", "parse_rules", "CONFLICT_RULES", "COORDINATED_RULES", "PIBT_RULES", "REVERT",
+           "EPIBT_RULES", "EPIBT_HORIZON",
            "LACAM", "FLEET_RULE", "ANCHOR_PATIENCE", "RULE_OPTIONS"]
