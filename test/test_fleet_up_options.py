@@ -94,7 +94,8 @@ def test_guidance_is_none_or_an_existing_file_and_one_value_for_the_fleet(tmp_pa
     with pytest.raises(U.UpError) as caught:
         _plan(["--guidance", str(tmp_path / "missing.yaml")])
     assert str(caught.value) == (f"--guidance must be none, highways, an existing "
-                                 f"*.guidance.npz or *.costmodel.json, got "
+                                 f"*.guidance.npz or *.costmodel.json (congestion guidance: "
+                                 f"evaluate --lifelong only), got "
                                  f"'{tmp_path / 'missing.yaml'}'")
     _, plan = _plan(["--guidance", "highways"])
     assert plan.guidance == "highways"

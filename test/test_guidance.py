@@ -171,3 +171,40 @@ def test_lifelong_evaluation_with_guidance_none_is_the_unguided_run():
                 runs, shielded=True)
         goals.append([run.goals_reached for run in runs])
     assert goals[0] == goals[1] == goals[2]
+
+
+def test_congestion_flow_makes_moving_against_recent_traffic_dear():
+    from mapf_fleet.grid.guidance_made import CongestionFlow
+
+    grid = np.zeros((3, 5), dtype=np.uint8)
+    flow = CongestionFlow(grid, beta=1.0, decay=1.0, period=2)
+    before = np.array([[1, 0], [1, 1]])
+    flow.observe(before, before + [0, 1])  # two robots moving right along the middle row
+    assert flow.guidance() is None  # between updates
+    flow.observe(before + [0, 1], before + [0, 2])
+    g = flow.guidance()
+    assert g is not None and not g.is_unit
+    assert g.costs[1, 2, 3] > 1.0  # left from (1, 2): against two robots' moves
+    assert g.costs[1, 1, 4] == 1.0  # right: with the traffic
+    assert g.costs[0, 2, 3] == 1.0  # another row: untouched
+
+
+def test_a_lifelong_run_with_congestion_guidance_updates_its_graph_and_stays_safe():
+    from mapf_fleet.evaluation.lifelong import lifelong_instances, lifelong_runs, rollout
+    from mapf_fleet.evaluation.policies import build_policy, parse_policy, with_conflict_rule
+
+    instances = lifelong_instances("warehouse", 21, 32, 1, seed=1)
+    runs = lifelong_runs(instances, 40, "pibt_anchor_swap", 1, series=("executed",),
+                         guidance="congestion")
+    assert runs[0].guidance is None and runs[0].flow is not None
+    rollout(build_policy(with_conflict_rule(parse_policy("heuristic"), "pibt_anchor_swap")),
+            runs, shielded=True)
+    assert runs[0].guidance is not None and runs[0].guidance.meta["kind"] == "congestion"
+    assert runs[0].recorder.collisions == 0 and runs[0].goals_reached > 0
+
+
+def test_the_fleet_over_ros_refuses_online_guidance():
+    from mapf_fleet.fleet import parameters
+
+    check = parameters.GUIDANCE.check
+    assert check("highways") and check("none") and not check("congestion")

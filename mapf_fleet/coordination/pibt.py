@@ -179,6 +179,18 @@ class PIBTShield:
         # valid neighbour cells per flat cell (swap walks corridors, hindrance reads neighbours)
         self._neighbors = [[c for c in row if c >= 0] for row in self._targets[:, 1:].tolist()]
         self.tick = 0  # steps since reset: the anchor's tie-breakers
+    def set_guidance(self, guidance) -> None:
+        """Read every distance under a new guidance graph from the next step on (online
+        guidance: `grid.guidance_made.CongestionFlow`); the patient anchor's clocks start afresh
+        (its distances changed scale)."""
+        self.distances = distance_table(self.grid, guidance)
+        self.distances.reserve(2 * self.num_agents)
+        self._step_costs = self.distances.step_costs
+        self._targets = self.distances.move_targets()
+        self._neighbors = [[c for c in row if c >= 0] for row in self._targets[:, 1:].tolist()]
+        self.best_distance[:] = np.inf
+        self.stalled[:] = 0
+
     def reset(self) -> None:
         """Start a new episode: every priority back to its tie-breaker."""
         self.priorities = self.base_priority.copy()

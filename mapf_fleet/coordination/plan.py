@@ -182,6 +182,13 @@ class PlanKeeper:
         self._retry_at, self._retry_interval = 0, 1
         self.streamed = False
 
+    def set_guidance(self, guidance) -> None:
+        """A new guidance graph for the fallback and the next re-plans; the kept plan stays (it
+        is still valid: guidance only changes which plan is preferred)."""
+        self.fallback.set_guidance(guidance)
+        options = self.options
+        self.planner = LaCAM(self.grid, seed=options.seed, swap=options.swap, guidance=guidance)
+
     def set_goals(self, goals) -> np.ndarray:
         """New goals (N, 2); the plan is dropped when any changed (`PIBTShield.set_goals`) and
         made again at the next tick (or, after a failed call, at its retry tick)."""

@@ -122,7 +122,8 @@ def lifelong_runs(instances: InstanceSet, steps: int, rule: str, seed: int,
     return [FleetRun(instances.maps[k], instances.starts[k],
                      LifelongTasks(grid=instances.maps[k], seed=episode_seed(seed, k)),
                      instances.goals[k], rule=rule, max_steps=steps, series=series,
-                     planning_budget=planning_budget, guidance=source.for_map(instances.maps[k]))
+                     planning_budget=planning_budget, guidance=source.for_map(instances.maps[k]),
+                     flow=source.flow(instances.maps[k]))
             for k in range(len(instances))]
 
 
@@ -147,10 +148,11 @@ def _observer(run: FleetRun, observation: str):
     from mapf_fleet.grid.observation import GoalObserver
 
     mine = _OBSERVERS.setdefault(run, {})
-    if observation not in mine:
-        mine[observation] = GoalObserver(run.grid, observation=observation,
-                                         guidance=run.guidance)
-    return mine[observation]
+    found = mine.get(observation)
+    if found is None or found.guidance is not run.guidance:  # online guidance: a new graph
+        found = mine[observation] = GoalObserver(run.grid, observation=observation,
+                                                 guidance=run.guidance)
+    return found
 
 
 def rollout(policy, runs: list[FleetRun], shielded: bool) -> None:

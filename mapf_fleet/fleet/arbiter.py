@@ -113,6 +113,12 @@ class TickArbiter:
         self.shield = make_shield(self.rule, self.grid, self.goals,
                                   planning_budget=self.planning_budget, guidance=self.guidance)
 
+    def set_guidance(self, guidance) -> None:
+        """Read distances under a new guidance graph from the next tick (online guidance)."""
+        self.guidance = guidance
+        if self.shield is not None:
+            self.shield.set_guidance(guidance)
+
     def set_goals(self, goals) -> None:
         """New goals without rebuilding the arbiter (a fleet that takes goals at run time): the
         shield keeps its distance maps (per goal cell) and the priorities of robots whose goal

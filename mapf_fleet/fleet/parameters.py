@@ -56,10 +56,11 @@ def _guidance_ok(value: str) -> bool:
     from mapf_fleet.grid.guidance_made import GuidanceSource
 
     try:
-        GuidanceSource.parse(value)
+        # online (congestion) guidance changes as the run goes: the policy processes would need
+        # its costs every period, so the fleet over ROS takes static graphs only
+        return not GuidanceSource.parse(value).online
     except ValueError:
         return False
-    return True
 
 
 # the simulator's, the aggregator's and the policy nodes' guidance: one value for the fleet
@@ -67,7 +68,8 @@ GUIDANCE = Param("none", "guidance graph read by every distance to a goal (the r
                          "the robots' heuristic channels): none, highways (hand-made crisscross "
                          "lanes), a guidance file (*.guidance.npz) or a cost model "
                          "(*.costmodel.json); every node of the fleet gets the same",
-                 _guidance_ok, "none, highways, an existing *.guidance.npz or *.costmodel.json",
+                 _guidance_ok, "none, highways, an existing *.guidance.npz or *.costmodel.json "
+                               "(congestion guidance: evaluate --lifelong only)",
                  option=Option("--guidance", metavar="none|highways|FILE"))
 
 

@@ -49,13 +49,14 @@ class FleetRun(RunReport):
     limit (0: none, a continuous run until stopped); series: the adapter's own per-tick record
     entries ("executed", "overridden" and "collided" are filled in by `step`); guidance: a
     `grid.guidance.Guidance` for the map (None: BFS distances), read by the rule and every
-    distance the run takes.
+    distance the run takes; flow: a `grid.guidance_made.CongestionFlow` that updates the
+    guidance from the robots' moves as the run goes (online guidance).
     """
 
     def __init__(self, grid, starts, tasks: TaskSource, goals=None, *,
                  rule: str = DEFAULT_CONFLICT_RULE, max_steps: int = 256, episode: int = 0,
                  start_tick: int = 0, series=(), planning_budget: float | None = None,
-                 guidance=None):
+                 guidance=None, flow=None):
         self.grid = np.asarray(grid) != 0
         self.positions = np.array(starts, dtype=np.int64).reshape(-1, 2)
         self.num_robots = len(self.positions)
@@ -83,6 +84,7 @@ class FleetRun(RunReport):
         from mapf_fleet.grid.heuristic import distance_table
 
         self.guidance = guidance
+        self.flow = flow
         self.distances = distance_table(self.grid, guidance)
         self._counted: set[str] = set()  # one-shot goals whose arrival was counted
         self._evacuating: dict[int, tuple[int, int]] = {}  # idle robot -> cell it clears to
@@ -142,6 +144,14 @@ class FleetRun(RunReport):
         return self.goals_reached / self.steps if self.steps else 0.0
 
     # ---- goals at run time --------------------------------------------------------------------
+    def set_guidance(self, guidance) -> None:
+        """Every distance of the run (the rule's, goal checks) under `guidance` from now on."""
+        from mapf_fleet.grid.heuristic import distance_table
+
+        self.guidance = guidance
+        self.distances = distance_table(self.grid, guidance)
+        self.arbiter.set_guidance(guidance)
+
     def distance_to(self, cell) -> np.ndarray:
         """(H, W) distances to `cell` (-1 unreachable): BFS steps, or guided costs under the
         run's guidance (`DistanceTable`, cached per cell)."""
@@ -263,8 +273,13 @@ class FleetRun(RunReport):
                 **series) -> list[GoalEvent]:
         """The robots are in `positions` after the tick of `decisions`: record it, count the
         arrivals, hand out next goals and apply the requests; the events of this tick."""
-        self.positions = np.asarray(positions, dtype=np.int64).copy()
+        before, self.positions = self.positions, np.asarray(positions, dtype=np.int64).copy()
         self.last_actions = np.asarray(last_actions, dtype=np.int64).copy()
+        if self.flow is not None:  # online guidance: the next ticks read the updated costs
+            self.flow.observe(before, self.positions)
+            guidance = self.flow.guidance()
+            if guidance is not None:
+                self.set_guidance(guidance)
         self.tick += 1
         self.steps += 1
         self.recorder.add_tick(decisions, self.positions, collisions, **series)

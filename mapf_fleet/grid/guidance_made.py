@@ -12,7 +12,9 @@
   (`mapf-fleet guidance optimize`, GGO's recipe: Zhang et al., IJCAI 2024, who optimise a
   guidance policy over local patterns the same way); being a function of the local map, it gives
   guidance for maps it never saw.
-- `GuidanceSource.parse(value)`: "none", "highways", a guidance file (`*.guidance.npz`, one map)
+- `CongestionFlow`: costs updated online from the robots' recent moves (traffic flow), no
+  training: `--guidance congestion`.
+- `GuidanceSource.parse(value)`: "none", "highways", "congestion", a guidance file (`*.guidance.npz`, one map)
   or a cost model (`*.costmodel.json`, any map), parsed once where a value enters (the CLI, a
   ROS parameter); `source.for_map(grid)` gives the map's `Guidance` (None for "none").
 """
@@ -167,11 +169,11 @@ class GuidanceSource:
         text = "" if value is None else str(value).strip()
         if text in ("", NONE):
             return cls(NONE)
-        if text == HIGHWAYS:
-            return cls(HIGHWAYS)
+        if text in (HIGHWAYS, CONGESTION):
+            return cls(text)
         path = Path(text)
         if not path.is_file():
-            raise GuidanceError(f"guidance must be 'none', 'highways', a guidance file "
+            raise GuidanceError(f"guidance must be 'none', 'highways', 'congestion', a guidance file "
                                 f"(*{SUFFIX}) or a cost model (*{MODEL_SUFFIX}); no such file: "
                                 f"{text}")
         if text.endswith(MODEL_SUFFIX):
@@ -181,6 +183,14 @@ class GuidanceSource:
 
     def __str__(self) -> str:
         return self.path or self.kind
+
+    @property
+    def online(self) -> bool:
+        """The graph changes as the fleet moves (`CongestionFlow`): the run updates it."""
+        return self.kind == CONGESTION
+
+    def flow(self, grid) -> "CongestionFlow | None":
+        return CongestionFlow(grid) if self.online else None
 
     @property
     def label(self) -> str:
@@ -199,10 +209,69 @@ class GuidanceSource:
             return None
         if self.kind == HIGHWAYS:
             return highways(grid)
+        if self.kind == CONGESTION:
+            return None  # unit costs until the first update (`CongestionFlow`)
         if self.kind == "model":
             return (self.model or CostModel.load(self.path)).guidance(grid)
         return Guidance.load(self.path, grid)
 
 
-__all__ = ["highways", "features", "CostModel", "GuidanceSource", "FEATURES", "HIGHWAYS",
-           "MODEL_SUFFIX", "HIGHWAY_AGAINST"]
+
+# --- congestion-aware guidance, updated online (no training) -----------------------------------
+CONGESTION = "congestion"
+# contraflow weight, decay per tick and ticks between updates of the congestion costs; chosen by
+# measurement (docs/results.md, "Continuous operation with guidance")
+CONGESTION_BETA = 0.5
+CONGESTION_DECAY = 0.9
+CONGESTION_PERIOD = 8
+
+
+class CongestionFlow:
+    """Traffic-flow guidance from where the robots are and are heading (Chen et al., AAAI 2024,
+    the hand-made counterpart of learned guidance): a decayed count of the moves robots made along
+    each directed edge; moving against recent traffic costs 1 + beta x (the flow the other way) /
+    (1 + the flow this way), so opposite streams keep apart. `observe(before, after)` after each
+    tick; `guidance()` every `period` ticks gives the new graph (None between updates)."""
+
+    def __init__(self, grid, beta: float = CONGESTION_BETA, decay: float = CONGESTION_DECAY,
+                 period: int = CONGESTION_PERIOD):
+        self.blocked = np.asarray(grid) != 0
+        h, w = self.blocked.shape
+        self.width = w
+        self.flow = np.zeros((h * w, NUM_ACTIONS))  # decayed moves out of a cell per action
+        self.beta, self.decay, self.period = float(beta), float(decay), int(period)
+        self.ticks = 0
+        self._opposite = np.array([0, 2, 1, 4, 3])  # up <-> down, left <-> right
+        targets = move_targets(self.blocked)
+        self._targets = targets
+
+    def observe(self, before, after) -> None:
+        before = np.asarray(before, dtype=np.int64)
+        after = np.asarray(after, dtype=np.int64)
+        self.flow *= self.decay
+        delta = after - before
+        moved = np.abs(delta).sum(axis=1) == 1
+        if moved.any():
+            from .actions import actions_between
+
+            actions = actions_between(before[moved], after[moved])
+            cells = before[moved, 0] * self.width + before[moved, 1]
+            np.add.at(self.flow, (cells, actions), 1.0)
+        self.ticks += 1
+
+    def guidance(self) -> "Guidance | None":
+        if self.ticks % self.period:
+            return None
+        h, w = self.blocked.shape
+        t = self._targets
+        valid = t >= 0
+        # the flow the other way over each edge u -> v: moves out of v with the opposite action
+        back = np.where(valid, self.flow[np.where(valid, t, 0), self._opposite[None, :]], 0.0)
+        costs = 1.0 + self.beta * back / (1.0 + self.flow)
+        costs[:, 0] = 1.0
+        return Guidance.from_costs(self.blocked, costs.reshape(h, w, NUM_ACTIONS),
+                                   {"kind": CONGESTION}, source="congestion")
+
+
+__all__ = ["highways", "features", "CostModel", "GuidanceSource", "CongestionFlow", "FEATURES",
+           "HIGHWAYS", "CONGESTION", "MODEL_SUFFIX", "HIGHWAY_AGAINST"]

@@ -228,6 +228,7 @@ class GoalObserver:
         from .heuristic import _as_grid, distance_table
 
         self.blocked = _as_grid(grid)
+        self.guidance = guidance
         self.table = distance_table(self.blocked, guidance)
         self.channels = observation_channels(observation)
         self.observation = observation
