@@ -234,3 +234,15 @@ def test_epibt_rule_runs_through_the_fleet_core_and_the_lifelong_evaluator(tmp_p
     policies = [row["policy"] for row in rows]
     assert any("epibt" in p for p in policies) and len(policies) == 2
     assert all(row["collisions"] == 0 for row in rows if "collisions" in row)
+
+
+def test_the_dagger_expert_asks_the_rollouts_own_arbiter():
+    """The committed expert asks "what would the rule let through" of the rollout's arbiter: an
+    `_epibt` rule's is EPIBT's (it was plain PIBT's, a different tick, before)."""
+    from mapf_fleet.training.dagger.expert import CommittedExpert
+
+    grid = np.zeros((5, 5), dtype=np.uint8)
+    goals = [(0, 0), (4, 4)]
+    assert isinstance(CommittedExpert(grid, goals, rule="pibt_anchor_swap_epibt").rule,
+                      EPIBTShield)
+    assert type(CommittedExpert(grid, goals, rule="pibt_anchor_swap").rule) is PIBTShield

@@ -51,6 +51,7 @@ from .rules import EPIBT_HORIZON  # the default horizon, and why, where the rule
 # Operations tried per agent per tick, on average, before the search stops pushing: bounds the
 # backtracking (PIBT's push over operations can branch at every step of every operation).
 TRIES_PER_AGENT = 32
+_HEAD = 4  # operations of an agent turned into Python lists first (`_search.candidates`)
 _OPERATIONS: dict[int, np.ndarray] = {}
 
 
@@ -207,14 +208,13 @@ class EPIBTShield(PIBTShield):
                 occ[t][now[i]] = i
         journal: list[int] = []
         budget = [TRIES_PER_AGENT * max(n, 1)]
-        cache: dict[int, list[list[int]]] = {}
 
-        def candidates(i: int) -> list[list[int]]:
-            found = cache.get(i)
-            if found is None:
-                found = paths[i, order[i, :count[i]]].tolist()
-                cache[i] = found
-            return found
+        def candidates(i: int):
+            # most agents take one of their first operations: convert the rest only if asked
+            ranked = order[i, :count[i]]
+            yield from paths[i, ranked[:_HEAD]].tolist()
+            if len(ranked) > _HEAD:
+                yield from paths[i, ranked[_HEAD:]].tolist()
 
         def assign(i: int, path: list[int]) -> None:
             chosen[i] = path

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mapf_fleet.coordination.pibt import PIBTShield
+from mapf_fleet.coordination.factory import make_shield
 from mapf_fleet.coordination.plan import EXPERT, PlanKeeper, distance_rankings
 from mapf_fleet.coordination.rules import Rule
 from mapf_fleet.grid.actions import actions_between
@@ -52,8 +52,9 @@ class CommittedExpert:
             rule = Rule.parse(rule, "rule")
             if not rule.is_pibt:
                 raise ValueError(f"rule must be a PIBT rule, got {rule.name!r}")
-            self.rule = PIBTShield(grid, goals, **rule.pibt_options(),
-                                   anchor_patience=anchor_patience, guidance=guidance)
+            # the rollout's own arbiter (an `_epibt` rule's is an EPIBTShield)
+            self.rule = make_shield(rule, grid, goals, anchor_patience=anchor_patience,
+                                    guidance=guidance)
         self.last: dict = {}
         self._expect: int | None = None  # the plan index the next state should be at
 

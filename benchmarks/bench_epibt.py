@@ -1,0 +1,96 @@
+"""What EPIBT's longer horizon costs per tick: the fleet's rule `pibt_anchor_swap` beside
+`pibt_anchor_swap_epibt` (and other horizons), lifelong (an agent on its goal gets a new one), in
+one process (issue 41's targets: <= 50 ms a tick at 64 agents, <= 1 s at 2,048 agents).
+
+    python benchmarks/bench_epibt.py [--ticks 40] [--horizons 2 3 4] [--json OUT]
+
+Per setting: random map of the side given, 20 % obstacles, distance rankings (plain PIBT's), the
+median and the 95th percentile of the tick in milliseconds (ranking not included), and for EPIBT
+the operations its search tried per agent (the bound is `epibt.TRIES_PER_AGENT`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from mapf_fleet.coordination.epibt import EPIBTShield  # noqa: E402
+from mapf_fleet.coordination.factory import make_shield  # noqa: E402
+from mapf_fleet.coordination.plan import distance_rankings  # noqa: E402
+from mapf_fleet.coordination.rules import FLEET_RULE, Rule  # noqa: E402
+from mapf_fleet.grid.guidance_made import highways  # noqa: E402
+from mapf_fleet.grid.maps import place_agents  # noqa: E402
+
+
+def tick_ms(blocked, agents, shield_of, ticks, seed) -> dict:
+    rng = np.random.default_rng(seed)
+    inst = place_agents(blocked.astype(np.uint8), agents, rng)
+    shield = shield_of(inst.goals)
+    free = np.argwhere(~blocked)
+    positions = np.asarray(inst.starts)
+    shield.step(positions, distance_rankings(shield, positions))  # distances searched
+    times, tries = [], []
+    for _ in range(ticks):
+        prefs = distance_rankings(shield, positions)
+        began = time.perf_counter()
+        positions = shield.step(positions, prefs).positions
+        times.append(time.perf_counter() - began)
+        tries.append(getattr(shield, "tries", 0) / agents)
+        arrived = (positions == shield.goals).all(axis=1)
+        if arrived.any():  # lifelong: a new goal on arrival
+            goals = shield.goals.copy()
+            goals[arrived] = free[rng.integers(0, len(free), int(arrived.sum()))]
+            shield.set_goals(goals)
+    times.sort()
+    return {"median_ms": 1e3 * statistics.median(times),
+            "p95_ms": 1e3 * times[min(len(times) - 1, int(0.95 * len(times)))],
+            "tries_per_agent": statistics.mean(tries)}
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--ticks", type=int, default=40)
+    p.add_argument("--horizons", nargs="+", type=int, default=[2, 3, 4],
+                   help="EPIBT horizons measured at 64 agents besides the rule's own")
+    p.add_argument("--json")
+    args = p.parse_args()
+    epibt_rule = Rule.pibt(**Rule.parse(FLEET_RULE).pibt_options(), epibt=True)
+    rows = []
+    for side, agents in ((21, 64), (128, 2048)):
+        blocked = np.random.default_rng(1).random((side, side)) < 0.2
+        for name, guidance in (("none", None), ("highways", highways(blocked))):
+            settings = [(FLEET_RULE, None), (epibt_rule.name, None)]
+            if agents == 64:
+                settings += [(epibt_rule.name, h) for h in args.horizons
+                             if h != epibt_rule.horizon]
+            for rule, horizon in settings:
+                if horizon is None:
+                    def shield_of(goals, rule=rule, guidance=guidance):
+                        return make_shield(rule, blocked, goals, guidance=guidance)
+                else:
+                    def shield_of(goals, horizon=horizon, guidance=guidance):
+                        return EPIBTShield(blocked, goals, **epibt_rule.pibt_options(),
+                                           guidance=guidance, horizon=horizon)
+                row = {"side": side, "agents": agents, "guidance": name, "rule": rule,
+                       "horizon": horizon or Rule.parse(rule).horizon,
+                       **tick_ms(blocked, agents, shield_of, args.ticks, 2)}
+                rows.append(row)
+                print(f"{side}x{side}, {agents} agents, guidance {name}, {rule} "
+                      f"(horizon {row['horizon']}): median {row['median_ms']:.1f} ms, "
+                      f"p95 {row['p95_ms']:.1f} ms, {row['tries_per_agent']:.1f} tries an agent",
+                      flush=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
