@@ -18,7 +18,8 @@ from mapf_fleet.grid.env import EnvConfig, MAPFEnv
 from mapf_fleet.grid.instance import generate_instance
 from mapf_fleet.models import DCCNetwork, DHCNetwork, ModelConfig
 from mapf_fleet.models.checkpoint import with_observation
-from mapf_fleet.models.exchange import LinkedExchanges, Mailbox
+from mapf_fleet.models.exchange import LinkedExchanges
+from mapf_fleet.models.mailbox import Mailbox
 from mapf_fleet.models.synthetic import make_sensitive, random_positions, synthetic_obs
 
 TOL = 1e-5

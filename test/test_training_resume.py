@@ -114,7 +114,7 @@ def test_resume_after_kill_9(tmp_path):
     assert (run / "checkpoints" / "final.pt").exists()
     # `mapf-fleet train --export RUN --out F`: the last saved state as a checkpoint file
     from mapf_fleet.models.checkpoint import load_checkpoint
-    from mapf_fleet.training.trainer import export_checkpoint
+    from mapf_fleet.training.export import export_checkpoint
 
     path, _ = export_checkpoint(run, tmp_path / "exported.pt")
     model, meta = load_checkpoint(path)

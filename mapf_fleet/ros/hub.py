@@ -5,7 +5,11 @@ peer topics, the DCC batch service and its clients, heartbeats, the decision thr
 Every robot keeps its own node (its parameters, its publishers, its DCC services: the ROS
 interface does not change with the process layout), but the robots of one process share:
 - one subscription each to the map, the fleet state, the peer topic (DHC hidden vectors / DCC
-  announcements) and the heartbeats;
+  announcements) and the heartbeats (HubStatus, and RobotStatus from per-robot senders);
+- ONE move message per process and tick (RobotMoves: every hosted robot's ranked actions) and
+  ONE heartbeat per process and `status_period` (HubStatus), so the arbiter takes (processes)
+  messages a tick, not (robots); with `per_robot_messages` each robot's RobotMove and
+  RobotStatus instead (the per-robot topics /fleet/moves and /fleet/robot_status);
 - one `PolicyExchange` run by one decision thread: the local robots' encode / communication
   rounds / Q-values as batched torch calls, with the numbers of the batched evaluator (same
   padding and masking), messages between robots of the same process straight into its mailbox;
@@ -25,8 +29,8 @@ Q-values, `ranking`, ties broken by `tie_breakers(robot id, tick)`, exactly as t
 evaluator's shield), not a waypoint: the tick's arbiter (simulator or aggregator) resolves the
 moves and commands the robots.
 
-Only `comm_timeout`, `service_timeout`, `status_period` and `ranking` of the first hosted
-node are used.
+Only `comm_timeout`, `service_timeout`, `status_period`, `per_robot_messages` and `ranking` of
+the first hosted node are used.
 """
 
 from __future__ import annotations
@@ -40,7 +44,8 @@ import time
 import numpy as np
 
 from mapf_fleet.fleet.lockstep import EpisodeBinding
-from mapf_fleet.models.exchange import TIMING_EVERY, PolicyExchange
+from mapf_fleet.models.exchange import PolicyExchange
+from mapf_fleet.models.mailbox import TIMING_EVERY
 from mapf_fleet.ros import common
 
 BATCH_KINDS = ("request", "reply")  # DccBatch.kind
@@ -93,8 +98,8 @@ class PolicyHub:
     its clients, the decision thread; the numbers are its `models.exchange.PolicyExchange`'s."""
 
     def __init__(self, nodes, model):
-        from mapf_fleet_interfaces.msg import (DccAnnounce, DhcHidden, FleetState, RobotMove,
-                                               RobotStatus)
+        from mapf_fleet_interfaces.msg import (DccAnnounce, DhcHidden, FleetState, HubStatus,
+                                               RobotMove, RobotMoves, RobotStatus)
         from mapf_fleet_interfaces.srv import DccBatch
         from nav_msgs.msg import OccupancyGrid
         from rclpy.callback_groups import ReentrantCallbackGroup
@@ -116,6 +121,7 @@ class PolicyHub:
         self.index_of = self.exchange.index_of
         self._ids_array = array.array("I", ids)  # for the batched peer messages
         self.service_timeout = first.service_timeout
+        self.per_robot = bool(getattr(first, "per_robot_messages", False))
         self.host = f"mapf_policy_hub_{os.getpid()}_{ids[0]}"
         self.node = Node(self.host)
         self.grid = None
@@ -141,17 +147,31 @@ class PolicyHub:
                                       common.latched_qos(), callback_group=group)
         self.node.create_subscription(FleetState, common.rel(common.STATE_TOPIC), self._on_state,
                                       common.reliable_qos(10), callback_group=group)
+        # heartbeats of every process: batched (HubStatus) and per robot (RobotStatus, from a
+        # process with per_robot_messages): whom to send DCC batches to, who is ready
         self.node.create_subscription(RobotStatus, common.rel(common.STATUS_TOPIC),
                                       self._on_status,
                                       common.reliable_qos(1000), callback_group=group)
+        self.node.create_subscription(HubStatus, common.rel(common.HUB_STATUS_TOPIC),
+                                      self._on_hub_status,
+                                      common.reliable_qos(100), callback_group=group)
         quiet = common.quiet_publisher_events()
-        # every hosted robot's moves and heartbeats (one publisher each for the process)
-        self.move_pub = self.node.create_publisher(RobotMove, common.rel(common.MOVES_TOPIC),
-                                                   common.reliable_qos(1000),
-                                                   event_callbacks=quiet)
-        self.status_pub = self.node.create_publisher(
-            RobotStatus, common.rel(common.STATUS_TOPIC), common.reliable_qos(1000),
-            event_callbacks=quiet)
+        # every hosted robot's moves and heartbeats (one publisher each for the process): one
+        # message per process (tick, period), or one per robot with per_robot_messages
+        if self.per_robot:
+            self.move_pub = self.node.create_publisher(
+                RobotMove, common.rel(common.MOVES_TOPIC), common.reliable_qos(1000),
+                event_callbacks=quiet)
+            self.status_pub = self.node.create_publisher(
+                RobotStatus, common.rel(common.STATUS_TOPIC), common.reliable_qos(1000),
+                event_callbacks=quiet)
+        else:
+            self.move_pub = self.node.create_publisher(
+                RobotMoves, common.rel(common.MOVE_BATCHES_TOPIC), common.reliable_qos(100),
+                event_callbacks=quiet)
+            self.status_pub = self.node.create_publisher(
+                HubStatus, common.rel(common.HUB_STATUS_TOPIC), common.reliable_qos(100),
+                event_callbacks=quiet)
         if self.algo == "dhc":
             self.peer_pub = self.node.create_publisher(
                 DhcHidden, common.rel(common.DHC_HIDDEN_TOPIC), common.reliable_qos(100),
@@ -203,8 +223,16 @@ class PolicyHub:
             self.node.get_logger().info(back)
 
     def _on_status(self, msg):
-        host = msg.host
-        self._hosts[int(msg.robot_id)] = host
+        """One robot's heartbeat (a process with per_robot_messages)."""
+        self._heard(msg.host, (int(msg.robot_id),))
+
+    def _on_hub_status(self, msg):
+        """The heartbeat of every robot of one process."""
+        self._heard(msg.host, [int(r) for r in msg.robot_ids])
+
+    def _heard(self, host: str, robots) -> None:
+        for robot in robots:
+            self._hosts[robot] = host
         if self.algo == "dcc" and host != self.host and host not in self._hub_clients:
             # created when the host is first heard, long before tick 0 (readiness waits for it):
             # never during the run
@@ -274,14 +302,25 @@ class PolicyHub:
         return len(self._hosts)
 
     def _heartbeat(self):
-        """Every `status_period`: the hosted robots' heartbeats, when it is their turn. Up to
-        HEARTBEAT_ROBOTS robots heard, every period; in a larger fleet every
-        (robots heard / HEARTBEAT_ROBOTS) periods, so the whole fleet sends about
-        HEARTBEAT_ROBOTS heartbeats per period whatever its size (every hub and the simulator
-        take every heartbeat: 256 robots at 2 Hz were 4,600 callbacks a second, enough to delay
-        the fleet state by seconds). A change of readiness or episode goes out at once."""
-        from mapf_fleet_interfaces.msg import RobotStatus
+        """Every `status_period`: the hosted robots' heartbeat, one HubStatus for all of them
+        (every hub and the simulator take every heartbeat: a message per process and period,
+        whatever the fleet's size). With per_robot_messages one RobotStatus per robot, when
+        it is their turn: up to HEARTBEAT_ROBOTS robots heard, every period; in a larger fleet
+        every (robots heard / HEARTBEAT_ROBOTS) periods, so the whole fleet sends about
+        HEARTBEAT_ROBOTS heartbeats per period whatever its size (256 robots at 2 Hz were 4,600
+        callbacks a second, enough to delay the fleet state by seconds). A change of readiness
+        or episode goes out at once."""
+        from mapf_fleet_interfaces.msg import HubStatus, RobotStatus
 
+        detail = (f"{self.algo}, {len(self.nodes)} robots on this host, "
+                  f"{self.exchange.decisions} decisions, "
+                  f"{self.exchange.mailbox.stale_dropped} stale messages ignored")
+        if not self.per_robot:
+            self.status_pub.publish(HubStatus(
+                episode=self.binding.reported, tick=max(self.exchange.tick, 0),
+                ready=self.grid is not None, peers=self.peers_reachable(), host=self.host,
+                robot_ids=self._ids_array, detail=detail))
+            return
         self._beats += 1
         every = max(1, len(self._hosts) // HEARTBEAT_ROBOTS)
         ready, episode = self.grid is not None, self.binding.reported
@@ -292,11 +331,7 @@ class PolicyHub:
         for node in self.nodes:
             self.status_pub.publish(RobotStatus(
                 episode=episode, robot_id=node.robot_id, tick=max(self.exchange.tick, 0),
-                ready=ready, peers=peers, host=self.host,
-                detail=f"{self.algo}, {len(self.nodes)} robots on this host, "
-                       f"{self.exchange.decisions} decisions, "
-                       f"{self.exchange.mailbox.stale_dropped} stale "
-                       f"messages ignored"))
+                ready=ready, peers=peers, host=self.host, detail=detail))
 
     # ---- the decision loop (own thread) ----
     def start(self):
@@ -348,15 +383,8 @@ class PolicyHub:
         if decision is None:
             return  # the fleet moved on while we waited: this decision is stale
         rankings, requested, received, missing = decision[:4]
-        from mapf_fleet_interfaces.msg import RobotMove
-
         tick = exchange.tick
-        for m, node in enumerate(self.nodes):
-            ranking = rankings[m].tolist()
-            self.move_pub.publish(RobotMove(
-                episode=state.episode, tick=tick, robot_id=node.robot_id, action=ranking[0],
-                preferences=ranking, missing_peers=sorted(missing[m]), requested=requested[m],
-                messages_received=received[m]))
+        self._publish_moves(state.episode, tick, rankings, requested, received, missing)
         exchange.timing.mark("moves")
         exchange.timing.end()
         if any(missing):
@@ -364,6 +392,29 @@ class PolicyHub:
             self.warn(f"tick {tick}: left out peers {left_out}")
         if exchange.decisions % TIMING_EVERY == 0:
             self.node.get_logger().info(exchange.timing.text(exchange.sent))
+
+    def _publish_moves(self, episode, tick, rankings, requested, received, missing) -> None:
+        """The hosted robots' decisions of a tick: one RobotMoves (or, with per_robot_messages,
+        a RobotMove per robot)."""
+        from mapf_fleet_interfaces.msg import RobotMove, RobotMoves
+
+        if self.per_robot:
+            for m, node in enumerate(self.nodes):
+                ranking = rankings[m].tolist()
+                self.move_pub.publish(RobotMove(
+                    episode=episode, tick=tick, robot_id=node.robot_id, action=ranking[0],
+                    preferences=ranking, missing_peers=sorted(missing[m]),
+                    requested=requested[m], messages_received=received[m]))
+            return
+        left_out = [sorted(s) for s in missing]
+        self.move_pub.publish(RobotMoves(
+            episode=episode, tick=tick, host=self.host, robot_ids=self._ids_array,
+            preferences=array.array("B", np.asarray(rankings, dtype=np.uint8).tobytes()),
+            messages_received=array.array("I", [int(r) for r in received]),
+            requested_counts=array.array("I", [len(r) for r in requested]),
+            requested=array.array("I", [int(j) for r in requested for j in r]),
+            missing_counts=array.array("I", [len(s) for s in left_out]),
+            missing_peers=array.array("I", [j for s in left_out for j in s])))
 
     # ---- the exchange's link: ROS ----
     def warn(self, text: str) -> None:

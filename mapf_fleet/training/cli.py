@@ -48,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.export:
         if not args.out or args.config or args.run_dir or args.resume or args.set:
             parser.error("--export RUN takes only --out FILE")
-        from .trainer import export_checkpoint
+        from .export import export_checkpoint
 
         try:
             path, meta = export_checkpoint(args.export, args.out)

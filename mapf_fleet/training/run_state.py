@@ -94,3 +94,9 @@ def resumed_config(run_dir: str | Path) -> TrainConfig:
         cfg = config_from_dict({**cfg.to_dict(), **earlier},
                                source=f"{run_dir / STATE_FILE} (overrides of earlier sessions)")
     return cfg
+
+
+def stage2_scheme(config: dict) -> str:
+    """What stage 2 trains: the alpha curriculum, one fixed alpha, or nothing."""
+    mode = config.get("alpha_mode", "curriculum")
+    return f"fixed alpha {config.get('fixed_alpha')}" if mode == "fixed" else f"alpha_mode {mode}"

@@ -38,12 +38,12 @@ from .actor import EpisodeWorker, Task
 from .config import TrainConfig, config_from_dict, load_config, save_config
 from .curriculum import AlphaCurriculum, ScaleCurriculum, SuccessWindow
 from .learner import Learner
+from .loop_report import STAGE_ALPHA, STAGE_DONE, STAGE_SCALE, Pace, warm_start_bar, write_scalars
 from .modelio import hidden_dim
 from .ray_pool import CpuMeter, make_pool
 from .replay import PrioritizedSequenceReplay
 from .run_state import earlier_overrides, resumed_config  # noqa: F401 (the trainer's API)
 
-STAGE_SCALE, STAGE_ALPHA, STAGE_DONE = "scale", "alpha", "done"
 # counters copied into every checkpoint's metadata (extra.counters)
 CHECKPOINT_COUNTERS = ("elapsed_seconds", "cpu_seconds", "cpu_measured_from_elapsed_seconds",
                        "demo_seconds", "episodes", "env_steps", "agent_steps")
@@ -53,46 +53,6 @@ def actor_pool(cfg: TrainConfig):
     """The Ape-X actors: `num_actors` EpisodeWorkers in the shared worker pool (ray_pool.py)."""
     return make_pool(EpisodeWorker, [(cfg, i) for i in range(cfg.num_actors)], cfg.use_ray,
                      cfg.ray_address, cfg.num_cpus)
-
-
-class _Pace:
-    """The loop's clocks and rates: elapsed and CPU time into the counters, and when the next
-    log, state save and replay save are due. Actor results arrive in bursts (one per actor call,
-    which may outlast a log interval): the actor rate spans from the last log that had results."""
-
-    def __init__(self, counters: dict, cpu: CpuMeter, cpu0: float, updates: int):
-        self.counters, self.cpu, self.cpu0 = counters, cpu, cpu0
-        self.start = self.last_log = self.last_state_time = self.last_replay = time.monotonic()
-        self.elapsed0 = counters["elapsed_seconds"]
-        self.last_state = updates
-        self.steps, self.updates, self.rate_t, self.steps_t = 0, 0, self.start, self.start
-
-    def wall(self) -> float:
-        return time.monotonic() - self.start
-
-    def tick(self) -> float:
-        now = time.monotonic()
-        self.counters["elapsed_seconds"] = self.elapsed0 + now - self.start
-        self.counters["cpu_seconds"] = self.cpu0 + self.cpu.seconds()
-        return now
-
-    def rates(self, now: float) -> dict:
-        """The rates since the last log, and start the next span."""
-        rates = {"learner_updates_per_s": self.updates / max(now - self.rate_t, 1e-9)}
-        if self.counters["added_sequences"]:
-            rates["replay_ratio"] = (self.counters["sampled_sequences"]
-                                     / self.counters["added_sequences"])
-        if self.steps:  # no result since the last log: no new actor rate, not 0
-            rates["actor_agent_steps_per_s"] = self.steps / max(now - self.steps_t, 1e-9)
-            self.steps, self.steps_t = 0, now
-        self.updates, self.rate_t, self.last_log = 0, now, now
-        return rates
-
-
-def _stage2_scheme(config: dict) -> str:
-    """What stage 2 trains: the alpha curriculum, one fixed alpha, or nothing."""
-    mode = config.get("alpha_mode", "curriculum")
-    return f"fixed alpha {config.get('fixed_alpha')}" if mode == "fixed" else f"alpha_mode {mode}"
 
 
 class Trainer:
@@ -172,7 +132,8 @@ class Trainer:
         self.scale.load_state_dict(state["scale"])
         self.stage = str(state["stage"])
         if self.stage != STAGE_SCALE:
-            before, now = _stage2_scheme(state.get("config", {})), _stage2_scheme(self.cfg.to_dict())
+            before, now = (run_state.stage2_scheme(state.get("config", {})),
+                          run_state.stage2_scheme(self.cfg.to_dict()))
             if before == now:
                 # stage 2 has begun: its progress is restored. Before that it holds nothing yet
                 # and is built from the config, so a resume with --set alpha_mode=... applies.
@@ -314,14 +275,6 @@ class Trainer:
         self._stops.reinstall()
         return lambda: None
 
-    def _warm_start_progress(self, stats: dict) -> None:
-        """The bar during the demo warm start (its updates count towards max_updates)."""
-        if self.bar is not None:
-            self.bar.update(1)
-            if self.learner.updates % 10 == 0:
-                self.bar.set_postfix_str(f"demo warm start | agreement "
-                                         f"{stats.get('demo_agreement', 0.0):.2f}")
-
     def run(self) -> dict:
         """Ape-X (Horgan et al. 2018) under the paper's curricula: actors play the current task
         with the latest weights into a prioritized replay; the learner samples it, updates the
@@ -334,7 +287,7 @@ class Trainer:
         self._demo_warm_start(writer, cpu, cpu0)
         actors = actor_pool(cfg)
         restore_signals = self._catch_stop_signals()  # after ray.init, which installs its own
-        pace, stats = _Pace(self.counters, cpu, cpu0, self.learner.updates), {}
+        pace, stats = Pace(self.counters, cpu, cpu0, self.learner.updates), {}
         actors.broadcast(self.learner.cpu_weights(), self.learner.updates)
         stop_reason = ""
         try:
@@ -422,7 +375,7 @@ class Trainer:
         summary = None
         if not pretrained:
             summary = demos.pretrain(self.learner, cfg, writer, replay=self.demo_replay,
-                                     on_update=self._warm_start_progress)
+                                     on_update=lambda stats: warm_start_bar(self, stats))
             summary.update({k: v for k, v in info.items() if k != "settings"})
             self.counters["demo_pretrained"] = 1
         # demonstrations (and the warm start) are part of the run's compute (cards' CPU-hours)
@@ -437,7 +390,7 @@ class Trainer:
         if not cfg.demo_interleave:
             self.demo_replay = None
 
-    def _stop_reason(self, pace: _Pace) -> str:
+    def _stop_reason(self, pace: Pace) -> str:
         """Why the loop stops now ("" = go on)."""
         cfg = self.cfg
         if self.learner.updates >= cfg.max_updates:
@@ -490,7 +443,7 @@ class Trainer:
             self.stage = STAGE_DONE
             self._log_event(f"stage 2 done: {self.alpha.stop_reason}")
 
-    def _bookkeeping(self, writer, pace: _Pace, stats: dict) -> None:
+    def _bookkeeping(self, writer, pace: Pace, stats: dict) -> None:
         cfg = self.cfg
         now = pace.tick()
         if now - pace.last_log >= cfg.log_interval_seconds:
@@ -525,40 +478,7 @@ class Trainer:
                 "counters": dict(self.counters), "events": list(self.events)}
 
     def _write_scalars(self, writer, stats: dict, rates: dict) -> None:
-        step = self.learner.updates
-        gate = self.scale.window if self.stage == STAGE_SCALE else self.alpha.window
-        if self.bar is not None:
-            agents, size = self.task.num_agents, self.task.map_size
-            tasks = "task mix" if self.cfg.task_mix else f"{agents} agents {size}x{size}"
-            success = f"{gate.rate:.2f}" if gate.flags else "–"
-            self.bar_actor_rate = rates.get("actor_agent_steps_per_s", self.bar_actor_rate)
-            steps = "–" if self.bar_actor_rate is None else f"{self.bar_actor_rate:.0f}"
-            self.bar.set_postfix_str(
-                f"stage {self.stage} | {tasks} | alpha {self.task.alpha:.1f}"
-                f" | success {success} | {steps} agent-steps/s"
-                f" | {rates['learner_updates_per_s']:.2f} upd/s")
-        if writer is None:
-            return
-        for key in ("loss", "mean_q", "mean_abs_td", "grad_norm"):
-            if key in stats:
-                writer.add_scalar(f"learner/{key}", stats[key], step)
-        for key, value in rates.items():
-            writer.add_scalar(f"rate/{key}", value, step)
-        writer.add_scalar("curriculum/stage", {STAGE_SCALE: 1, STAGE_ALPHA: 2}.get(self.stage, 3),
-                          step)
-        if not self.cfg.task_mix:  # under a mix the setting chooses no task
-            writer.add_scalar("curriculum/num_agents", self.task.num_agents, step)
-            writer.add_scalar("curriculum/map_size", self.task.map_size, step)
-        writer.add_scalar("curriculum/alpha", self.task.alpha, step)
-        # An empty window (just cleared at a new setting or alpha, or waiting out alpha_min_updates)
-        # has no rate: logging 0 would draw a collapse of success that did not happen.
-        if gate.flags:
-            writer.add_scalar("curriculum/gate_success_rate", gate.rate, step)
-        for key, window in self.setting_windows.items():
-            if window.flags:
-                writer.add_scalar(f"success_rate/{key}", window.rate, step)
-        writer.add_scalar("replay/sequences", len(self.replay), step)
-        writer.flush()
+        write_scalars(self, writer, stats, rates)
 
 
 def train(config_path: str | Path | None = None, run_dir: str | Path | None = None,
@@ -576,19 +496,3 @@ def train(config_path: str | Path | None = None, run_dir: str | Path | None = No
         cfg = config_from_dict({**cfg.to_dict(), **overrides}, source="overrides")
     return Trainer(cfg, run_dir, resume=resume is not None,
                    session_overrides=overrides if resume is not None else None).run()
-
-
-def export_checkpoint(run_dir: str | Path, out: str | Path) -> tuple[Path, dict]:
-    """Write the weights of RUN's last saved training state as a checkpoint file `out`, with
-    the same metadata a curriculum checkpoint gets. Reads RUN only (the state file is written
-    atomically), so it is safe while the run is still training."""
-    from mapf_fleet.models.checkpoint import save_checkpoint
-
-    run_dir = Path(run_dir)
-    for name in (run_state.CONFIG_FILE, run_state.STATE_FILE):
-        if not (run_dir / name).is_file():
-            raise FileNotFoundError(f"{run_dir / name}: no such file (is {run_dir} a run directory?)")
-    # constructing with resume=True only reads the run directory; training starts in run()
-    trainer = Trainer(resumed_config(run_dir), run_dir, resume=True, restore_replay=False)
-    meta = trainer._metadata()
-    return save_checkpoint(out, trainer.learner.model, meta), meta

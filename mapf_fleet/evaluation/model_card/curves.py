@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-# TensorBoard tags written by mapf_fleet.training.trainer (Trainer._write_scalars).
+# TensorBoard tags written by mapf_fleet.training.trainer (training.loop_report.write_scalars).
 TAG_GATE_SUCCESS = "curriculum/gate_success_rate"
 TAG_AGENTS = "curriculum/num_agents"
 TAG_MAP_SIZE = "curriculum/map_size"
