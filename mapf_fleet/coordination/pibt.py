@@ -22,17 +22,19 @@ distance to its goal (BFS on the map; ties by `ranking.tie_breakers`, as plain P
 rankings), whatever it asked for. PIBT's reachability argument (the top agent takes a shortest-path
 step, its priority only rises until it arrives, so every agent in turn reaches its goal) needs
 the top agent's ranking to be a distance order; a learned ranking (CS-PIBT) can stall it, which is
-where learned rankings lose to plain PIBT in crowds. Measured in docs/results.md.
+where learned rankings lose to plain PIBT in crowds (docs/results.md, "The anchor against plain
+PIBT").
 
 Patient anchor (`patient=True`, rule names `pibt_patient...`; `anchor_patience` ticks,
 `ANCHOR_PATIENCE` by default): the anchor ranks the top agent by distance only once it has gone
 that many ticks without getting closer to its goal than it has been since its goal was set. The
 every-tick anchor overrides every wait and detour of the top agent, so a plan (or a policy that
 learned one) whose top agent waits for others is knocked off it at every tick: under it, an
-expert whose labels the rule executes 99 % unchanged solved no more dense instances than plain
-PIBT. With patience the top agent still reaches its goal: each `patience + 1` ticks it gets at
-least one cell closer, so within (patience + 1) x its distance. Plain PIBT is unchanged by it
-(its top agent always steps closer, the clock never runs).
+expert whose labels the rule executes almost unchanged solved no more dense instances than plain
+PIBT (docs/results.md, "The expert ceiling, second reading"). With patience the top agent still
+reaches its goal: each `patience + 1` ticks it gets at least one cell closer, so within
+(patience + 1) x its distance. Plain PIBT is unchanged by it (its top agent always steps closer,
+the clock never runs).
 
 Swap (`swap=True`, off by default; lacam3's PIBT, Okumura, "Engineering LaCAM*", AAMAS 2024,
 after "Improving LaCAM", IJCAI 2023): plain PIBT cannot get two agents past each other in a

@@ -304,8 +304,9 @@ class PlanKeeper:
         """LaCAM from `positions`; with `restarts` > 1, that many searches (tie-breaking seeds
         seed, seed + 1, ...) each in the whole budget (`shared_budget`: in what the earlier ones
         left of it), keeping the shortest whole plan (least makespan, then least sum of costs):
-        LaCAM's first-found plans vary widely in length (mazes: one seed's plan fits 128 steps
-        on 12 of 20 instances, the best of 16 seeds' on 16, docs/results.md)."""
+        LaCAM's first-found plans vary widely in length, most of all in mazes, so another seed's
+        plan may fit a step limit the first one misses (docs/results.md, "The expert ceiling,
+        second reading", item 5)."""
         began = time.perf_counter()
         result, best = None, None
         seed = self.planner.seed

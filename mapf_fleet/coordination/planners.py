@@ -9,9 +9,10 @@ The planner solves the whole instance up front; its plan is then replayed throug
 environment and conflict rules as the learned policies, so every metric is measured in one
 way. A plan longer than the step limit, or no plan within the time budget, is a failure.
 
-Speed: 93 % of pymapf's LaCAM time on 80x80/128 agents goes into one pure-Python Dijkstra per
-goal. We hand it our vectorised BFS distances instead (identical values on a 4-connected unit
-grid, so identical plans; `test_coordination_planners.py` checks that).
+Speed: most of pymapf's LaCAM time on a large map goes into one pure-Python Dijkstra per goal
+(docs/results.md, "Performance (2-core machine, no GPU)"). We hand it our vectorised BFS
+distances instead (identical values on a 4-connected unit grid, so identical plans;
+`test_coordination_planners.py` checks that).
 """
 
 from __future__ import annotations

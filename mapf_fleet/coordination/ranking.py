@@ -129,9 +129,9 @@ def _rank(keys: list[np.ndarray]) -> np.ndarray:
 def tie_breakers(agent_ids, tick: int, seed: int = 0) -> np.ndarray:
     """(..., 5) float64 in [0, 1): a hash of (seed, tick, agent id, action), the same on every
     machine. Breaks ties between equally good moves differently per agent and per tick: with a
-    fixed order (always "up" before "right") PIBT livelocks on random maps (measured on 20
-    instances of 16x16 with 32 agents: 7 solved with the action order, 17 with random ties;
-    pymapf shuffles its candidates for the same reason)."""
+    fixed order (always "up" before "right") PIBT livelocks on random maps: ties broken the
+    same way at every tick can repeat the same moves forever (docs/results.md, "Tie-breaks
+    between equally good moves"; pymapf shuffles its candidates for the same reason)."""
     ids = np.asarray(agent_ids, dtype=np.uint64)[..., None]
     x = (ids * np.uint64(0x9E3779B97F4A7C15)) ^ np.uint64((int(tick) * 0xBF58476D1CE4E5B9 + int(seed)) % 2**64)
     x = x + np.arange(NUM_ACTIONS, dtype=np.uint64) * np.uint64(0x94D049BB133111EB)

@@ -45,7 +45,8 @@ FLEET_RULE = "pibt_anchor_swap"
 # `patient`: the anchor waits until the top agent has gone this many ticks without getting closer
 # to its goal than before; a plan or a policy may keep it waiting that long and it still reaches
 # its goal within (patience + 1) x its distance ticks (docs/coordination.md; the value was chosen
-# by the expert ceiling, docs/results.md)
+# by the expert ceiling: the shortest patience that lifted it, docs/results.md, "The expert
+# ceiling, second reading")
 ANCHOR_PATIENCE = 32
 # EPIBT's moves per operation (`epibt.EPIBTShield`). 3: long enough to see a head-on meeting or
 # a stopping queue one cell beyond the next step (what one-step PIBT walks into), the length of
