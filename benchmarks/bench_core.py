@@ -49,6 +49,7 @@ from mapf_fleet.grid.instance import generate_instance  # noqa: E402
 
 # name: (map side, agents, lifelong)
 CASES = {
+    "lifelong-64": (21, 64, True),  # issue 41's per-tick target: <= 50 ms at 64 agents
     "oneshot-2048": (256, 2048, False),
     "lifelong-2048": (256, 2048, True),
     "oneshot-10000": (512, 10000, False),
