@@ -2,8 +2,9 @@
 the four heuristic observation channels.
 
 Distances come from scipy's compiled breadth-first search over the 4-connected free cells, its
-visiting order cut into levels with numpy (a few ms per goal on 65k cells, about 3x faster than
-its Dijkstra); a pure-Python BFS is what made the reference environments reset slowly.
+visiting order cut into levels with numpy: compiled code, and on a unit-cost graph no priority
+queue, so faster than scipy's own Dijkstra (docs/results.md, "The core at scale"); a pure-Python
+BFS is what made the reference environments reset slowly.
 
 Conventions:
 - `bfs_distances` returns int32 steps to the goal; obstacle cells and free cells that cannot reach

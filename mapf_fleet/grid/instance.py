@@ -139,10 +139,11 @@ def generate_instance(size, num_agents: int, density: float, rng, max_map_attemp
     4-connected region with probability proportional to its unused cells (among regions with at
     least two unused cells), i.e. its start is uniform over the usable free cells, then two
     distinct unused cells of that region as start and goal. The DHC training code picks regions
-    uniformly, which crowds agents into small pockets (19% of agents outside the largest region
-    at 40x40/64 against 2.5% in the published DHC test sets); weighting by size matches the
-    published test sets. So all 2N starts and goals are
-    distinct and each goal is reachable from its start. A map without room for N pairs is redrawn
+    uniformly, which crowds agents into small pockets: a small region is as likely as the largest,
+    so far more agents start outside the largest region than in the published DHC test sets;
+    weighting by size matches them (docs/results.md, "The generated instances against the
+    published ones"). So all 2N starts and goals are distinct and each goal is reachable from its
+    start. A map without room for N pairs is redrawn
     (up to `max_map_attempts` times). `size` is an int (square) or (height, width).
     """
     rng = as_rng(rng)
