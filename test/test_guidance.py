@@ -208,3 +208,16 @@ def test_the_fleet_over_ros_refuses_online_guidance():
 
     check = parameters.GUIDANCE.check
     assert check("highways") and check("none") and not check("congestion")
+
+
+def test_evaluate_lifelong_runs_with_and_without_guidance(tmp_path):
+    from mapf_fleet.evaluation.lifelong import main
+
+    common = ["--lifelong", "--steps", "6", "--instances", "1", "--agents", "6", "--quiet"]
+    assert main(common + ["--json", str(tmp_path / "a.json")]) == 0  # the default: none
+    assert main(common + ["--guidance", "none", "highways", "congestion",
+                          "--json", str(tmp_path / "b.json")]) == 0
+    rows = json.loads((tmp_path / "b.json").read_text())["results"]
+    assert [r["guidance"] for r in rows] == ["none", "highways", "congestion"]
+    first = json.loads((tmp_path / "a.json").read_text())["results"][0]
+    assert first["guidance"] == "none" and first["goals"] == rows[0]["goals"]

@@ -149,11 +149,22 @@ class Rule:
         return ANCHORED_RANKING if rule.anchor else UNANCHORED_RANKING
 
 
+def rule_arg(value: str) -> str:
+    """An argparse `type` for a rule name: the name, parsed here (argparse's one-line refusal
+    carries `Rule.parse`'s message)."""
+    import argparse
+
+    try:
+        return Rule.parse(value).name
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def parse_rules(values, what: str = "conflict rule") -> list[Rule]:
     """`Rule.parse` of each value (a CLI's list of rule names)."""
     return [Rule.parse(v, what) for v in values]
 
 
-__all__ = ["Rule", "parse_rules", "CONFLICT_RULES", "COORDINATED_RULES", "PIBT_RULES", "REVERT",
+__all__ = ["Rule", "parse_rules", "rule_arg", "CONFLICT_RULES", "COORDINATED_RULES", "PIBT_RULES", "REVERT",
            "EPIBT_RULES", "EPIBT_HORIZON",
            "LACAM", "FLEET_RULE", "ANCHOR_PATIENCE", "RULE_OPTIONS"]

@@ -28,7 +28,7 @@ from mapf_fleet.grid.maps import DENSE
 from mapf_fleet.version import code_version
 
 from mapf_fleet.aliases import renamed_options
-from mapf_fleet.coordination.rules import CONFLICT_RULES, FLEET_RULE, REVERT
+from mapf_fleet.coordination.rules import FLEET_RULE, REVERT, rule_arg
 from mapf_fleet.coordination.ranking import DEFAULT_RANKING_BY_RULE, RANKINGS
 
 from .policies import REFERENCE_NAMES, parse_policy, unique_names, with_conflict_rule, with_guidance
@@ -57,7 +57,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--checkpoint", nargs="*", default=[], metavar="C",
                    help=f"checkpoint files, or the pseudo-checkpoints {', '.join(REFERENCE_NAMES)}")
     p.add_argument("--no-references", action="store_true", help="do not add the protocol's references")
-    p.add_argument("--conflict-rule", nargs="+", default=[FLEET_RULE], choices=list(CONFLICT_RULES),
+    p.add_argument("--conflict-rule", nargs="+", default=[FLEET_RULE], type=rule_arg,
                    metavar="RULE",
                    help="coordination of decentralized policies: revert (the paper's rule: "
                         "conflicting moves are reverted) and/or pibt (CS-PIBT over each agent's "

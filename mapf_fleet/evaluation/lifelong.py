@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mapf_fleet.coordination.rules import CONFLICT_RULES, REVERT
+from mapf_fleet.coordination.rules import CONFLICT_RULES, REVERT, rule_arg
 from mapf_fleet.coordination.ranking import rank_actions, tie_breakers
 from mapf_fleet.fleet.arbiter import DEFAULT_CONFLICT_RULE, single_choice_ranking
 from mapf_fleet.fleet.record import Decisions
@@ -231,7 +231,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--checkpoint", nargs="+", default=["heuristic"], metavar="C",
                    help="checkpoint files, `heuristic` and/or `lacam` (default: heuristic)")
     p.add_argument("--conflict-rule", nargs="+", default=[DEFAULT_CONFLICT_RULE],
-                   choices=list(CONFLICT_RULES), metavar="RULE",
+                   type=rule_arg, metavar="RULE",
                    help="conflict rule(s) for decentralized policies, one row each: "
                         f"{', '.join(CONFLICT_RULES)} (default: {DEFAULT_CONFLICT_RULE}, the "
                         "fleet's default; revert = the paper's rule; deprecated: --shield)")
@@ -309,7 +309,8 @@ def evaluate_lifelong(args) -> list[LifelongResult]:
             spec = unique_names([spec])[0]
             policy = None if base.is_planner else build_policy(spec)
             for label, instances, guidance in ((label, instances, guidance)
-                                               for guidance in dict.fromkeys(args.guidance)
+                                               for guidance in dict.fromkeys(
+                                                   map(GuidanceSource.parse, args.guidance))
                                                for label, instances in scenarios(args)):
                 began = time.perf_counter()
                 # a plan's moves are conflict-free: plain PIBT passes them unchanged (the anchor
