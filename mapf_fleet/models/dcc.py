@@ -97,8 +97,8 @@ class DCCNetwork(nn.Module):
         self.obs_encoder = nn.Sequential(*layers)
         side = config.fov - 2 * len(config.conv_channels)
         self.latent_dim = in_channels * side * side + NUM_ACTIONS
-        # Channels-last weights and inputs: 15-30 % faster oneDNN convolutions on CPU here
-        # (benchmarks/bench_inference.py); load_state_dict keeps this layout.
+        # Channels-last weights and inputs: oneDNN's CPU convolutions are faster in that layout
+        # (docs/results.md, "Performance (2-core machine, no GPU)"); load_state_dict keeps it.
         self.obs_encoder.to(memory_format=torch.channels_last)
         self.recurrent = nn.GRUCell(self.latent_dim, config.hidden_dim)
         self.request_comm = DCCCommLayer(config)

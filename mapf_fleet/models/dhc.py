@@ -85,8 +85,8 @@ class DHCNetwork(nn.Module):
             nn.Flatten(),
         )
         self.latent_dim = DHC_SQUEEZE_CHANNELS * side * side
-        # Channels-last weights and inputs: 15-30 % faster oneDNN convolutions on CPU here
-        # (benchmarks/bench_inference.py); load_state_dict keeps this layout.
+        # Channels-last weights and inputs: oneDNN's CPU convolutions are faster in that layout
+        # (docs/results.md, "Performance (2-core machine, no GPU)"); load_state_dict keeps it.
         self.obs_encoder.to(memory_format=torch.channels_last)
         self.recurrent = nn.GRUCell(self.latent_dim, config.hidden_dim)
         self.attention = DHCAttention(config.hidden_dim, config.num_heads, config.head_dim)
