@@ -32,7 +32,8 @@ from pathlib import Path
 import numpy as np
 
 from mapf_fleet.coordination.rules import FLEET_RULE
-from mapf_fleet.grid.guidance_made import FEATURES, HIGHWAYS, CostModel, GuidanceSource
+from mapf_fleet.grid.guidance_made import (FEATURES, HIGHWAYS, LOG_COST_CLIP, CostModel,
+                                           GuidanceSource)
 
 KINDS = ("dense", "random", "maze", "rooms", "warehouse")
 # held-out draws are this far from the training seeds (never drawn by a generation)
@@ -142,7 +143,8 @@ def optimize(args) -> int:
         state = {"task": task, "command": command, "generation": 0, "history": [],
                  "best": None, "cpu_seconds": 0.0, "wall_seconds": 0.0,
                  "optimizer": CMA(mean=np.zeros(dim), sigma=args.sigma, seed=args.seed,
-                                  population_size=args.popsize)}
+                                  population_size=args.popsize,
+                                  bounds=np.tile([-args.bound, args.bound], (dim, 1)))}
     evaluate = Evaluator(args.workers, args.address)
     opt = state["optimizer"]
     with StopSignals() as stop:
@@ -256,6 +258,9 @@ def build_parser() -> argparse.ArgumentParser:
     o.add_argument("--generations", type=int, default=40)
     o.add_argument("--popsize", type=int, default=10)
     o.add_argument("--sigma", type=float, default=0.5, help="CMA-ES initial step (default 0.5)")
+    o.add_argument("--bound", type=float, default=LOG_COST_CLIP,
+                   help="each parameter within [-B, B] (default: the model's log-cost clip, "
+                        f"{LOG_COST_CLIP}: beyond it a cost no longer changes)")
     o.add_argument("--conflict-rule", default=FLEET_RULE)
     o.add_argument("--seed", type=int, default=0)
     o.add_argument("--workers", type=int, default=1, help="rollout processes (Ray when > 1)")
