@@ -40,12 +40,47 @@ KINDS = ("dense", "random", "maze", "rooms", "warehouse")
 HELD_OUT_OFFSET = 1_000_003
 
 
-def task_instances(task: dict, seed: int):
+# POGEMA's benchmark families (evaluation/pogema_bench.py's data): CMA-ES draws its maps from the
+# instances after the first HELD_OUT_MAPS, which the benchmark's tables and the held-out rows use
+POGEMA_FAMILIES = ("pogema-random", "pogema-mazes", "pogema-warehouse")
+HELD_OUT_MAPS = 32
+
+
+def pogema_grids(family: str, held_out: bool) -> list[np.ndarray]:
+    """The grids of a POGEMA benchmark family ('#' obstacles): its first `HELD_OUT_MAPS` maps
+    (held out) or the rest (training); the warehouse is one map."""
+    from .pogema_bench import FAMILIES, load_maps
+
+    name = family.removeprefix("pogema-")
+    maps = load_maps(name)
+    names = sorted(maps)
+    if FAMILIES[name].single_map is None:
+        names = names[:HELD_OUT_MAPS] if held_out else names[HELD_OUT_MAPS:]
+    grids = [np.array([[ch == "#" for ch in row] for row in maps[n].splitlines()], np.uint8)
+             for n in names]
+    # padded with obstacles to the family's largest side, as the "dense" maps are: one batch
+    h = max(g.shape[0] for g in grids)
+    w = max(g.shape[1] for g in grids)
+    return [np.pad(g, ((0, h - g.shape[0]), (0, w - g.shape[1])), constant_values=1)
+            for g in grids]
+
+
+def task_instances(task: dict, seed: int, held_out: bool = False):
     """The `InstanceSet` of one evaluation: `task["episodes"]` instances of the family (or of
     the one map) drawn from `seed`."""
     from .lifelong import lifelong_instances
     from .protocol import InstanceSet
 
+    if task.get("pogema"):
+        from mapf_fleet.grid.maps import place_agents
+
+        grids = pogema_grids(task["pogema"], held_out)
+        rng = np.random.default_rng([seed, 17])
+        picks = (range(task["episodes"]) if held_out and len(grids) > 1
+                 else rng.integers(len(grids), size=task["episodes"]))
+        made = [place_agents(grids[int(k) % len(grids)], task["agents"],
+                             np.random.default_rng([seed, i])) for i, k in enumerate(picks)]
+        return InstanceSet.from_instances(made, f"POGEMA benchmark {task['pogema']}")
     if task.get("map"):
         from mapf_fleet.grid.maps import place_agents
         from mapf_fleet.grid.movingai import read_map
@@ -57,7 +92,7 @@ def task_instances(task: dict, seed: int):
     return lifelong_instances(task["kind"], task["size"], task["agents"], task["episodes"], seed)
 
 
-def throughput(guidance, task: dict, seed: int) -> tuple[float, float]:
+def throughput(guidance, task: dict, seed: int, held_out: bool = False) -> tuple[float, float]:
     """(mean goals per step, CPU seconds) of plain PIBT under `task["rule"]` with `guidance` (a
     `GuidanceSource`, a `CostModel`, or a parameter vector) on the task's instances of `seed`."""
     from .lifelong import lifelong_runs, rollout
@@ -70,7 +105,7 @@ def throughput(guidance, task: dict, seed: int) -> tuple[float, float]:
         source = guidance
     else:
         source = GuidanceSource("model", model=CostModel.from_vector(guidance))
-    instances = task_instances(task, seed)
+    instances = task_instances(task, seed, held_out)
     runs = lifelong_runs(instances, task["steps"], task["rule"], seed, series=(),
                          guidance=source)
     policy = build_policy(with_conflict_rule(parse_policy("heuristic"), task["rule"]))
@@ -114,9 +149,10 @@ def _save(path: Path, state: dict) -> None:
 
 
 def _task(args) -> dict:
-    return {"kind": args.kinds[0] if not args.map else None, "size": args.size,
+    pogema = args.kinds[0] if args.kinds[0] in POGEMA_FAMILIES else None
+    return {"kind": args.kinds[0] if not (args.map or pogema) else None, "size": args.size,
             "agents": args.agents, "episodes": args.episodes, "steps": args.steps,
-            "rule": args.conflict_rule, "map": args.map}
+            "rule": args.conflict_rule, "map": args.map, "pogema": pogema}
 
 
 def optimize(args) -> int:
@@ -189,7 +225,7 @@ def finish(args, state: dict, evaluate, out: Path) -> int:
     rows = {}
     for name, guidance in (("none", GuidanceSource.parse("none")),
                            (HIGHWAYS, GuidanceSource.parse(HIGHWAYS)), ("learned", model)):
-        value, cpu = throughput(guidance, task, seed)
+        value, cpu = throughput(guidance, task, seed, held_out=True)
         rows[name] = value
         state["cpu_seconds"] += cpu
     name = args.name or f"{_family(task).replace(' ', '_')}_{task['agents']}"
@@ -203,6 +239,8 @@ def finish(args, state: dict, evaluate, out: Path) -> int:
 
 
 def _family(task: dict) -> str:
+    if task.get("pogema"):
+        return task["pogema"]
     if task.get("map"):
         return Path(task["map"]).stem
     return f"{task['kind']} {task['size']}x{task['size']}"
@@ -246,8 +284,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="mapf-fleet guidance", description=__doc__.split("\n")[0])
     sub = p.add_subparsers(dest="action", required=True)
     o = sub.add_parser("optimize", help="learn a guidance cost model by CMA-ES (resumable)")
-    o.add_argument("--kinds", nargs=1, default=["dense"], choices=KINDS,
-                   help="map family (default dense: random maps of 17-21 cells)")
+    o.add_argument("--kinds", nargs=1, default=["dense"], choices=KINDS + POGEMA_FAMILIES,
+                   help="map family (default dense: random maps of 17-21 cells; pogema-*: the "
+                        "POGEMA benchmark's maps after its first 32, which stay held out)")
     o.add_argument("--size", type=int, default=21, help="map side (default 21)")
     o.add_argument("--map", help="one MovingAI .map instead of a family")
     o.add_argument("--agents", type=int, default=64)
