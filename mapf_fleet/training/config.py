@@ -45,7 +45,8 @@ class TrainConfig:
     # False (the reference's Ape-X scheme): epsilon on agent 0 only; every agent is still trained.
     # True: every agent epsilon-greedy. Why not: with every agent exploring, waiting beside a
     # neighbour pays in training (exploring neighbours step aside at random) and the greedy
-    # policy deadlocks at test time (docs/results.md, the shipped checkpoints' table).
+    # policy deadlocks at test time (docs/results.md, "What do the shipped checkpoints score on
+    # the paper's protocol": the snapshots with every agent exploring).
     explore_all_agents: bool = False
     # conflict_rule "pibt": actors act through the coordination layer (mapf_fleet.coordination.pibt): each
     # agent's ranking (`ranking` over its Q-values; an exploring agent's random action

@@ -8,7 +8,8 @@ only, with the n-step TD loss of normal training plus `demo_weight` x the large-
 which pushes the demonstrator's action a_E above every other action by the margin m
 (`demo_margin`). With `demo_loss: cross_entropy` the warm start is behaviour cloning instead:
 `demo_weight` x the cross-entropy of a_E under softmax(Q), no TD term (which of the two serves the
-shield's rankings better: docs/results.md). Demonstrators (`demo_source`):
+shield's rankings better: docs/results.md, "Training at the evaluation's density").
+Demonstrators (`demo_source`):
   - "heuristic": the non-learned reference `mapf_fleet.grid.policies.heuristic_policy`;
   - "planner":   LaCAM (`mapf_fleet.coordination.planners.ClassicalPlanner`, pymapf), whose joint
     plan is replayed through `MAPFEnv` (agents of unsolved regions stay; plans longer than the

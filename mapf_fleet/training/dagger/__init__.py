@@ -21,7 +21,8 @@ Round k (k = 0, 1, ...):
      unplanned within the limit ("unsolved") or when its plan is far longer than needed
      ("too_long": makespan > min(the task's step limit, `max_plan_factor` x the longest BFS
      distance of any agent to its goal + `max_plan_slack`)): a first-found plan many times longer
-     than needed spends its first moves wandering, a poor label (docs/results.md). Episodes are
+     than needed spends its first moves wandering, a poor label (docs/results.md, "DAgger behind
+     the arbiter"). Episodes are
      played by `num_workers` workers of the shared worker pool (`training/ray_pool.py`: Ray
      actors, a local Ray with `num_cpus` or `ray_address`, or in-process with `use_ray: false`).
      The driver waits while they play: collection and training never run at the same time, so a

@@ -36,7 +36,8 @@ def _default_late_tasks() -> list:
 
 
 def _default_ceiling() -> list:
-    # the expert-ceiling's suites: where plain PIBT and the shipped default fail (docs/results.md)
+    # the expert-ceiling's suites: where plain PIBT and the shipped default fail (docs/results.md,
+    # "The expert ceiling")
     return [{"kind": "dense", "size": 21, "agents": [32, 48, 64], "max_steps": 128},
             {"kind": "maze", "size": 21, "agents": [32, 48], "max_steps": 128},
             {"kind": "random", "size": 40, "agents": [64], "max_steps": 256}]
@@ -65,7 +66,8 @@ class DaggerConfig:
     # `pibt_anchor...`; ANCHOR_PATIENCE for `pibt_patient...`)
     anchor_patience: int | None = None
     # how the policy's Q-values become the ranking the rule reads (coordination.ranking);
-    # q_then_distance: the best ranking under pibt_anchor (docs/results.md)
+    # q_then_distance: the best ranking under pibt_anchor (docs/results.md, "Ranking modes under
+    # the anchored shield")
     ranking: str = "q_then_distance"
     # what the network reads (grid.env.OBSERVATIONS): None = the init checkpoint's; "cost_to_go"
     # from a "paper" checkpoint warm-starts it with the extra channel's weights zero
@@ -101,7 +103,8 @@ class DaggerConfig:
     # re-plan; `committed_budget` seconds per region)
     committed_planner: str = "lacam"
     # "committed" / "stuck" over the project's LaCAM: successors by PIBT with swap (lacam3's;
-    # it lifts the expert's ceiling above plain PIBT under `pibt_anchor_swap`, docs/results.md)
+    # it lifts the expert's ceiling above plain PIBT under `pibt_anchor_swap`, docs/results.md,
+    # "The expert ceiling, second reading")
     committed_swap: bool = False
     # ... and LaCAM's node budget per re-plan: with a generous `committed_budget` the labels
     # then do not depend on the machine's load
