@@ -307,6 +307,13 @@ def evaluate_lifelong(args) -> list[LifelongResult]:
         for rule in rules:
             spec = base if base.is_planner else with_conflict_rule(base, rule, args.ranking)
             spec = unique_names([spec])[0]
+            if spec.kind == "checkpoint":
+                # one torch thread: on a shared machine a second thread's barrier waits for a
+                # core another process holds (docs/results.md, "Continuous operation with
+                # guidance": 92 ms a step with one thread, 1.7 s with two, at load 12)
+                import torch
+
+                torch.set_num_threads(1)
             policy = None if base.is_planner else build_policy(spec)
             for label, instances, guidance in ((label, instances, guidance)
                                                for guidance in dict.fromkeys(
