@@ -6,16 +6,16 @@ from __future__ import annotations
 # Robots' nodes one process hosts at most (`--single-process`: all of them; else
 # `--nodes-per-process`). Creating the nodes of one process takes time that grows with the
 # square of their number (every new publisher is matched against the process's others on the
-# shared topics): 200 robots ~1 s, 500 ~10 s, 2000 ~3 min on a 2-core machine, 10000 would take
-# about an hour before the first tick.
+# shared topics), so thousands of them keep a fleet from its first tick for minutes or longer
+# (docs/results.md, "Process layouts: what starts and what fits").
 MAX_NODES_PER_PROCESS = 512
 # ROS processes of one fleet on one domain that Fast DDS discovery on loopback was measured to
-# handle (docs/fleet.md, Process layouts: about 32 are discovered; with 64 half never see
-# each other and the shared-memory transport can deadlock). Above it `up` warns, not refuses.
+# handle: beyond it processes may never discover each other and the shared-memory transport can
+# deadlock (docs/results.md, "Process layouts"). Above it `up` warns, not refuses.
 MAX_DISCOVERED_PROCESSES = 32
 # A fleet of LARGE_FLEET_ROBOTS robots or more in at most LARGE_FLEET_PROCESSES policy processes:
-# the layouts measured to get ready at that size (docs/fleet.md, Process layouts: 256 robots as
-# 8 x 32, 512 as 8 x 64; 512 as 16 x 32 never did). Every process discovers the per-robot
+# the layouts measured to get ready at that size (docs/results.md, "Process layouts"; 512 as
+# 16 x 32 never did). Every process discovers the per-robot
 # endpoints of every other, so discovery grows with processes times robots, and every process
 # starts its nodes on its own on a machine that runs them all.
 LARGE_FLEET_ROBOTS = 256
@@ -31,8 +31,9 @@ def layout_problem(num_robots: int, single_process: bool, nodes_per_process: int
     layout = "--single-process" if single_process else f"--nodes-per-process {nodes_per_process}"
     return (f"{layout} would host {per_process} robots' nodes in one process; the limit is "
             f"{MAX_NODES_PER_PROCESS}, because creating them takes time growing with the square "
-            f"of their number (500 ~10 s, 2000 ~3 min, 10000 about an hour before the first "
-            f"tick). Use --nodes-per-process K with K <= {MAX_NODES_PER_PROCESS} (e.g. 8).")
+            f"of their number (thousands delay the first tick by minutes or longer; "
+            f"docs/results.md, 'Process layouts'). Use --nodes-per-process K with "
+            f"K <= {MAX_NODES_PER_PROCESS} (e.g. 8).")
 
 
 def policy_processes(num_robots: int, single_process: bool, nodes_per_process: int) -> int:
@@ -62,8 +63,8 @@ def layout_warning(num_robots: int, single_process: bool, nodes_per_process: int
         if nodes_per_process < suggest:
             return (f"warning: {num_robots} robots in {hubs} policy processes; fleets of "
                     f"{LARGE_FLEET_ROBOTS}+ robots were measured to get ready only in "
-                    f"{LARGE_FLEET_PROCESSES} or fewer (512 robots: 8 x 64 ready in 53 s, "
-                    f"16 x 32 never), since DDS discovery grows with processes times robots "
+                    f"{LARGE_FLEET_PROCESSES} or fewer (docs/results.md, 'Process layouts'), "
+                    f"since DDS discovery grows with processes times robots "
                     f"and each process starts its nodes on its own. Use --nodes-per-process "
                     f"{suggest} ({policy_processes(num_robots, False, suggest)} processes).")
     processes = 1 + hubs + int(recorder)

@@ -395,8 +395,9 @@ def plan_policy_parameters(plan: PlanDraft, args, ros_argv: list[str], num_robot
     plan.warnings += [w for w in warnings if w not in plan.warnings]
     if num_robots >= LARGE_FLEET_ROBOTS and plan.origin[plan.sim_name].get(
             "robot_actions") == "default":
-        # 512 per-robot action servers (4,096 endpoints) took a fleet from ready in 55 s and
-        # 1.96 ticks/s to 129 s and 0.87 (docs/results.md): large fleets leave them out
+        # every process discovers every per-robot action server's 8 endpoints: in a large fleet
+        # they slow both start-up and ticks (docs/results.md, "Process layouts"), so it leaves
+        # them out
         plan.sim["robot_actions"] = False
         plan.warnings.append(
             f"note: {num_robots} robots: no per-robot robot_<i>/navigate_to_pose action servers "
