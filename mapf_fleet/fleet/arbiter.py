@@ -7,7 +7,7 @@ Rules (`CONFLICT_RULES`):
           move is reverted, a robot in the way may be pushed to another of its ranked moves.
           The batched evaluator's `--conflict-rule pibt` (`evaluation.runner.run_decentralized`).
   pibt_anchor  the same, with the highest-priority robot on its distance order whatever it
-          ranked (`PIBTShield(anchor=True)`; measured in docs/results.md).
+          ranked (`PIBTShield(anchor=True)`; docs/results.md, "The anchor against plain PIBT").
   pibt[_anchor]_swap, pibt[_anchor][_swap]_hindrance  the same with lacam3's swap in
           corridors and/or the hindrance tie-break (`coordination.rules.Rule`; every
           guarantee below holds for each).
@@ -38,7 +38,7 @@ from mapf_fleet.coordination.rules import CONFLICT_RULES, FLEET_RULE, Rule
 from mapf_fleet.grid.actions import NUM_ACTIONS, STAY, actions_between
 
 # The fleet's default: of the PIBT variants, the one that led on every family measured, one-shot
-# and lifelong, with the heuristic and with the learned default (docs/results.md, PIBT variants)
+# and lifelong, with the heuristic and with the learned default (docs/results.md, "PIBT variants")
 DEFAULT_CONFLICT_RULE = FLEET_RULE
 
 
