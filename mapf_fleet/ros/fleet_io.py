@@ -191,7 +191,17 @@ class RosOutlet:
         self.channels.outcome_pub.publish(FleetOutcome(**outcome))
 
     def log(self, level: str, text: str) -> None:
-        getattr(self.node.get_logger(), level)(text)
+        # one call site per level: rclpy refuses a call site (file, line) whose severity
+        # changes between calls (ValueError), which killed the tick thread at its first warning
+        logger = self.node.get_logger()
+        if level == "info":
+            logger.info(text)
+        elif level == "warning":
+            logger.warning(text)
+        elif level == "error":
+            logger.error(text)
+        else:
+            raise ValueError(f"RosOutlet.log: no such level {level!r} (info, warning, error)")
 
 
 class LockstepNode(Node):
