@@ -67,6 +67,23 @@ def fleet_run(params: dict, grid, starts, goals, episode: int, series, geometry=
                     guidance=guidance)
 
 
+def _batch_problem(n: int, prefs, received, counts, requested, missing_counts,
+                   missing) -> str:
+    """Why a RobotMoves of `n` robots is malformed ("" when it is not): its per-robot lists
+    must match its robots and its counts the flattened lists."""
+    if len(prefs) != 5 * n:
+        return f"{len(prefs)} preferences for {n} robots (5 each)"
+    for name, values in (("messages_received", received), ("requested_counts", counts),
+                         ("missing_counts", missing_counts)):
+        if len(values) != n:
+            return f"{len(values)} {name} for {n} robots"
+    if sum(counts) != len(requested):
+        return f"requested_counts sum to {sum(counts)}, {len(requested)} requested"
+    if sum(missing_counts) != len(missing):
+        return f"missing_counts sum to {sum(missing_counts)}, {len(missing)} missing_peers"
+    return ""
+
+
 class EpisodeBinding:
     """Which run (episode) a policy hub serves, so that it never serves a foreign simulator.
 
@@ -126,33 +143,90 @@ class FleetTicker:
             self.cond.notify_all()
 
     def on_move(self, msg) -> str | None:
-        """Store a RobotMove of the current tick; a text to log as a warning, or None."""
+        """Store a RobotMove (one robot's decision) of the current tick; a text to log as a
+        warning, or None."""
         with self.cond:
             if msg.episode != self.episode or msg.tick != self.tick:
                 return None  # stale tick or another run
-            if msg.robot_id >= self.num_robots or msg.action > 4:
-                return f"ignored bad move {msg.robot_id}/{msg.action}"
             ranking = list(getattr(msg, "preferences", ()))  # the field keeps its wire name
-            problem = ranking_problem(msg.action, ranking)
+            problem = self._store(int(msg.robot_id), int(msg.action), ranking,
+                                  msg.requested, int(msg.messages_received))
             if problem:
-                return f"ignored bad move of robot {msg.robot_id}: {problem}"
-            robot = int(msg.robot_id)
-            self._prefs[robot] = ([int(a) for a in ranking] if ranking
-                                  else single_choice_ranking(msg.action))
-            self._comm[robot] = ([int(j) for j in msg.requested], int(msg.messages_received))
+                return problem
             self.cond.notify_all()
         if msg.missing_peers:
             return (f"tick {msg.tick}: robot {msg.robot_id} decided without peers "
                     f"{list(msg.missing_peers)} (timed out)")
         return None
 
-    def on_status(self, msg) -> None:
-        if int(getattr(msg, "episode", 0)) not in (0, self.episode):
-            return  # a robot serving another simulator's run (EpisodeBinding) is not ours
+    def on_moves(self, msg) -> str | None:
+        """Store a RobotMoves (the decisions of every robot of one policy process) of the
+        current tick; a text to log as a warning (a malformed batch, bad moves, robots that
+        decided without some peers), or None."""
+        ids = [int(r) for r in msg.robot_ids]
+        n = len(ids)
+        prefs = [int(a) for a in msg.preferences]
+        counts, requested = list(msg.requested_counts), [int(j) for j in msg.requested]
+        missing_counts, missing = list(msg.missing_counts), list(msg.missing_peers)
+        problem = _batch_problem(n, prefs, list(msg.messages_received), counts, requested,
+                                 missing_counts, missing)
+        if problem:
+            return f"ignored a malformed RobotMoves from {msg.host or 'a policy process'}: {problem}"
+        problems, left_out = [], {}
         with self.cond:
-            if msg.robot_id < self.num_robots and msg.ready:
-                self._ready_peers[int(msg.robot_id)] = int(msg.peers)
-                self.cond.notify_all()
+            if msg.episode != self.episode or msg.tick != self.tick:
+                return None  # stale tick or another run
+            start = missing_start = 0
+            for k, robot in enumerate(ids):
+                ranking = prefs[5 * k:5 * k + 5]
+                problem = self._store(robot, ranking[0], ranking,
+                                      requested[start:start + counts[k]],
+                                      int(msg.messages_received[k]))
+                start += counts[k]
+                if problem:
+                    problems.append(problem)
+                if missing_counts[k]:
+                    left_out[robot] = [int(j) for j in
+                                       missing[missing_start:missing_start + missing_counts[k]]]
+                missing_start += missing_counts[k]
+            self.cond.notify_all()
+        lines = problems[:3] + ([f"and {len(problems) - 3} more"] if len(problems) > 3 else [])
+        if left_out:
+            lines.append(f"tick {msg.tick}: robots decided without peers {left_out} (timed out)")
+        return "; ".join(lines) or None
+
+    def _store(self, robot: int, action: int, ranking: list, requested, received: int) -> str:
+        """Store one robot's decision (under `cond`); why it is ignored, "" when it is not."""
+        if robot >= self.num_robots or action > 4:
+            return f"ignored bad move {robot}/{action}"
+        problem = ranking_problem(action, ranking)
+        if problem:
+            return f"ignored bad move of robot {robot}: {problem}"
+        self._prefs[robot] = ([int(a) for a in ranking] if ranking
+                              else single_choice_ranking(action))
+        self._comm[robot] = ([int(j) for j in requested], int(received))
+        return ""
+
+    def on_status(self, msg) -> None:
+        """A RobotStatus: one robot's heartbeat."""
+        self._note_ready(int(getattr(msg, "episode", 0)), (int(msg.robot_id),), msg.ready,
+                         int(msg.peers))
+
+    def on_hub_status(self, msg) -> None:
+        """A HubStatus: the heartbeat of every robot of one policy process."""
+        self._note_ready(int(msg.episode), [int(r) for r in msg.robot_ids], msg.ready,
+                         int(msg.peers))
+
+    def _note_ready(self, episode: int, robots, ready: bool, peers: int) -> None:
+        if episode not in (0, self.episode):
+            return  # robots serving another simulator's run (EpisodeBinding) are not ours
+        if not ready:
+            return
+        with self.cond:
+            for robot in robots:
+                if robot < self.num_robots:
+                    self._ready_peers[robot] = peers
+            self.cond.notify_all()
 
     def unready(self) -> list[int]:
         """Robots not (yet) reporting that they hear every robot (call with or without cond)."""

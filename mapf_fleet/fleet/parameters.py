@@ -240,6 +240,12 @@ POLICY = {
     "service_timeout": Param(2.0, "seconds to wait for a peer's DCC service to be discovered",
                              **_positive()),
     "status_period": Param(0.5, "seconds between readiness heartbeats", **_positive()),
+    "per_robot_messages": Param(False, "send each robot's move (RobotMove on /fleet/moves) and "
+                                       "heartbeat (RobotStatus on /fleet/robot_status) as a "
+                                       "message of its own instead of one RobotMoves "
+                                       "(/fleet/move_batches) a tick and one HubStatus "
+                                       "(/fleet/hub_status) a period for all the robots of "
+                                       "the process"),
     "episode_timeout": Param(30.0, "seconds without a fleet state of the run this robot serves "
                                    "after which another simulator's run may take it over",
                              **_positive()),

@@ -21,11 +21,13 @@ import numpy as np
 # fleets in different namespaces share a ROS_DOMAIN_ID without hearing each other.
 MAP_TOPIC = "/fleet/map"
 STATE_TOPIC = "/fleet/state"
-MOVES_TOPIC = "/fleet/moves"
+MOVES_TOPIC = "/fleet/moves"  # RobotMove: one robot's decision (per_robot_messages, others)
+MOVE_BATCHES_TOPIC = "/fleet/move_batches"  # RobotMoves: a policy process's robots, one a tick
 PROGRESS_TOPIC = "/fleet/progress"
 OUTCOME_TOPIC = "/fleet/outcome"
 MARKERS_TOPIC = "/fleet/markers"
-STATUS_TOPIC = "/fleet/robot_status"
+STATUS_TOPIC = "/fleet/robot_status"  # RobotStatus: one robot's heartbeat (per_robot_messages)
+HUB_STATUS_TOPIC = "/fleet/hub_status"  # HubStatus: a policy process's robots' heartbeat
 DHC_HIDDEN_TOPIC = "/fleet/dhc/hidden"
 DCC_ANNOUNCE_TOPIC = "/fleet/dcc/announce"
 GOAL_EVENTS_TOPIC = "/fleet/goal_events"  # every goal change (ros.goals, msg GoalEvent)

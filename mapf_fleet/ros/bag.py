@@ -1,8 +1,9 @@
 """`mapf-fleet record DIR`: record the fleet's topics into a rosbag2 (MCAP storage), like
 `ros2 bag record -s mcap`, with the pure-Python `rosbags` library (no rosbag2 install needed).
 
-What it records by default: /fleet/map, /fleet/state, /fleet/moves, /fleet/progress,
-/fleet/outcome (subscribed at once, so nothing of a fleet started next to it is missed) and every
+What it records by default: /fleet/map, /fleet/state, /fleet/moves, /fleet/move_batches (the
+policy processes' moves, one message per process and tick), /fleet/progress, /fleet/outcome
+(subscribed at once, so nothing of a fleet started next to it is missed) and every
 /robot_<i>/pose, /robot_<i>/goal and /robot_<i>/waypoint as they are discovered; with
 `--namespace /fleet_a` the same topics of the fleet in /fleet_a (/fleet_a/fleet/state, ...).
 `--topics T ...` records exactly those topics instead.
@@ -50,6 +51,7 @@ FLEET_TOPICS = {
     common.MAP_TOPIC: "nav_msgs/msg/OccupancyGrid",
     common.STATE_TOPIC: f"{INTERFACES_PACKAGE}/msg/FleetState",
     common.MOVES_TOPIC: f"{INTERFACES_PACKAGE}/msg/RobotMove",
+    common.MOVE_BATCHES_TOPIC: f"{INTERFACES_PACKAGE}/msg/RobotMoves",
     common.PROGRESS_TOPIC: f"{INTERFACES_PACKAGE}/msg/FleetProgress",
     common.OUTCOME_TOPIC: f"{INTERFACES_PACKAGE}/msg/FleetOutcome",
     common.GOAL_EVENTS_TOPIC: f"{INTERFACES_PACKAGE}/msg/GoalEvent",  # every goal change
@@ -60,7 +62,7 @@ def default_topic_re(namespace: str = "") -> re.Pattern:
     """The topics recorded by default when discovered: the fleet's, in `namespace`."""
     prefix = re.escape("/" + namespace.strip("/")) if namespace.strip("/") else ""
     return re.compile(
-        prefix + r"/(fleet/(map|state|moves|progress|outcome|goal_events)"
+        prefix + r"/(fleet/(map|state|moves|move_batches|progress|outcome|goal_events)"
         r"|robot_\d+/(pose|goal|goal_pose|waypoint))$")
 
 

@@ -17,9 +17,9 @@ from mapf_fleet.ros.processes import FLEET_ENV, prepare_environment  # noqa: F40
 # geometry and the OccupancyGrid -> grid conversion live in the ROS-free fleet.topics (the
 # rosbag2 reader of view.replay needs them without ROS), re-exported here.
 from mapf_fleet.fleet.topics import (  # noqa: F401
-    DCC_ANNOUNCE_TOPIC, DHC_HIDDEN_TOPIC, FRAME_ID, GOAL_EVENTS_TOPIC, MAP_TOPIC, MARKERS_TOPIC,
-    MOVES_TOPIC, OUTCOME_TOPIC, PROGRESS_TOPIC, STATE_TOPIC, STATUS_TOPIC, MapGeometry,
-    in_namespace, occupancy_to_grid, rel,
+    DCC_ANNOUNCE_TOPIC, DHC_HIDDEN_TOPIC, FRAME_ID, GOAL_EVENTS_TOPIC, HUB_STATUS_TOPIC, MAP_TOPIC,
+    MARKERS_TOPIC, MOVE_BATCHES_TOPIC, MOVES_TOPIC, OUTCOME_TOPIC, PROGRESS_TOPIC, STATE_TOPIC,
+    STATUS_TOPIC, MapGeometry, in_namespace, occupancy_to_grid, rel,
 )
 
 

@@ -17,8 +17,8 @@ import time
 import numpy as np
 import rclpy
 from geometry_msgs.msg import PoseStamped
-from mapf_fleet_interfaces.msg import (FleetOutcome, FleetProgress, FleetState, RobotMove,
-                                       RobotStatus)
+from mapf_fleet_interfaces.msg import (FleetOutcome, FleetProgress, FleetState, HubStatus,
+                                       RobotMove, RobotMoves, RobotStatus)
 from nav_msgs.msg import OccupancyGrid
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.executors import SingleThreadedExecutor
@@ -74,7 +74,10 @@ def fleet_state_msg(episode: int, tick: int, positions, goals, last_actions, don
 
 
 class FleetChannels:
-    """The fleet-level publishers and the move/heartbeat subscriptions (feeding `ticker`)."""
+    """The fleet-level publishers and the move/heartbeat subscriptions (feeding `ticker`): the
+    policy processes' batches (RobotMoves, HubStatus: one message per process) and the
+    per-robot messages (RobotMove, RobotStatus: a policy with `per_robot_messages`, or any
+    other sender)."""
 
     def __init__(self, node, ticker: FleetTicker, geometry: common.MapGeometry):
         self.node = node
@@ -103,13 +106,19 @@ class FleetChannels:
                               for i in range(n)]
         self._moves_sub = node.create_subscription(RobotMove, common.rel(common.MOVES_TOPIC),
                                                    self._on_move, common.reliable_qos(1000))
+        self._batches_sub = node.create_subscription(
+            RobotMoves, common.rel(common.MOVE_BATCHES_TOPIC), self._on_moves,
+            common.reliable_qos(1000))
         node.create_subscription(RobotStatus, common.rel(common.STATUS_TOPIC), ticker.on_status,
                                  common.reliable_qos(1000))
+        node.create_subscription(HubStatus, common.rel(common.HUB_STATUS_TOPIC),
+                                 ticker.on_hub_status, common.reliable_qos(100))
 
     def _on_move(self, msg: RobotMove):  # executor thread: store and notify only
         self._take_move(msg)
         # the executor takes one message per wait and rebuilds its wait set in Python for each
-        # (about 0.2 ms a move, 100 ms a tick at 512 robots): the moves already queued behind
+        # (the larger part of the simulator's tick at 512 robots: docs/results.md, "The
+        # simulator's world side at 512 robots"): the moves already queued behind
         # this one are taken here, in the order the executor would take them (at most two
         # ticks' worth: a tick's moves and as many stale ones; the rest waits for the next wait)
         sub = self._moves_sub
@@ -125,6 +134,12 @@ class FleetChannels:
 
     def _take_move(self, msg: RobotMove) -> None:
         warning = self.ticker.on_move(msg)
+        if warning:
+            self.node.get_logger().warning(warning)
+
+    def _on_moves(self, msg: RobotMoves):  # executor thread: store and notify only
+        """A policy process's moves of a tick, one message for all its robots."""
+        warning = self.ticker.on_moves(msg)
         if warning:
             self.node.get_logger().warning(warning)
 
@@ -156,12 +171,21 @@ class FleetChannels:
             self.goal_pubs[i].publish(common.cell_pose(*goals[i], self.geometry))
         self._goals_sent = goals.copy()
 
-    def publish_waypoints(self, cells, robots=None) -> None:
-        """Command robots (all, or the ids in `robots`) to their cells (N, 2)."""
+    def publish_waypoints(self, cells, robots=None, changed_only: bool = False) -> None:
+        """Command robots (all, or the ids in `robots`) to their cells (N, 2). `changed_only`:
+        only the robots whose waypoint is not the one last sent (the topic is latched: a robot
+        or a late subscriber still holds its current waypoint)."""
         stamp = self.node.get_clock().now().to_msg()
-        for i in range(len(cells)) if robots is None else robots:
-            self.waypoint_pubs[i].publish(common.cell_pose(int(cells[i][0]), int(cells[i][1]),
-                                                           self.geometry, stamp))
+        cells = np.asarray(cells, dtype=np.int64)
+        robots = range(len(cells)) if robots is None else robots
+        sent = getattr(self, "_waypoints_sent", None)
+        if changed_only and sent is not None and sent.shape == cells.shape:
+            changed = (cells != sent).any(axis=1)
+            robots = [i for i in robots if changed[i]]
+        publish_cells(self.waypoint_pubs, cells, robots, self.geometry, stamp)
+        if sent is None or sent.shape != cells.shape:
+            sent = self._waypoints_sent = np.full_like(cells, -1)
+        sent[list(robots)] = cells[list(robots)]
 
     def publish_state(self, positions, goals, last_actions, done: bool):
         """FleetState of the ticker's tick and the markers; returns the stamp used."""
@@ -171,6 +195,17 @@ class FleetChannels:
         if self.markers_pub.get_subscription_count():  # built only for a viewer (RViz)
             self.markers_pub.publish(fleet_markers(positions, goals, self.geometry, stamp))
         return stamp
+
+
+def publish_cells(publishers, cells, robots, geometry, stamp) -> None:
+    """Publish cell `cells[i]` as a PoseStamped (map frame, `stamp`) on `publishers[i]` for each
+    robot i of `robots`: one message object filled again for each (publish serialises it at
+    once), since building a PoseStamped per robot cost as much as publishing it."""
+    msg = common.cell_pose(0, 0, geometry, stamp)
+    position = msg.pose.position
+    for i in robots:
+        position.x, position.y = geometry.cell_to_xy(int(cells[i][0]), int(cells[i][1]))
+        publishers[i].publish(msg)
 
 
 class RosOutlet:

@@ -1,16 +1,17 @@
 """How `mapf-fleet up` lays out a fleet on this machine (plain Python, no rclpy): the process
 layout chosen from the robot count and the memory available when `--nodes-per-process` is not
 given, and the refusals of a layout or a generated map that would not fit in memory (one line
-each, before anything starts: a fleet of a process per robot at 512 robots used to take every
-byte of a 24 GiB machine and leave it unresponsive)."""
+each, before anything starts: a fleet of a process per robot at 512 robots used to take all of
+the machine's memory and leave it unresponsive; docs/results.md, "Process layouts")."""
 
 from __future__ import annotations
 
 from mapf_fleet.fleet.up_options import (MAX_NODES_PER_PROCESS, UpError, policy_processes,
                                          recommended_nodes_per_process)
 
-# Memory of one policy process (Python, torch, rclpy, the model: about 290 MB alone here), and
-# what each robot's nodes it hosts add (about 1 MB), the simulator and `up` itself; the share of
+# Memory of one policy process (Python, torch, rclpy, the model) and what each robot's nodes it
+# hosts add, both set above what was measured (docs/results.md, "Process layouts") so that the
+# estimate errs on the safe side, the simulator and `up` itself; the share of
 # MemAvailable a fleet may take (the rest: the system, whatever else runs). docs/fleet.md,
 # "Process layouts".
 POLICY_PROCESS_MB = 300.0

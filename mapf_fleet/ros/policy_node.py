@@ -85,6 +85,8 @@ class PolicyNode(Node):
         self.comm_timeout = values["comm_timeout"]
         self.service_timeout = values["service_timeout"]
         self.status_period = values["status_period"]
+        # one RobotMove / RobotStatus per robot instead of the process's batches (the hub)
+        self.per_robot_messages = values["per_robot_messages"]
         self.episode_timeout = values["episode_timeout"]
         self.conflict_rule = values["conflict_rule"]
         # the guidance file (None: none) the robot's distances are to be read from
@@ -99,7 +101,7 @@ class PolicyNode(Node):
         self.checkpoint_metadata = metadata or {}
         # a ranking given (params file, -p, `up --ranking`) always wins; else the ranking the
         # checkpoint was trained behind under the rule (metadata rankings), else the ranking
-        # measured best under the rule (docs/results.md)
+        # measured best under the rule (docs/results.md, "Which ranking under which rule")
         self.ranking = given or default_ranking(self.conflict_rule,
                                                self.checkpoint_metadata.get("rankings"))
         self.algo = model.config.algo

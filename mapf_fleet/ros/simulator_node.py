@@ -91,15 +91,19 @@ class SimulatorNode(fleet_io.LockstepNode):
         if result.problem:
             self.get_logger().error(f"tick {decisions.tick}: {result.problem}: all robots stay")
         self.ticker.advance()
-        self.channels.publish_waypoints(result.positions)
+        # only the robots that move: the others' latched waypoint is already where they are
+        self.channels.publish_waypoints(result.positions, changed_only=True)
         self.channels.publish_goal_changes(self.run.goals, events)
         return events, result.overridden_ids
 
     def _publish_state(self, done: bool):
         stamp = self.channels.publish_state(self.run.positions, self.run.goals,
                                             self.run.last_actions, done)
-        for i, pub in enumerate(self.pose_pubs):
-            pub.publish(common.cell_pose(*self.run.positions[i], self.geometry, stamp))
+        # a robot's pose only where someone listens (a viewer, a bag): the topic is not
+        # latched, and every robot's pose every tick was a large share of a large fleet's tick
+        listened = [i for i, pub in enumerate(self.pose_pubs) if pub.get_subscription_count()]
+        fleet_io.publish_cells(self.pose_pubs, self.run.positions, listened, self.geometry,
+                               stamp)
 
 
 @one_line_errors("simulator")

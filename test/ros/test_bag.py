@@ -130,7 +130,10 @@ def test_recorded_fleet_matches_json_record(tmp_path, ros_env, checkpoints):
     assert types["/fleet/map"] == "nav_msgs/msg/OccupancyGrid" and len(messages["/fleet/map"]) == 1
     outcomes = [msg for _, msg in messages["/fleet/outcome"] if msg.episode == run["episode"]]
     assert [(o.steps, o.success) for o in outcomes] == [(run["steps"], run["success"])]
-    assert len(messages["/fleet/moves"]) == 4 * run["steps"]
+    # every robot's move of every tick: the policy processes' batches (RobotMoves)
+    moves = [r for _, msg in messages.get("/fleet/move_batches", []) for r in msg.robot_ids]
+    moves += [msg.robot_id for _, msg in messages.get("/fleet/moves", [])]
+    assert len(moves) == 4 * run["steps"] and types["/fleet/move_batches"].endswith("RobotMoves")
     for robot in range(4):
         assert types[f"/robot_{robot}/pose"] == "geometry_msgs/msg/PoseStamped"
         assert messages[f"/robot_{robot}/pose"], robot
@@ -143,7 +146,8 @@ def test_default_topics_are_the_fleets_in_its_namespace():
     from mapf_fleet.ros.bag import default_topic_re
 
     plain, named = default_topic_re(), default_topic_re("/fleet_a")
-    for topic in ("/fleet/map", "/fleet/state", "/fleet/moves", "/fleet/progress",
+    for topic in ("/fleet/map", "/fleet/state", "/fleet/moves", "/fleet/move_batches",
+                  "/fleet/progress",
                   "/fleet/outcome", "/robot_0/pose", "/robot_12/goal", "/robot_3/waypoint"):
         assert plain.fullmatch(topic) and not named.fullmatch(topic), topic
         assert named.fullmatch("/fleet_a" + topic) and not plain.fullmatch("/fleet_a" + topic)
