@@ -57,6 +57,11 @@ LAYOUTS = {32: (24, 8), 64: (32, 16), 128: (40, 32), 256: (56, 32), 512: (80, 64
            1024: (112, 128)}
 PHASES = ("latency", "wake", "observe", "network", "send", "wait", "moves")
 TICK_LINE = re.compile(r"\[(\d+\.\d+)\] \[[^\]]*mapf_simulator\]: tick (\d+): ")
+# the simulator's line when it starts ticking (every robot ready, or the start-up timeout)
+READY_LINE = re.compile(r"\[(\d+\.\d+)\] \[[^\]]*mapf_simulator\]: (?:all \d+ robots ready|"
+                        r"starting without ready robots)")
+# `up`'s line naming the layout it chose (no --nodes-per-process given)
+LAYOUT_LINE = re.compile(r"(\d+) robots in (\d+) policy process\(es\) of up to (\d+) robots")
 HUB_LINE = re.compile(r"hub timing over (\d+) ticks, ms per tick: (.*?); last")
 SENT = re.compile(r"to other processes (\d+) in (\d+) batch calls")
 
@@ -122,8 +127,9 @@ def run_fleet(checkpoint, robots, size, per_process, seed, steps, domain,
     cmd = [sys.executable, "-m", "mapf_fleet.cli", "up", "--checkpoint", str(checkpoint),
            "--num-robots", str(robots), "--size", str(size), "--seed", str(seed),
            "--max-steps", str(steps), "--record", record, "--domain-id", str(domain),
-           "--nodes-per-process", str(per_process), "--log-dir", logs,
-           "--task-source", task_source]
+           "--log-dir", logs, "--task-source", task_source]
+    if per_process:  # else the layout `up` chooses (ros/layout_choice.py), as a user types it
+        cmd += ["--nodes-per-process", str(per_process)]
     if conflict_rule:
         cmd += ["--conflict-rule", conflict_rule]
     if planning_budget is not None:
@@ -159,12 +165,17 @@ def run_fleet(checkpoint, robots, size, per_process, seed, steps, domain,
             os.killpg(proc.pid, signal.SIGKILL)
             stdout, stderr = proc.communicate()
     stop.set()
+    # the whole output beside the record and the logs (the printed tail is its last lines)
+    Path(work, "output.log").write_text(stdout + stderr)
     try:
         run = json.loads(Path(record).read_text())
     except (OSError, ValueError):
         run = None
     stamps = [float(m[1]) for m in TICK_LINE.finditer(stdout)]
-    ready = stamps[0] - launched if stamps else None
+    # ready: launch to the simulator's "all robots ready" (else to its first progress line)
+    started = READY_LINE.search(stdout + stderr)
+    ready = (float(started[1]) if started else stamps[0] if stamps else launched - 1) - launched
+    ready = ready if ready >= 0 else None
     # memory once the fleet runs: over the first and the last fifth of the ticks (bounded or
     # growing with the run)
     running = [mb for at, mb in series if stamps and stamps[0] - launched <= at
@@ -172,7 +183,10 @@ def run_fleet(checkpoint, robots, size, per_process, seed, steps, domain,
     fifth = max(1, len(running) // 5)
     memory = (peak[0], (max(running[:fifth]) if running else 0,
                         max(running[-fifth:]) if running else 0))
-    return run, tick_times(stdout), hub_split(logs), ready, memory, (stdout + stderr)[-2000:]
+    chosen = LAYOUT_LINE.search(stdout + stderr)
+    layout = (int(chosen[2]), int(chosen[3])) if chosen else None  # (processes, robots each)
+    return (run, tick_times(stdout), hub_split(logs), ready, memory, (stdout + stderr)[-2000:],
+            layout)
 
 
 def main():
@@ -195,6 +209,13 @@ def main():
                         help="the arbiter's conflict rule (default: up's, pibt_anchor)")
     parser.add_argument("--planning-budget", type=float, default=None,
                         help="--conflict-rule lacam: seconds per re-plan (default: up's, 1)")
+    parser.add_argument("--batched-steps", type=int, default=0,
+                        help="steps of the batched evaluator timed beside each run (default: "
+                             "--steps; its ms per step are nearly flat, 1,024 agents take "
+                             "minutes)")
+    parser.add_argument("--default-layout", action="store_true",
+                        help="leave --nodes-per-process out: the layout `up` chooses from the "
+                             "robot count and the memory available (as a user types it)")
     parser.add_argument("--domain-id", type=int, default=150,
                         help="first ROS_DOMAIN_ID used (one per run; default: 150)")
     parser.add_argument("--run-timeout", type=float, default=1800,
@@ -213,12 +234,18 @@ def main():
         instance = generate_instance(size, robots, 0.3, args.seed)
         for algo in args.algos:
             checkpoint = CHECKPOINTS[algo]
-            batched = batched_ms_per_step(checkpoint, instance, args.steps)
-            run, ticks, (split, messages, calls), ready, memory, tail = run_fleet(
-                checkpoint, robots, size, per_process, args.seed, args.steps, domain,
-                args.task_source, args.conflict_rule, args.planning_budget, args.run_timeout)
+            batched = batched_ms_per_step(checkpoint, instance,
+                                          args.batched_steps or args.steps)
+            run, ticks, (split, messages, calls), ready, memory, tail, chosen = run_fleet(
+                checkpoint, robots, size, None if args.default_layout else per_process,
+                args.seed, args.steps, domain, args.task_source, args.conflict_rule,
+                args.planning_budget, args.run_timeout)
             domain += 1
-            layout = f"{-(-robots // per_process)} x {per_process}, {size}x{size}"
+            if args.default_layout:
+                processes, per_process = chosen or (1, 1)  # no line: a process per robot
+            else:
+                processes = -(-robots // per_process)
+            layout = f"{processes} x {per_process}, {size}x{size}"
             ready_text = "never" if ready is None else f"{ready:.0f} s"
             memory, (early, late) = memory
             print(f"{robots:>6} {algo:<4} {layout:<14} ready {ready_text}, peak memory "
@@ -228,12 +255,18 @@ def main():
                 print(f"{'':>6} no record within {args.run_timeout} s; output's tail:\n{tail}",
                       flush=True)
                 continue
+            if run.get("incomplete"):  # the simulator ended before its outcome
+                print(f"{'':>6} {run['summary']}; output's tail:\n{tail}", flush=True)
             ticks, rate = ticks
             # ticks holds one mean per 5 ticks (progress_every)
             quarter = max(1, args.window // 5 if args.window else len(ticks) // 4)
             start_ms = 1000 * sum(ticks[:quarter]) / quarter if ticks else 0.0
             end_ms = 1000 * sum(ticks[-quarter:]) / quarter if ticks else 0.0
             per_tick = 1000 / rate if rate else 0.0
+            print(f"{robots:>6} {algo:<4} {layout:<14} {len(ticks) * 5} ticks timed: "
+                  f"{1000 / start_ms if start_ms else 0:.2f} ticks/s over the first "
+                  f"{quarter * 5}, {1000 / end_ms if end_ms else 0:.2f} over the last "
+                  f"{quarter * 5}; missed decisions {run['missed_decisions']}", flush=True)
             rest = per_tick - sum(split[p] for p in PHASES)
             comm = f"{messages:.0f}/{calls:.1f}" if algo == "dcc" else "-"
             print(f"{robots:>6} {algo:<4} {layout:<14} {rate:>7.2f} "
