@@ -309,8 +309,8 @@ def evaluate_lifelong(args) -> list[LifelongResult]:
             spec = unique_names([spec])[0]
             if spec.kind == "checkpoint":
                 # one torch thread: on a shared machine a second thread's barrier waits for a
-                # core another process holds (docs/results.md, "Continuous operation with
-                # guidance": 92 ms a step with one thread, 1.7 s with two, at load 12)
+                # core another process holds, and a step takes many times longer
+                # (docs/results.md, "Performance (2-core machine, no GPU)")
                 import torch
 
                 torch.set_num_threads(1)
