@@ -168,6 +168,7 @@ def optimize(args) -> int:
     if state_path.exists():
         with open(state_path, "rb") as f:
             state = pickle.load(f)
+        state["task"] = {**dict.fromkeys(task), **state["task"]}  # a key added since: unset
         if state["task"] != task:
             print(f"mapf-fleet guidance optimize: {state_path} holds a run of another task "
                   f"({state['task']}); use another --out", file=sys.stderr)
