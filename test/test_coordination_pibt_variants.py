@@ -95,11 +95,14 @@ def test_every_rule_has_a_default_ranking_the_base_rules():
     for rule in PIBT_RULES:
         base = "pibt_anchor" if rule_options(rule)["anchor"] else "pibt"
         assert DEFAULT_RANKING_BY_RULE[rule] == DEFAULT_RANKING_BY_RULE[base] in Q_RANKINGS
-        # a checkpoint's ranking recorded for the base rule serves its variants
-        assert default_ranking(rule, {base: "q_demote_stay"}) == "q_demote_stay"
-        # ... unless one is recorded for the variant itself
-        assert default_ranking(rule, {base: "q_demote_stay", rule: "q"}) == "q"
+        # a checkpoint's ranking serves exactly the rule it was recorded for (issue 41 item 7:
+        # no silent inheritance by the variants)
+        assert default_ranking(rule, {rule: "q_demote_stay"}) == "q_demote_stay"
+        if rule != base:
+            assert default_ranking(rule, {base: "q_demote_stay"}) == DEFAULT_RANKING_BY_RULE[rule]
     assert default_ranking("pibt_swap", {"pibt_anchor": "q_demote_stay"}) == "q"
+    assert default_ranking("lacam", {"pibt_anchor": "q_then_distance"}) == "confidence"
+    assert default_ranking("lacam", {"lacam": "q_then_distance"}) == "q_then_distance"
 
 
 # --- safety, every combination -------------------------------------------------------------------

@@ -65,16 +65,14 @@ def default_ranking(rule: "Rule | str", recorded: Mapping[str, str] | None = Non
 
 
 def recorded_ranking(rule: "Rule | str", recorded: Mapping[str, str] | None) -> str | None:
-    """The ranking a checkpoint records for `rule`, else for its base rule (`Rule.base`: a swap
-    or hindrance variant, or the planning arbiter, reads what was recorded for its anchored or
-    plain rule), else None."""
+    """The ranking a checkpoint records for exactly `rule`, else None. A ranking recorded for
+    one rule is not carried to its variants (swap, hindrance, the planning arbiter): a ranking
+    that a policy was trained under for `pibt_anchor` can lose to the variant's own default
+    under `pibt_anchor_swap` (docs/results.md, "Which ranking under which rule"), so a variant
+    takes `Rule.default_ranking` unless its own ranking was recorded."""
     if not recorded:
         return None
-    rule = Rule.parse(rule)
-    for name in dict.fromkeys((rule.name, rule.base.name)):
-        if name in recorded:
-            return recorded[name]
-    return None
+    return recorded.get(Rule.parse(rule).name)
 
 
 def validate_rankings(rankings, num_agents: int) -> np.ndarray:

@@ -134,13 +134,6 @@ class Rule:
         return Rule.parse("pibt_anchor") if self.is_lacam else self
 
     @property
-    def base(self) -> "Rule":
-        """The rule without swap, hindrance and EPIBT: what a checkpoint's recorded ranking was
-        stored under for such a variant (the same arbiter for the ranking's purpose)."""
-        rule = self.ranking_rule
-        return Rule.pibt(anchor=rule.anchor) if rule.is_pibt else rule
-
-    @property
     def default_ranking(self) -> str:
         """`confidence` where the top agent is anchored (the network overrides the distance
         order only where it is sure, so the anchor's order and the policy's rarely fight), `q`

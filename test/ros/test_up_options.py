@@ -154,11 +154,11 @@ def test_default_ranking_is_the_checkpoints_recorded_ranking(tmp_path, ros_env):
 
     torch.manual_seed(7)
     recorded = "q_then_distance"
-    assert recorded != default_ranking("pibt_anchor")  # the checkpoint's, not the rule's
+    assert recorded != default_ranking("pibt_anchor_swap")  # the checkpoint's, not the rule's
     checkpoint = str(save_checkpoint(tmp_path / "round.pt",
                                      build_model(ModelConfig.preset("dhc", "small")), {
         "alpha": 0.0, "curriculum": {}, "learner_steps": 0, "training_config": {},
-        "rankings": {"pibt_anchor": recorded}}))
+        "rankings": {"pibt_anchor_swap": recorded}}))
     params = tmp_path / "p.yaml"
     params.write_text("/**:\n  ros__parameters:\n    ranking: q_demote_stay\n")
     cases = [([], recorded), (["--conflict-rule", "pibt"], default_ranking("pibt")),
