@@ -221,3 +221,22 @@ def test_evaluate_lifelong_runs_with_and_without_guidance(tmp_path):
     assert [r["guidance"] for r in rows] == ["none", "highways", "congestion"]
     first = json.loads((tmp_path / "a.json").read_text())["results"][0]
     assert first["guidance"] == "none" and first["goals"] == rows[0]["goals"]
+
+
+def test_a_checkpoint_is_evaluated_under_the_guidance_it_was_trained_on(tmp_path):
+    """One default everywhere: a checkpoint records the guidance its heuristic channels were
+    trained on (metadata guidance); `evaluate` without --guidance runs it there, the heuristic
+    and an unrecording checkpoint under none."""
+    torch = pytest.importorskip("torch")
+    from mapf_fleet.evaluation.policies import parse_policy, with_conflict_rule, with_guidance
+    from mapf_fleet.models.checkpoint import build_model, save_checkpoint
+    from mapf_fleet.models.config import ModelConfig
+
+    torch.manual_seed(0)
+    path = save_checkpoint(tmp_path / "g.pt", build_model(ModelConfig.preset("dhc", "small")), {
+        "alpha": 0.0, "curriculum": {}, "learner_steps": 0, "training_config": {},
+        "guidance": "highways"})
+    specs = [with_conflict_rule(parse_policy(p), "pibt_anchor_swap")
+             for p in (str(path), "heuristic")]
+    assert [s.guidance for s in with_guidance(specs, None)] == ["highways", "none"]
+    assert [s.guidance for s in with_guidance(specs, ["none"])] == ["none", "none"]

@@ -74,11 +74,12 @@ def build_parser() -> argparse.ArgumentParser:
                         f"else the rule's: "
                         + ", ".join(f"{m} under {r}" for r, m in DEFAULT_RANKING_BY_RULE.items())
                         + "; distance for the heuristic; deprecated: --preferences)")
-    p.add_argument("--guidance", nargs="+", default=["none"], metavar="G",
+    p.add_argument("--guidance", nargs="+", default=None, metavar="G",
                    help="guidance graph(s) the observations and the conflict rule read, one row "
                         "each: none, highways (hand-made crisscross lanes), a guidance file "
                         "(*.guidance.npz, one map) or a cost model (*.costmodel.json) "
-                        "(default: none, what `up` runs by default)")
+                        "(default: a checkpoint's recorded guidance, the one it was trained to "
+                        "read; else none, what `up` runs by default)")
     p.add_argument("--config", default=str(DEFAULT_CONFIG), help="protocol YAML (default %(default)s)")
     p.add_argument("--sizes", nargs="+", type=int, help="map sizes to run (default: all of the protocol)")
     p.add_argument("--agents", nargs="+", type=int, help="agent counts to run (with --map: exactly one)")

@@ -48,6 +48,7 @@ class PolicySpec:
     ranking: str | None = None  # the ranking asked for under the rule (None: the default)
     # a checkpoint's recorded rankings (metadata `rankings`), ((rule, ranking), ...): its default
     rankings: tuple[tuple[str, str], ...] = ()
+    recorded_guidance: str = "none"  # a checkpoint's metadata guidance (what it was trained on)
     planning_budget: float | None = None  # rule "lacam": seconds per re-plan (None: default)
     # the guidance graph every distance reads (`GuidanceSource` spelling): observations, rule
     guidance: str = "none"
@@ -94,9 +95,11 @@ def with_guidance(specs: list[PolicySpec], values) -> list[PolicySpec]:
 
     from mapf_fleet.grid.guidance_made import GuidanceSource
 
-    sources = list(dict.fromkeys(GuidanceSource.parse(v) for v in values))
     out = []
     for spec in specs:
+        # not given: what the checkpoint was trained to read (metadata guidance), else none
+        given = values if values is not None else [spec.recorded_guidance]
+        sources = list(dict.fromkeys(GuidanceSource.parse(v) for v in given))
         for k, source in enumerate(sources):
             if spec.is_planner or spec.conflict_rule == REVERT and spec.kind != "checkpoint":
                 if k == 0:
@@ -122,9 +125,11 @@ def parse_policy(arg: str, *, device: str = "cpu", planner_time_limit: float = 1
         raise FileNotFoundError(f"--checkpoint {arg!r}: no such file (or use one of {', '.join(REFERENCE_NAMES)})")
     from mapf_fleet.models.checkpoint import read_checkpoint
 
-    rankings = read_checkpoint(path)[1].get("rankings") or {}
+    meta = read_checkpoint(path)[1]
+    rankings = meta.get("rankings") or {}
     return PolicySpec("checkpoint", path.stem, path=str(path), device=device,
-                      rankings=tuple(sorted(rankings.items())))
+                      rankings=tuple(sorted(rankings.items())),
+                      recorded_guidance=str(meta.get("guidance", "none")))
 
 
 def unique_names(specs: list[PolicySpec]) -> list[PolicySpec]:

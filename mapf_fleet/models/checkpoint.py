@@ -232,6 +232,8 @@ def _check_metadata(meta: Mapping[str, Any], path: str) -> None:
         fail("extra", "a dict", meta.get("extra"))
     if "rankings" in meta:
         _check_rankings(meta["rankings"], fail)
+    if "guidance" in meta and not isinstance(meta["guidance"], str):
+        fail("guidance", "a guidance spelling (none, highways, a file)", meta["guidance"])
     for name in meta:
         _check_plain(meta[name], f"metadata.{name}", path)
 

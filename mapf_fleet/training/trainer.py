@@ -193,6 +193,7 @@ class Trainer:
             # trained behind the shield under this ranking: the evaluator and the policy nodes
             # rank with it under that rule unless told otherwise (as DAgger's checkpoints do)
             meta["rankings"] = {self.cfg.conflict_rule: self.cfg.ranking}
+        meta["guidance"] = self.cfg.guidance  # the heuristic channels it learned to read
         return meta
 
     def save_checkpoint(self, name: str, alpha: float | None = None) -> Path:

@@ -271,7 +271,9 @@ class Dagger:
                                      "train": train_summary}},
                 # the states it learned from were visited under this ranking behind this rule:
                 # the evaluator and the policy nodes rank with it there unless told otherwise
-                "rankings": {self.cfg.conflict_rule: self.cfg.ranking}}
+                "rankings": {self.cfg.conflict_rule: self.cfg.ranking},
+                # and read these heuristic channels: the evaluator's default guidance for it
+                "guidance": self.cfg.guidance}
         return save_checkpoint(self.run_dir / CHECKPOINT_DIR / f"round_{round_index:03d}.pt",
                                self.model, meta)
 
