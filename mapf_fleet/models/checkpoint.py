@@ -49,7 +49,7 @@ OBS_PADDING = "obstacle"
 ACTION_ORDER = list(ACTION_NAMES)
 # Fields the caller supplies (the rest are derived from the model and the code).
 REQUIRED_FIELDS = ("alpha", "curriculum", "learner_steps", "training_config")
-OPTIONAL_FIELDS = ("evaluation", "extra", "rankings")
+OPTIONAL_FIELDS = ("evaluation", "extra", "rankings", "guidance")
 
 
 class CheckpointError(ValueError):
@@ -120,8 +120,9 @@ def save_checkpoint(path, model: nn.Module, metadata: Mapping[str, Any]) -> Path
         "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         "extra": metadata.get("extra", {}),
     }
-    if "rankings" in metadata:  # absent, not empty, when not given: files as before
-        full["rankings"] = metadata["rankings"]
+    for name in ("rankings", "guidance"):  # absent, not empty, when not given: files as before
+        if name in metadata:
+            full[name] = metadata[name]
     _check_metadata(full, str(path))
     payload = {
         "format": FORMAT,
