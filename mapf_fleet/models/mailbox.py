@@ -9,6 +9,8 @@ import threading
 import time
 from collections import defaultdict
 
+import numpy as np
+
 TIMING_EVERY = 50  # the hub logs its per-tick time split every this many decisions
 
 class Mailbox:
