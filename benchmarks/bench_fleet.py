@@ -28,6 +28,8 @@ over the first and over the last fifth of the ticks (bounded or growing); a run 
         [--window 50]              (ms per tick over the first and the last 50 ticks)
         [--run-timeout 600]
         [--conflict-rule lacam --planning-budget 0.2]
+        [--default-layout]         (no --nodes-per-process: the layout `up` chooses)
+        [--batched-steps 20]       (steps of the batched evaluator timed beside each run)
 
 On the 2-core development machine one core was busy with a training job: figures are as measured.
 """
@@ -56,7 +58,9 @@ CHECKPOINTS = {"dcc": REPO / "models" / "default.pt",
 LAYOUTS = {32: (24, 8), 64: (32, 16), 128: (40, 32), 256: (56, 32), 512: (80, 64),
            1024: (112, 128)}
 PHASES = ("latency", "wake", "observe", "network", "send", "wait", "moves")
-TICK_LINE = re.compile(r"\[(\d+\.\d+)\] \[[^\]]*mapf_simulator\]: tick (\d+): ")
+# the simulator's progress lines only (they end with the missed decisions), not its warnings
+TICK_LINE = re.compile(r"\[(\d+\.\d+)\] \[[^\]]*mapf_simulator\]: tick (\d+): .*missed "
+                       r"decisions?$", re.M)
 # the simulator's line when it starts ticking (every robot ready, or the start-up timeout)
 READY_LINE = re.compile(r"\[(\d+\.\d+)\] \[[^\]]*mapf_simulator\]: (?:all \d+ robots ready|"
                         r"starting without ready robots)")

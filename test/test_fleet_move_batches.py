@@ -109,3 +109,19 @@ def test_a_hub_status_makes_every_robot_of_its_process_ready():
     assert ticker.wait_ready(0.05) == [3]
     ticker.on_hub_status(SimpleNamespace(episode=5, robot_ids=[3], ready=True, peers=4, host="b"))
     assert ticker.wait_ready(0.05) == []
+
+
+def test_the_ticker_counts_the_processes_of_the_ready_robots():
+    """The simulator waits until as many processes hear its state as host ready robots (a hub
+    with the map and its peers but not yet the state's publisher missed ticks 0 and 1 of a
+    1,024-robot run): `ready_hosts` counts them, from batched and per-robot heartbeats."""
+    ticker = FleetTicker(5, episode=5)
+    ticker.on_hub_status(SimpleNamespace(episode=0, robot_ids=[0, 1], ready=True, peers=5,
+                                         host="a"))
+    ticker.on_hub_status(SimpleNamespace(episode=0, robot_ids=[2, 3], ready=False, peers=5,
+                                         host="b"))
+    assert ticker.ready_hosts() == 1
+    ticker.on_status(SimpleNamespace(episode=0, robot_id=4, ready=True, peers=5, host="c"))
+    ticker.on_hub_status(SimpleNamespace(episode=0, robot_ids=[2, 3], ready=True, peers=5,
+                                         host="b"))
+    assert ticker.ready_hosts() == 3

@@ -133,6 +133,7 @@ class FleetTicker:
         self._prefs: dict[int, list[int]] = {}  # robot -> its ranking (first = its action)
         self._comm: dict[int, tuple[list[int], int]] = {}  # robot -> (requested, received)
         self._ready_peers: dict[int, int] = {}
+        self._hosts: dict[int, str] = {}  # robot -> the process hosting it (heartbeats)
         self.stopped = False  # stop(): the run ends (signal, failed callback), waits return
 
     def stop(self) -> None:
@@ -210,14 +211,14 @@ class FleetTicker:
     def on_status(self, msg) -> None:
         """A RobotStatus: one robot's heartbeat."""
         self._note_ready(int(getattr(msg, "episode", 0)), (int(msg.robot_id),), msg.ready,
-                         int(msg.peers))
+                         int(msg.peers), str(getattr(msg, "host", "")))
 
     def on_hub_status(self, msg) -> None:
         """A HubStatus: the heartbeat of every robot of one policy process."""
         self._note_ready(int(msg.episode), [int(r) for r in msg.robot_ids], msg.ready,
-                         int(msg.peers))
+                         int(msg.peers), str(msg.host))
 
-    def _note_ready(self, episode: int, robots, ready: bool, peers: int) -> None:
+    def _note_ready(self, episode: int, robots, ready: bool, peers: int, host: str) -> None:
         if episode not in (0, self.episode):
             return  # robots serving another simulator's run (EpisodeBinding) are not ours
         if not ready:
@@ -226,7 +227,13 @@ class FleetTicker:
             for robot in robots:
                 if robot < self.num_robots:
                     self._ready_peers[robot] = peers
+                    self._hosts[robot] = host
             self.cond.notify_all()
+
+    def ready_hosts(self) -> int:
+        """How many processes host the robots that reported ready (their heartbeats' host)."""
+        with self.cond:
+            return len(set(self._hosts.values()))
 
     def unready(self) -> list[int]:
         """Robots not (yet) reporting that they hear every robot (call with or without cond)."""

@@ -145,8 +145,9 @@ class PolicyHub:
         group = self._group = ReentrantCallbackGroup()
         self.node.create_subscription(OccupancyGrid, common.rel(common.MAP_TOPIC), self._on_map,
                                       common.latched_qos(), callback_group=group)
-        self.node.create_subscription(FleetState, common.rel(common.STATE_TOPIC), self._on_state,
-                                      common.reliable_qos(10), callback_group=group)
+        self._state_sub = self.node.create_subscription(
+            FleetState, common.rel(common.STATE_TOPIC), self._on_state, common.reliable_qos(10),
+            callback_group=group)
         # heartbeats of every process: batched (HubStatus) and per robot (RobotStatus, from a
         # process with per_robot_messages): whom to send DCC batches to, who is ready
         self.node.create_subscription(RobotStatus, common.rel(common.STATUS_TOPIC),
@@ -287,6 +288,12 @@ class PolicyHub:
                                                   hidden.reshape(-1, dim))
         return response
 
+    @property
+    def ready(self) -> bool:
+        """The robots can decide: the map is here and the fleet state's publisher is matched
+        (a hub that had the map but not yet the state's publisher missed the first ticks)."""
+        return self.grid is not None and self._state_sub.get_publisher_count() > 0
+
     def peers_reachable(self) -> int:
         """Robots whose heartbeat was heard, provided every host seen also subscribes to our peer
         topic (so nothing we publish is lost) and, for DCC, serves the batch service our client
@@ -318,12 +325,12 @@ class PolicyHub:
         if not self.per_robot:
             self.status_pub.publish(HubStatus(
                 episode=self.binding.reported, tick=max(self.exchange.tick, 0),
-                ready=self.grid is not None, peers=self.peers_reachable(), host=self.host,
+                ready=self.ready, peers=self.peers_reachable(), host=self.host,
                 robot_ids=self._ids_array, detail=detail))
             return
         self._beats += 1
         every = max(1, len(self._hosts) // HEARTBEAT_ROBOTS)
-        ready, episode = self.grid is not None, self.binding.reported
+        ready, episode = self.ready, self.binding.reported
         if (ready, episode) == self._last_beat and self._beats % every:
             return
         self._last_beat = (ready, episode)
