@@ -22,15 +22,17 @@ by its anchored first-move order first, so the plan starts with the move the anc
 Safety by construction: the tick itself is `PIBTShield.step` with each agent's EPIBT first move
 ranked first and its own ranking after it (where the operation starts by waiting, the agent's own
 ranking stands: a wait at the first step is mostly an operation that found no move free over the
-whole horizon, and PIBT's one-step push and swap still get the agent through there). Every guarantee of the PIBT rules (no vertex or swap
-conflict, one cell per tick, obstacles, fixed agents, reserved cells, the anchor, swap, the
-patient anchor's clock) is the shield's, unchanged; EPIBT only reorders the rankings. First moves
-of one EPIBT plan are conflict-free at step 1, so the shield executes them as planned except
-where the anchor or swap overrule them (then the shield's own pushes decide, safely).
+whole horizon, and PIBT's one-step push and swap still get the agent through there). Every
+guarantee of the PIBT rules (no vertex or swap conflict, one cell per tick, obstacles, fixed
+agents, reserved cells, the anchor, swap, the patient anchor's clock) is the shield's, unchanged;
+EPIBT only reorders the rankings. First moves of one EPIBT plan are conflict-free at step 1, so
+the shield executes them as planned except where the anchor or swap overrule them (then the
+shield's own pushes decide, safely).
 
-Cost bound: the search stops pushing once it has tried `TRIES_PER_AGENT` operations per agent in
-the tick; agents planned after that take the first operation that needs no push (waiting in
-place always qualifies: no chosen operation enters the cell of an agent not yet decided).
+Cost bound: the search stops pushing once it has taken `TRIES_PER_AGENT` operations that push,
+per agent, in the tick; agents planned after that take the first operation that needs no push
+(waiting in place always qualifies: no chosen operation enters the cell of an agent not yet
+decided).
 
 Hindrance is not combined with EPIBT: it reorders equally short first moves by the neighbours
 they block, which is what the horizon decides here (the two would overrule each other).
@@ -48,9 +50,11 @@ from .pibt import PIBTShield, ShieldStep
 from .ranking import validate_rankings
 from .rules import EPIBT_HORIZON  # the default horizon, and why, where the rule names live
 
-# Operations tried per agent per tick, on average, before the search stops pushing: bounds the
-# backtracking (PIBT's push over operations can branch at every step of every operation).
-TRIES_PER_AGENT = 32
+# Operations that push others, taken per agent per tick on average, before the search stops
+# pushing: bounds the backtracking (PIBT's push over operations can branch at every step of
+# every operation). 8: in jams a larger bound bought no throughput and cost 4x the tick
+# (docs/results.md, "A longer horizon per tick (EPIBT)").
+TRIES_PER_AGENT = 8
 _HEAD = 4  # operations of an agent turned into Python lists first (`_search.candidates`)
 _OPERATIONS: dict[int, np.ndarray] = {}
 
@@ -98,7 +102,7 @@ class EPIBTShield(PIBTShield):
                          anchor_patience=anchor_patience, guidance=guidance)
         self.horizon = int(horizon)
         self.ops = operations(self.horizon)
-        self.tries = 0  # operations tried in the last plan (the cost bound's counter)
+        self.tries = 0  # operations that pushed, taken in the last plan (the cost bound's count)
 
     # --- the tick -------------------------------------------------------------------------------
     def step(self, positions, rankings, fixed=None, reserved=()) -> ShieldStep:
@@ -251,9 +255,12 @@ class EPIBTShield(PIBTShield):
         def funnel(i: int) -> bool:
             for path in candidates(i):
                 blockers = free(i, path)
-                if blockers is None or (blockers and budget[0] <= 0):
+                if blockers is None:
                     continue
-                budget[0] -= 1
+                if blockers:  # a push: counted against the tick's bound
+                    if budget[0] <= 0:
+                        continue
+                    budget[0] -= 1
                 mark = len(journal)
                 assign(i, path)
                 if all(chosen[j] is not None or funnel(j) for j in blockers):
