@@ -36,7 +36,8 @@ def bench(tmp_path):
 
 
 def _run(*args):
-    return mapf_fleet(["evaluate", "--checkpoint", "heuristic", "--no-references", "--agents", "4",
+    return mapf_fleet(["evaluate", "--checkpoint", "heuristic", "--no-references",
+                       "--conflict-rule", "revert", "--agents", "4",
                        "--quiet", *map(str, args)])
 
 

@@ -18,10 +18,12 @@ ROSDEP_KEYS = {
     "numpy": "python3-numpy", "PyYAML": "python3-yaml", "scipy": "python3-scipy", "torch": "python3-torch",
     "tqdm": "python3-tqdm", "matplotlib": "python3-matplotlib", "ImageIO": "python3-imageio",
     "tensorboard": "python3-tensorboard-pip", "rosbags": "python3-rosbags-pip", "ray": None, "pymapf": None,
-    "foxglove-sdk": None,
+    "foxglove-sdk": None, "cmaes": None,
 }
 # optional extras, imported only to say they are missing (render: MP4 needs imageio-ffmpeg)
-OPTIONAL = {"imageio_ffmpeg"}
+OPTIONAL = {"imageio_ffmpeg",
+            # the POGEMA benchmark's, installed apart (<venv>/pogema, requirements-pogema.txt)
+            "pogema"}
 # imported only on a full ROS install (not installed here): ROS packages by their own names
 ROS_ONLY = {"launch", "launch_ros"}
 

@@ -28,12 +28,21 @@ REPO = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def pogema():
+    """pogema for this module's tests, then gone from the process again: its pydantic 1 (in
+    <venv>/pogema) must not be what a later test's Ray imports (Ray refuses pydantic 1)."""
+    path, modules = list(sys.path), set(sys.modules)
     try:
-        return pb.import_pogema()
+        yield pb.import_pogema()
     except pb.PogemaMissing as err:
         if os.environ.get("CI", "").strip().lower() in ("true", "1", "yes"):
             pytest.fail(f"CI=true: scripts/setup.sh installs pogema for CI; {err}")
         pytest.skip(str(err))
+    finally:
+        sys.path[:] = path
+        where = str(pb.pogema_dir())
+        for name in set(sys.modules) - modules:
+            if (getattr(sys.modules[name], "__file__", None) or "").startswith(where):
+                del sys.modules[name]
 
 
 def _instance(family: str, k: int = 0):

@@ -93,6 +93,9 @@ def test_restore_brings_back_the_handlers_and_the_wakeup_fd():
     from mapf_fleet.stop_signals import StopSignals
 
     before = signal.getsignal(signal.SIGINT)
+    # the wake-up fd before (an earlier test in this process may have left one installed)
+    fd_before = signal.set_wakeup_fd(-1)
+    signal.set_wakeup_fd(fd_before)
     with StopSignals() as signals:
         assert signal.getsignal(signal.SIGINT) == signals._handle
         signals.request(signal.SIGINT)
@@ -100,7 +103,7 @@ def test_restore_brings_back_the_handlers_and_the_wakeup_fd():
         assert signals.requested and signals.forced and signals.exit_code == 130
         assert signals.wait(10) and signals.event.is_set()
     assert signal.getsignal(signal.SIGINT) == before
-    assert signal.set_wakeup_fd(-1) == -1  # pytest's own (none) is back
+    assert signal.set_wakeup_fd(fd_before) == fd_before  # the one before is back
 
 
 @pytest.mark.parametrize("parent, stops", [("self", False), ("other", True)])

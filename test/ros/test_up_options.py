@@ -43,7 +43,8 @@ def test_every_up_option_has_help_and_states_its_default():
     shown = " ".join(parser.format_help().split())
     for stated in ("default: 256", "(default: 10.0)", "(default: 5.0)", "(default: 120.0)",
                    "(default: 0.3)", "seed of a generated instance (default: 0)",
-                   "(default: 1)", "default: 8 generated"):
+                   "default: chosen from the robot count and the memory available",
+                   "default: 8 generated"):
         assert stated in shown, stated
 
 
