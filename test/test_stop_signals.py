@@ -3,6 +3,9 @@
 signal, a child of a dead parent stops. Plain subprocesses, no ROS (`test/ros/` and
 test_stop_signals_fleet.py start real fleets)."""
 
+# Loopback only: every ROS process these tests start runs with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+# and its own ROS_DOMAIN_ID (test/conftest.py, ros_env / _isolate_ros_tests).
+
 from __future__ import annotations
 
 import os

@@ -4,6 +4,9 @@ crash on (issue 40, item 8 and "Scale"): `--planning-budget` without `--conflict
 (was a MemoryError traceback); and without `--nodes-per-process` it chooses the layout and says
 so (512 robots were started as 512 processes)."""
 
+# Loopback only: every ROS process these tests start runs with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+# and its own ROS_DOMAIN_ID (test/conftest.py, ros_env / _isolate_ros_tests).
+
 from __future__ import annotations
 
 import subprocess

@@ -3,6 +3,9 @@ recorder writes each tick to the file as it ends (rosbags' MCAP writer would kee
 memory), and `render --run` reads a bag without metadata.yaml or MCAP summary, saying so and that
 the bag ends without the run's outcome."""
 
+# Loopback only: every ROS process these tests start runs with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+# and its own ROS_DOMAIN_ID (test/conftest.py, ros_env / _isolate_ros_tests).
+
 from __future__ import annotations
 
 import os

@@ -6,6 +6,9 @@ on /fleet/moves instead (the per-robot topic the docs promise, still served). Th
 the moves are checked by the fleet == evaluator tests (test_fleet_equivalence.py), which run
 the batched path."""
 
+# Loopback only: every ROS process these tests start runs with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+# and its own ROS_DOMAIN_ID (test/conftest.py, ros_env / _isolate_ros_tests).
+
 from __future__ import annotations
 
 import json

@@ -10,6 +10,9 @@ core that ticks without robots moving (issue 40, items 2, 4, 6, 8):
 - `goal any` during an instance run is refused at once with the reason;
 - the feedback's time estimate follows a new tick period within a tick or two."""
 
+# Loopback only: every ROS process these tests start runs with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+# and its own ROS_DOMAIN_ID (test/conftest.py, ros_env / _isolate_ros_tests).
+
 from __future__ import annotations
 
 import subprocess
