@@ -6,6 +6,9 @@ pogema comes from scripts/setup.sh (step 3b, <venv>/pogema; CI runs that set-up 
 the tests that drive POGEMA skip, except under CI (CI=true), where they fail: CI must run them.
 """
 
+# The processes these tests start run the POGEMA benchmark (no ROS); an evaluation process sets
+# ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST itself should anything in it start ROS.
+
 from __future__ import annotations
 
 import os
