@@ -109,9 +109,7 @@ class EPIBTShield(PIBTShield):
         positions = self.check_positions(positions)
         n = self.num_agents
         asked = validate_rankings(rankings, n)
-        fixed = np.zeros(n, dtype=bool) if fixed is None else np.asarray(fixed, dtype=bool)
-        if fixed.shape != (n,):
-            raise ValueError(f"fixed must have shape ({n},), got {fixed.shape}")
+        fixed = self.check_fixed(fixed)
         first, held = self._first_moves(positions, asked, fixed, reserved)
         # the EPIBT move first, then the agent's own ranking without it
         others = asked[asked != first[:, None]].reshape(n, NUM_ACTIONS - 1)

@@ -272,6 +272,14 @@ class PIBTShield:
         return np.lexsort((ties, np.asarray(key))).astype(np.int64)
 
     # ------------------------------------------------------------------------------------------
+    def check_fixed(self, fixed) -> np.ndarray:
+        """`fixed` as an (N,) bool array of its own (None: nobody held); ValueError otherwise."""
+        n = self.num_agents
+        fixed = np.zeros(n, dtype=bool) if fixed is None else np.array(fixed, dtype=bool)
+        if fixed.shape != (n,):
+            raise ValueError(f"fixed must have shape ({n},), got {fixed.shape}")
+        return fixed
+
     def check_positions(self, positions) -> np.ndarray:
         positions = np.asarray(positions)
         if positions.shape != (self.num_agents, 2):
@@ -310,9 +318,7 @@ class PIBTShield:
         positions = self.check_positions(positions)
         n = self.num_agents
         prefs = validate_rankings(rankings, n)
-        fixed = np.zeros(n, dtype=bool) if fixed is None else np.asarray(fixed, dtype=bool)
-        if fixed.shape != (n,):
-            raise ValueError(f"fixed must have shape ({n},), got {fixed.shape}")
+        fixed = self.check_fixed(fixed)
         w = self.width
         current_flat = positions[:, 0] * w + positions[:, 1]
         current = current_flat.tolist()

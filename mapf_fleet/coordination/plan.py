@@ -415,9 +415,7 @@ class PlanKeeper:
         positions = self.fallback.check_positions(positions)
         n = self.num_agents
         prefs = validate_rankings(rankings, n)
-        fixed = np.zeros(n, dtype=bool) if fixed is None else np.asarray(fixed, dtype=bool).copy()
-        if fixed.shape != (n,):
-            raise ValueError(f"fixed must have shape ({n},), got {fixed.shape}")
+        fixed = self.fallback.check_fixed(fixed)
         w = self.width
         now = positions[:, 0] * w + positions[:, 1]
         reserved_flat = set()

@@ -177,8 +177,8 @@ class GuidanceSource:
                                 f"(*{SUFFIX}) or a cost model (*{MODEL_SUFFIX}); no such file: "
                                 f"{text}")
         if text.endswith(MODEL_SUFFIX):
-            CostModel.load(path)  # refused here, before anything starts
-            return cls("model", str(path))
+            # read once (refused here, before anything starts), not again for every map
+            return cls("model", str(path), model=CostModel.load(path))
         return cls("file", str(path))
 
     def __str__(self) -> str:
