@@ -1,6 +1,8 @@
 """`mapf-fleet guidance`: learned guidance for continuous operation.
 
     mapf-fleet guidance optimize --kinds dense --agents 64 --out runs/guidance/dense64
+    mapf-fleet guidance optimize --model online --init both --kinds warehouse --size 33 \
+        --agents 128 --out runs/guidance/online_warehouse128
     mapf-fleet guidance make --map M.map --guidance highways --out M.guidance.npz
 
 `optimize` learns a `grid.guidance_made.CostModel` (edge costs from local map features) with
@@ -9,14 +11,17 @@ each candidate runs `--episodes` lifelong episodes of plain PIBT under the fleet
 the family (`--kinds` / `--sizes`, a new draw of maps and goal streams every generation, the same
 draw for every candidate of a generation) or on one `--map`. The objective is exactly what
 `mapf-fleet evaluate --lifelong --checkpoint heuristic --guidance MODEL` measures (the same
-`lifelong_runs` and `rollout`). CMA-ES starts from theta = 0, unit costs: no guidance.
+`lifelong_runs` and `rollout`). CMA-ES starts from `--init`: none (theta = 0, unit costs, the
+default of the cost model) or a hand-made graph the model can express exactly (highways; and for
+`--model online`, whose costs also read recent traffic (`grid.guidance_online.OnlineModel`, Online
+GGO's recipe), congestion or both, its default), so the search begins at the best hand-made point.
 
 Rollouts run on Ray's local pool (`--workers N`, nice'd by the caller) or a cluster (`--address`),
 in this process with `--workers 1`. The state (the optimiser, history, best, CPU seconds) is
 written atomically after every generation to `OUT/state.pkl`; the same command resumes it after
 Ctrl-C or kill -9 (at most one generation lost). At the end the CMA-ES mean is measured on held-out
-seeds beside no guidance and the hand-made highways, and written as `OUT/NAME.costmodel.json`
-plus its card `OUT/NAME.md` (family, agents, throughput before and after, CPU-hours, command).
+seeds beside no guidance and the hand-made graphs, and written as `OUT/NAME.costmodel.json`
+(`OUT/NAME.online.json` for `--model online`) plus its card `OUT/NAME.md` (family, agents, throughput before and after, CPU-hours, command).
 """
 
 from __future__ import annotations
@@ -32,10 +37,14 @@ from pathlib import Path
 import numpy as np
 
 from mapf_fleet.coordination.rules import FLEET_RULE
-from mapf_fleet.grid.guidance_made import (FEATURES, HIGHWAYS, LOG_COST_CLIP, CostModel,
-                                           GuidanceSource)
+from mapf_fleet.grid.guidance_made import (CONGESTION, FEATURES, HIGHWAYS, LOG_COST_CLIP,
+                                           ONLINE, CostModel, GuidanceSource)
+from mapf_fleet.grid.guidance_online import PRESETS, TRAFFIC, OnlineModel
 
 KINDS = ("dense", "random", "maze", "rooms", "warehouse")
+MODELS = ("cost", ONLINE)  # what CMA-ES searches: a static CostModel or an OnlineModel
+# task keys added after runs were written: the value an older state.pkl ran with
+TASK_DEFAULTS = {"model": "cost"}
 # held-out draws are this far from the training seeds (never drawn by a generation)
 HELD_OUT_OFFSET = 1_000_003
 
@@ -99,12 +108,7 @@ def throughput(guidance, task: dict, seed: int, held_out: bool = False) -> tuple
     from .policies import build_policy, parse_policy, with_conflict_rule
 
     began = time.process_time()
-    if isinstance(guidance, CostModel):
-        source = GuidanceSource("model", model=guidance)
-    elif isinstance(guidance, GuidanceSource):
-        source = guidance
-    else:
-        source = GuidanceSource("model", model=CostModel.from_vector(guidance))
+    source = as_source(guidance, task)
     instances = task_instances(task, seed, held_out)
     runs = lifelong_runs(instances, task["steps"], task["rule"], seed, series=(),
                          guidance=source)
@@ -112,6 +116,35 @@ def throughput(guidance, task: dict, seed: int, held_out: bool = False) -> tuple
     rollout(policy, runs, shielded=True)
     value = float(np.mean([run.goals_reached for run in runs])) / task["steps"]
     return value, time.process_time() - began
+
+
+def as_source(guidance, task: dict) -> GuidanceSource:
+    """A `GuidanceSource` of a source, a model, or a parameter vector of the task's model."""
+    if isinstance(guidance, GuidanceSource):
+        return guidance
+    if isinstance(guidance, OnlineModel):
+        return GuidanceSource(ONLINE, model=guidance)
+    if isinstance(guidance, CostModel):
+        return GuidanceSource("model", model=guidance)
+    return as_source(model_of(guidance, task), task)
+
+
+def model_of(vector, task: dict, meta: dict | None = None):
+    """The task's model (`task["model"]`) of a flat parameter vector."""
+    if task.get("model") == ONLINE:
+        return OnlineModel.from_vector(vector, meta)
+    return CostModel.from_vector(vector, meta)
+
+
+def initial_vector(model: str, init: str) -> np.ndarray:
+    """CMA-ES's first mean: the hand-made graph `init` as the model's parameters."""
+    start = OnlineModel.preset(init)
+    if model == ONLINE:
+        return start.vector()
+    if start.phi.any():
+        raise ValueError(f"--init {init} reads traffic: a static cost model cannot express it "
+                         f"(--model online can)")
+    return np.append(start.theta, start.wait)
 
 
 def _remote_throughput(vector, task, seed):
@@ -152,7 +185,7 @@ def _task(args) -> dict:
     pogema = args.kinds[0] if args.kinds[0] in POGEMA_FAMILIES else None
     return {"kind": args.kinds[0] if not (args.map or pogema) else None, "size": args.size,
             "agents": args.agents, "episodes": args.episodes, "steps": args.steps,
-            "rule": args.conflict_rule, "map": args.map, "pogema": pogema}
+            "rule": args.conflict_rule, "map": args.map, "pogema": pogema, "model": args.model}
 
 
 def optimize(args) -> int:
@@ -168,7 +201,8 @@ def optimize(args) -> int:
     if state_path.exists():
         with open(state_path, "rb") as f:
             state = pickle.load(f)
-        state["task"] = {**dict.fromkeys(task), **state["task"]}  # a key added since: unset
+        # a key added since: unset, or the value older runs had
+        state["task"] = {**dict.fromkeys(task), **TASK_DEFAULTS, **state["task"]}
         if state["task"] != task:
             print(f"mapf-fleet guidance optimize: {state_path} holds a run of another task "
                   f"({state['task']}); use another --out", file=sys.stderr)
@@ -176,14 +210,21 @@ def optimize(args) -> int:
         print(f"[guidance] resuming {state_path} at generation {state['generation']}",
               file=sys.stderr, flush=True)
     else:
-        dim = len(FEATURES) + 1
+        mean = initial_vector(args.model, args.init)
+        dim = len(mean)
         state = {"task": task, "command": command, "generation": 0, "history": [],
-                 "best": None, "cpu_seconds": 0.0, "wall_seconds": 0.0,
-                 "optimizer": CMA(mean=np.zeros(dim), sigma=args.sigma, seed=args.seed,
+                 "best": None, "cpu_seconds": 0.0, "wall_seconds": 0.0, "init": args.init,
+                 "optimizer": CMA(mean=mean, sigma=args.sigma, seed=args.seed,
                                   population_size=args.popsize,
                                   bounds=np.tile([-args.bound, args.bound], (dim, 1)))}
     evaluate = Evaluator(args.workers, args.address)
     opt = state["optimizer"]
+    # cmaes pickles its optimiser without the sampler's generator and unpickles a fresh, unseeded
+    # one: a resumed run would draw other candidates than the run it continues. The generator's
+    # state travels in our state instead (a state written without it: seeded by the generation)
+    opt._rng = np.random.RandomState([args.seed, state["generation"]])
+    if state.get("rng") is not None:
+        opt._rng.set_state(state["rng"])
     with StopSignals() as stop:
         while state["generation"] < args.generations and not stop.requested:
             began = time.perf_counter()
@@ -203,6 +244,7 @@ def optimize(args) -> int:
             state["cpu_seconds"] += sum(cpu for _, cpu in results)
             state["wall_seconds"] += time.perf_counter() - began
             state["generation"] = gen + 1
+            state["rng"] = opt._rng.get_state()
             _save(state_path, state)
             print(f"[guidance] generation {gen + 1}/{args.generations}: throughput mean "
                   f"{np.mean(values):.3f} max {values[k]:.3f} sigma {opt._sigma:.3f} "
@@ -216,22 +258,30 @@ def optimize(args) -> int:
 
 
 def finish(args, state: dict, evaluate, out: Path) -> int:
-    """Measure the CMA-ES mean on held-out draws beside none and highways; write the model and
-    its card."""
+    """Measure the CMA-ES mean on held-out draws beside none, the hand-made graphs and the point
+    it started from; write the model and its card."""
     task = dict(state["task"], episodes=args.held_out)
     seed = args.seed * 100_003 + HELD_OUT_OFFSET
-    model = CostModel.from_vector(state["optimizer"].mean, meta={
+    online = task["model"] == ONLINE
+    model = model_of(state["optimizer"].mean, task, meta={
         "family": _family(task), "agents": task["agents"], "rule": task["rule"],
-        "generations": state["generation"], "command": state["command"]})
+        "generations": state["generation"], "init": state.get("init", "none"),
+        "command": state["command"]})
+    candidates = [("none", GuidanceSource.parse("none")),
+                  (HIGHWAYS, GuidanceSource.parse(HIGHWAYS)),
+                  (CONGESTION, GuidanceSource.parse(CONGESTION))]
+    if state.get("init", "none") not in ("none", HIGHWAYS, CONGESTION):
+        candidates.append(("start", model_of(initial_vector(task["model"], state["init"]),
+                                             task)))
     rows = {}
-    for name, guidance in (("none", GuidanceSource.parse("none")),
-                           (HIGHWAYS, GuidanceSource.parse(HIGHWAYS)), ("learned", model)):
+    for row, guidance in (*candidates, ("learned", model)):
         value, cpu = throughput(guidance, task, seed, held_out=True)
-        rows[name] = value
+        rows[row] = value
         state["cpu_seconds"] += cpu
-    name = args.name or f"{_family(task).replace(' ', '_')}_{task['agents']}"
+    name = args.name or f"{'online_' if online else ''}{_family(task).replace(' ', '_')}_" \
+                        f"{task['agents']}"
     model.meta.update({"held_out_throughput": rows, "cpu_hours": state["cpu_seconds"] / 3600})
-    model_path = model.save(out / f"{name}.costmodel.json")
+    model_path = model.save(out / f"{name}{'.online.json' if online else '.costmodel.json'}")
     card = out / f"{name}.md"
     card.write_text(card_text(name, task, rows, state, model, args))
     print(card.read_text())
@@ -247,24 +297,35 @@ def _family(task: dict) -> str:
     return f"{task['kind']} {task['size']}x{task['size']}"
 
 
+ROW_NAMES = {"none": "none (plain PIBT)", HIGHWAYS: "highways (hand-made)",
+             CONGESTION: "congestion (hand-made, online)", "start": "the starting point",
+             "learned": "learned (this model)"}
+
+
 def card_text(name, task, rows, state, model, args) -> str:
+    online = isinstance(model, OnlineModel)
+    hand = max(rows.get(HIGHWAYS, 0.0), rows.get(CONGESTION, 0.0))
     gain = rows["learned"] / rows["none"] - 1 if rows["none"] else float("nan")
-    vs_hand = rows["learned"] / rows[HIGHWAYS] - 1 if rows[HIGHWAYS] else float("nan")
+    vs_hand = rows["learned"] / hand - 1 if hand else float("nan")
     theta = ", ".join(f"{f} {v:+.3f}" for f, v in zip(FEATURES, model.theta))
-    return (f"# Guidance cost model `{name}`\n\n"
-            f"Learned by CMA-ES against lifelong throughput of plain PIBT under `{task['rule']}`.\n\n"
+    if online:
+        theta += "; traffic: " + ", ".join(f"{f} {v:+.3f}" for f, v in zip(TRAFFIC, model.phi))
+        theta += f"; decay {model.decay}, period {model.period}"
+    table = "".join(f"| {ROW_NAMES[k]} | {v:.3f} |\n" for k, v in rows.items())
+    return (f"# Guidance {'online model' if online else 'cost model'} `{name}`\n\n"
+            f"Learned by CMA-ES against lifelong throughput of plain PIBT under `{task['rule']}`"
+            f"{', costs recomputed from recent traffic every ' + str(model.period) + ' ticks' if online else ''}"
+            f".\n\n"
             f"- maps: {_family(task)}; agents: {task['agents']}; {task['steps']} steps per "
             f"episode, {task['episodes']} episodes per held-out row ({args.episodes} per "
             f"candidate in training)\n"
             f"- CMA-ES: {state['generation']} generations of {state['optimizer'].population_size}"
-            f" candidates, sigma0 {args.sigma}; {state['cpu_seconds'] / 3600:.2f} CPU-hours, "
+            f" candidates, sigma0 {args.sigma}, from {state.get('init', 'none')}; "
+            f"{state['cpu_seconds'] / 3600:.2f} CPU-hours, "
             f"{state['wall_seconds'] / 3600:.2f} h wall\n"
             f"- parameters: {theta}; wait {model.wait:+.3f}\n\n"
-            f"| guidance | throughput (goals/step, held-out draws) |\n|---|---:|\n"
-            f"| none (plain PIBT) | {rows['none']:.3f} |\n"
-            f"| highways (hand-made) | {rows[HIGHWAYS]:.3f} |\n"
-            f"| learned (this model) | {rows['learned']:.3f} |\n\n"
-            f"Learned over none: {gain:+.1%}; over highways: {vs_hand:+.1%}.\n\n"
+            f"| guidance | throughput (goals/step, held-out draws) |\n|---|---:|\n{table}\n"
+            f"Learned over none: {gain:+.1%}; over the best hand-made graph: {vs_hand:+.1%}.\n\n"
             f"Command: `{state['command']}`\n")
 
 
@@ -285,6 +346,14 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="mapf-fleet guidance", description=__doc__.split("\n")[0])
     sub = p.add_subparsers(dest="action", required=True)
     o = sub.add_parser("optimize", help="learn a guidance cost model by CMA-ES (resumable)")
+    o.add_argument("--model", default="cost", choices=MODELS,
+                   help="cost: edge costs from the map (*.costmodel.json, default); online: "
+                        "from the map and recent traffic, updated as the fleet moves "
+                        "(*.online.json)")
+    o.add_argument("--init", choices=PRESETS,
+                   help="CMA-ES's starting point, a hand-made graph the model expresses "
+                        "exactly: none, highways; congestion and both (highways and congestion) "
+                        "with --model online (default: none for cost, both for online)")
     o.add_argument("--kinds", nargs=1, default=["dense"], choices=KINDS + POGEMA_FAMILIES,
                    help="map family (default dense: random maps of 17-21 cells; pogema-*: the "
                         "POGEMA benchmark's maps after its first 32, which stay held out)")
@@ -323,6 +392,13 @@ def main(argv: list[str] | None = None) -> int:
     from mapf_fleet.coordination.rules import Rule
 
     args.conflict_rule = Rule.parse(args.conflict_rule, "--conflict-rule").name
+    if args.init is None:
+        args.init = "both" if args.model == ONLINE else "none"
+    try:
+        initial_vector(args.model, args.init)
+    except ValueError as exc:
+        print(f"mapf-fleet guidance optimize: {exc}", file=sys.stderr)
+        return 2
     for name in ("agents", "steps", "episodes", "held_out", "generations", "popsize", "workers"):
         if getattr(args, name) < 1:
             print(f"mapf-fleet guidance optimize: --{name.replace('_', '-')} must be >= 1",
@@ -331,4 +407,4 @@ def main(argv: list[str] | None = None) -> int:
     return optimize(args)
 
 
-__all__ = ["throughput", "optimize", "main"]
+__all__ = ["throughput", "optimize", "main", "as_source", "model_of", "initial_vector"]

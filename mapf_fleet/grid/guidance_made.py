@@ -14,8 +14,9 @@
   guidance for maps it never saw.
 - `CongestionFlow`: costs updated online from the robots' recent moves (traffic flow), no
   training: `--guidance congestion`.
-- `GuidanceSource.parse(value)`: "none", "highways", "congestion", a guidance file (`*.guidance.npz`, one map)
-  or a cost model (`*.costmodel.json`, any map), parsed once where a value enters (the CLI, a
+- `GuidanceSource.parse(value)`: "none", "highways", "congestion", a guidance file (`*.guidance.npz`, one map),
+  a cost model (`*.costmodel.json`, any map) or an online model (`*.online.json`, any map: costs
+  from the map and recent traffic, `guidance_online`), parsed once where a value enters (the CLI, a
   ROS parameter); `source.for_map(grid)` gives the map's `Guidance` (None for "none").
 """
 
@@ -32,6 +33,9 @@ from .guidance import NONE, SUFFIX, Guidance, GuidanceError
 
 HIGHWAYS = "highways"
 MODEL_SUFFIX = ".costmodel.json"
+# online learned guidance (`guidance_online`, which imports this module: named here for parse)
+ONLINE = "online"
+ONLINE_SUFFIX = ".online.json"
 # the cost of moving against a highway lane (with it: 1); chosen by measurement
 # (docs/results.md, "Continuous operation with guidance")
 HIGHWAY_AGAINST = 2.0
@@ -155,12 +159,13 @@ class CostModel:
 
 @dataclass(frozen=True)
 class GuidanceSource:
-    """What a `--guidance` value names: `kind` none, highways, file or model; `path` for the
-    last two. Parse once with `GuidanceSource.parse`; `for_map(grid)` per map."""
+    """What a `--guidance` value names: `kind` none, highways, congestion, file, model or online;
+    `path` for the last three. Parse once with `GuidanceSource.parse`; `for_map(grid)` per map."""
 
     kind: str
     path: str = ""
-    model: "CostModel | None" = field(default=None, compare=False, hash=False)  # in memory
+    # in memory: a CostModel (kind model) or a guidance_online.OnlineModel (kind online)
+    model: "CostModel | None" = field(default=None, compare=False, hash=False)
 
     @classmethod
     def parse(cls, value) -> "GuidanceSource":
@@ -174,11 +179,15 @@ class GuidanceSource:
         path = Path(text)
         if not path.is_file():
             raise GuidanceError(f"guidance must be 'none', 'highways', 'congestion', a guidance file "
-                                f"(*{SUFFIX}) or a cost model (*{MODEL_SUFFIX}); no such file: "
-                                f"{text}")
+                                f"(*{SUFFIX}), a cost model (*{MODEL_SUFFIX}) or an online model "
+                                f"(*{ONLINE_SUFFIX}); no such file: {text}")
         if text.endswith(MODEL_SUFFIX):
             # read once (refused here, before anything starts), not again for every map
             return cls("model", str(path), model=CostModel.load(path))
+        if text.endswith(ONLINE_SUFFIX):
+            from .guidance_online import OnlineModel
+
+            return cls(ONLINE, str(path), model=OnlineModel.load(path))
         return cls("file", str(path))
 
     def __str__(self) -> str:
@@ -186,10 +195,15 @@ class GuidanceSource:
 
     @property
     def online(self) -> bool:
-        """The graph changes as the fleet moves (`CongestionFlow`): the run updates it."""
-        return self.kind == CONGESTION
+        """The graph changes as the fleet moves (`CongestionFlow`, `OnlineFlow`): the run
+        updates it."""
+        return self.kind in (CONGESTION, ONLINE)
 
     def flow(self, grid) -> "CongestionFlow | None":
+        if self.kind == ONLINE:
+            from .guidance_online import OnlineFlow, OnlineModel
+
+            return OnlineFlow(grid, self.model or OnlineModel.load(self.path))
         return CongestionFlow(grid) if self.online else None
 
     @property
@@ -200,7 +214,7 @@ class GuidanceSource:
         if not self.path:
             return self.kind
         name = Path(self.path).name
-        for suffix in (MODEL_SUFFIX, SUFFIX):
+        for suffix in (MODEL_SUFFIX, ONLINE_SUFFIX, SUFFIX):
             name = name.removesuffix(suffix)
         return name
 
@@ -213,6 +227,10 @@ class GuidanceSource:
             return None  # unit costs until the first update (`CongestionFlow`)
         if self.kind == "model":
             return (self.model or CostModel.load(self.path)).guidance(grid)
+        if self.kind == ONLINE:  # its static part until the first update (`OnlineFlow`)
+            from .guidance_online import OnlineModel
+
+            return (self.model or OnlineModel.load(self.path)).guidance(grid)
         return Guidance.load(self.path, grid)
 
 
