@@ -21,7 +21,8 @@ in this process with `--workers 1`. The state (the optimiser, history, best, CPU
 written atomically after every generation to `OUT/state.pkl`; the same command resumes it after
 Ctrl-C or kill -9 (at most one generation lost). At the end the CMA-ES mean is measured on held-out
 seeds beside no guidance and the hand-made graphs, and written as `OUT/NAME.costmodel.json`
-(`OUT/NAME.online.json` for `--model online`) plus its card `OUT/NAME.md` (family, agents, throughput before and after, CPU-hours, command).
+(`OUT/NAME.online.json` for `--model online`) plus its card `OUT/NAME.md` (family, agents,
+throughput before and after, CPU-hours, command).
 """
 
 from __future__ import annotations
@@ -312,10 +313,10 @@ def card_text(name, task, rows, state, model, args) -> str:
         theta += "; traffic: " + ", ".join(f"{f} {v:+.3f}" for f, v in zip(TRAFFIC, model.phi))
         theta += f"; decay {model.decay}, period {model.period}"
     table = "".join(f"| {ROW_NAMES[k]} | {v:.3f} |\n" for k, v in rows.items())
+    updated = f", costs recomputed from recent traffic every {model.period} ticks" if online else ""
     return (f"# Guidance {'online model' if online else 'cost model'} `{name}`\n\n"
             f"Learned by CMA-ES against lifelong throughput of plain PIBT under `{task['rule']}`"
-            f"{', costs recomputed from recent traffic every ' + str(model.period) + ' ticks' if online else ''}"
-            f".\n\n"
+            f"{updated}.\n\n"
             f"- maps: {_family(task)}; agents: {task['agents']}; {task['steps']} steps per "
             f"episode, {task['episodes']} episodes per held-out row ({args.episodes} per "
             f"candidate in training)\n"

@@ -14,10 +14,11 @@
   guidance for maps it never saw.
 - `CongestionFlow`: costs updated online from the robots' recent moves (traffic flow), no
   training: `--guidance congestion`.
-- `GuidanceSource.parse(value)`: "none", "highways", "congestion", a guidance file (`*.guidance.npz`, one map),
-  a cost model (`*.costmodel.json`, any map) or an online model (`*.online.json`, any map: costs
-  from the map and recent traffic, `guidance_online`), parsed once where a value enters (the CLI, a
-  ROS parameter); `source.for_map(grid)` gives the map's `Guidance` (None for "none").
+- `GuidanceSource.parse(value)`: "none", "highways", "congestion", a guidance file
+  (`*.guidance.npz`, one map), a cost model (`*.costmodel.json`, any map) or an online model
+  (`*.online.json`, any map: costs from the map and recent traffic, `guidance_online`), parsed
+  once where a value enters (the CLI, a ROS parameter); `source.for_map(grid)` gives the map's
+  `Guidance` (None for "none").
 """
 
 from __future__ import annotations
@@ -178,9 +179,9 @@ class GuidanceSource:
             return cls(text)
         path = Path(text)
         if not path.is_file():
-            raise GuidanceError(f"guidance must be 'none', 'highways', 'congestion', a guidance file "
-                                f"(*{SUFFIX}), a cost model (*{MODEL_SUFFIX}) or an online model "
-                                f"(*{ONLINE_SUFFIX}); no such file: {text}")
+            raise GuidanceError(f"guidance must be 'none', 'highways', 'congestion', a guidance "
+                                f"file (*{SUFFIX}), a cost model (*{MODEL_SUFFIX}) or an online "
+                                f"model (*{ONLINE_SUFFIX}); no such file: {text}")
         if text.endswith(MODEL_SUFFIX):
             # read once (refused here, before anything starts), not again for every map
             return cls("model", str(path), model=CostModel.load(path))
