@@ -164,29 +164,31 @@ class FleetStateAggregator(fleet_io.LockstepNode):
 
     # ---- the tick loop (own thread) ----
     def _wait_for_poses(self, timeout: float) -> list[int]:
-        """Wait for every robot's first valid pose and every policy node; progress every
-        WAIT_LOG_PERIOD_S. The robots still without a pose (stopped: at once)."""
-        subscribers = int(self.params["state_subscribers"])
+        """Wait for every robot's first valid pose, every policy node and the state's listeners
+        (`state_heard_by_fleet`); progress every WAIT_LOG_PERIOD_S. The robots still without a
+        pose (stopped: at once)."""
         deadline = time.monotonic() + timeout
+
+        def posed_and_heard() -> bool:
+            return bool((self.positions[:, 0] >= 0).all()) and self.state_heard_by_fleet()
+
         while not self.ticker.stopped:
             left = deadline - time.monotonic()
-            unready = self.ticker.wait_ready(
-                min(WAIT_LOG_PERIOD_S, max(left, 0.0)),
-                also=lambda: bool((self.positions[:, 0] >= 0).all())
-                and self.channels.state_heard(subscribers,
-                                              str(self.params["state_recorder"])))
+            unready = self.ticker.wait_ready(min(WAIT_LOG_PERIOD_S, max(left, 0.0)),
+                                             also=posed_and_heard)
             with self._cond:
                 unposed = np.flatnonzero(self.positions[:, 0] < 0).tolist()
-            if (not unposed and not unready) or left <= WAIT_LOG_PERIOD_S:
+            heard = self.state_heard_by_fleet()
+            if (not unposed and not unready and heard) or left <= WAIT_LOG_PERIOD_S:
                 break
             if not self.ticker.stopped:
-                self.get_logger().info(
-                    f"waiting for poses from robots {unposed} and policy nodes of robots "
-                    f"{unready} ({max(left, 0):.0f} s left of startup_timeout {timeout} s)"
-                    if unready and unposed else
-                    f"waiting for poses from robots {unposed} ({max(left, 0):.0f} s left)"
-                    if unposed else
-                    f"waiting for the policy nodes of robots {unready} ({max(left, 0):.0f} s left)")
+                waiting = ([f"poses from robots {unposed}"] if unposed else []) + (
+                    [f"the policy nodes of robots {unready}"] if unready else []) + (
+                    [] if heard else ["every policy process (and a bag recorder) to hear the "
+                                      "fleet state"])
+                self.get_logger().info(f"waiting for {' and '.join(waiting)} "
+                                       f"({max(left, 0):.0f} s left of startup_timeout "
+                                       f"{timeout} s)")
         with self._cond:
             return np.flatnonzero(self.positions[:, 0] < 0).tolist()
 

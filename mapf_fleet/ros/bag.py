@@ -25,6 +25,17 @@ FLUSH_PERIOD_S: a killed recorder (even `kill -9`) loses at most the messages of
 flight. Such a bag lacks its MCAP summary and metadata.yaml; `mapf-fleet render --run` reads
 it anyway (`view.bag_salvage`) and says so.
 
+Ready before tick 0 (`--expect TOPIC=COUNT ...`, as `up --bag` starts it): a message published
+before the recorder's subscription is matched to its publisher is lost to the bag (the topics
+are volatile but the latched ones), and `up`'s tick 0 waits only for the recorder's subscription
+to the fleet state (the simulator's `state_recorder`). So with `--expect` the recorder subscribes
+to the fleet state last: once each expected TOPIC has at least COUNT matched publishers (`up`:
+every policy process's moves, one publisher per process on /fleet/move_batches, or /fleet/moves
+with `per_robot_messages`; the simulator's progress) and every other volatile topic it records
+has matched every publisher the graph shows (`BagRecorder.unmatched`), or after
+`--expect-timeout` seconds (then it says which were missing). The readiness condition is stated
+once, here; the simulator only checks that the recorder hears the state.
+
 SIGINT or SIGTERM (or `--duration`) stops it: it closes the bag (metadata.yaml written) and
 exits 0. The fleet launcher starts it as a child process with `recorder_command(bag_dir)` and
 stops it with `stop_recorder(proc)`.
@@ -71,6 +82,7 @@ READY_PREFIX = "mapf-fleet record: recording to"
 OUTCOME_PREFIX = "mapf-fleet record: outcome recorded"  # printed once, on the first outcome
 RECORDER_NODE = "mapf_fleet_recorder"  # the simulator waits for its state subscription
 DISCOVERY_PERIOD_S = 0.25
+HOLD_CHECK_PERIOD_S = 0.05  # with `expect`: how often the matches are checked before tick 0
 FLUSH_PERIOD_S = 1.0  # longest time a received message stays in memory only
 OUTCOME_WAIT_S = 5.0  # `up` gone: how long the recorder waits for its stopped fleet's outcome
 
@@ -139,10 +151,12 @@ class BagRecorder:
     `bag_dir`. `topics` None: the fleet's topics in `namespace` (FLEET_TOPICS at once, the rest
     of `default_topic_re(namespace)` as discovered); else exactly those names. Call `discover()` periodically
     (the constructor arms a timer on the node for it) and `close()` once the node has stopped
-    spinning."""
+    spinning. `expect` ({topic: publishers}): the fleet state is subscribed only once `ready`
+    (see the module's doc), or after `expect_timeout` seconds."""
 
     def __init__(self, node, bag_dir, topics: list[str] | None = None, log=None,
-                 namespace: str = ""):
+                 namespace: str = "", expect: dict[str, int] | None = None,
+                 expect_timeout: float = 120.0):
         from rosbags.rosbag2 import StoragePlugin, Writer
         from rosbags.rosbag2.errors import WriterError
 
@@ -151,6 +165,16 @@ class BagRecorder:
         self.bag_dir = Path(bag_dir)
         self.log = log or (lambda text: print(text, file=sys.stderr, flush=True))
         self.topics = None if topics is None else list(dict.fromkeys(topics))
+        self.pattern = default_topic_re(namespace)
+        self.expect = dict(expect or {})  # checked before the bag's directory is made
+        state = common.in_namespace(common.STATE_TOPIC, namespace)
+        for topic, count in self.expect.items():
+            if topic == state:
+                raise RecordError(f"expected publishers of {topic}: the fleet state is what "
+                                  "tick 0 waits for, subscribed last; expect other topics")
+            if not self.wanted(topic) or int(count) < 1:
+                raise RecordError(f"expected publishers {topic}={count}: not a topic this "
+                                  "recorder records, or a count below 1")
         self.typestore = fleet_typestore()
         if self.bag_dir.exists():
             raise RecordError(f"{self.bag_dir} exists already: a rosbag2 is written into a new "
@@ -168,15 +192,69 @@ class BagRecorder:
         self._subscriptions = {}  # topic -> (connection, subscription)
         self._skipped: set[str] = set()
         self.counts: dict[str, int] = {}
-        self.pattern = default_topic_re(namespace)
         fleet = {common.in_namespace(name, namespace): type_name
                  for name, type_name in FLEET_TOPICS.items()}
         wanted = fleet if self.topics is None else {
             name: fleet[name] for name in self.topics if name in fleet}
+        # topic -> type, subscribed once every expected publisher is matched
+        self._held = {state: wanted[state]} if self.expect and state in wanted else {}
         for name, type_name in wanted.items():
-            self._subscribe(name, type_name, node.get_publishers_info_by_topic(name))
+            if name not in self._held:
+                self._subscribe(name, type_name, node.get_publishers_info_by_topic(name))
         self.discover()
         self._timer = node.create_timer(DISCOVERY_PERIOD_S, self._on_timer)
+        self._hold_timer = None
+        if self._held:
+            self._hold_deadline = time.monotonic() + expect_timeout
+            self._expect_timeout = expect_timeout
+            self._hold_timer = node.create_timer(HOLD_CHECK_PERIOD_S, self._check_hold)
+
+    @property
+    def ready(self) -> bool:
+        """Every topic is subscribed, the fleet state included (with `expect`: once matched)."""
+        return not self._held
+
+    def unmatched(self, expected_only: bool = False) -> list[str]:
+        """What keeps the recorder from being ready, e.g. "/fleet/move_batches (1 of 2
+        publishers matched)": each expected topic with fewer matched publishers than expected,
+        each other volatile topic recorded with fewer than the graph shows (the latched ones
+        keep their last message for a subscription matched late)."""
+        from mapf_fleet.ros.echo import is_latched_topic
+
+        missing = []
+        for topic, count in self.expect.items():
+            entry = self._subscriptions.get(topic)
+            matched = entry[1].get_publisher_count() if entry else 0
+            if matched < count:
+                missing.append(f"{topic} ({matched} of {count} publishers matched)")
+        if expected_only:
+            return missing
+        for topic, (_, subscription) in list(self._subscriptions.items()):
+            if topic in self.expect or is_latched_topic(topic):
+                continue
+            known, matched = self.node.count_publishers(topic), subscription.get_publisher_count()
+            if matched < known:
+                missing.append(f"{topic} ({matched} of {known} publishers matched)")
+        return missing
+
+    def _check_hold(self):
+        """With `expect`: subscribe the held fleet state once nothing is unmatched, or at the
+        deadline (saying what was missing)."""
+        if self._closed or not self._held:
+            return
+        timed_out = time.monotonic() >= self._hold_deadline
+        # the graph's count of every robot's topics only once the policy processes are matched
+        missing = self.unmatched(expected_only=not timed_out) or self.unmatched()
+        if missing and not timed_out:
+            return
+        if missing:
+            self.log(f"mapf-fleet record: subscribing to the fleet state after "
+                     f"{self._expect_timeout:g} s without {', '.join(missing)}: the bag may "
+                     "lack their first messages")
+        held, self._held = self._held, {}
+        for name, type_name in held.items():
+            self._subscribe(name, type_name, self.node.get_publishers_info_by_topic(name))
+        self._hold_timer.cancel()
 
     def _on_timer(self):
         self.discover()
@@ -203,7 +281,8 @@ class BagRecorder:
         if self._closed:
             return
         for name, types in self.node.get_topic_names_and_types():
-            if name in self._subscriptions or name in self._skipped or not self.wanted(name):
+            if name in self._subscriptions or name in self._skipped or name in self._held \
+                    or not self.wanted(name):
                 continue
             self._subscribe(name, types[0], self.node.get_publishers_info_by_topic(name))
 
@@ -281,16 +360,21 @@ def _wait_for_outcome(recorder: BagRecorder, timeout: float) -> None:
 
 
 def recorder_command(bag_dir, topics: list[str] | None = None, namespace: str = "",
-                     python: str | None = None) -> list[str]:
+                     python: str | None = None, expect: dict[str, int] | None = None,
+                     expect_timeout: float = 120.0) -> list[str]:
     """The command line that records the fleet's topics into the new rosbag2 `bag_dir`, for a
     launcher to start as a child process (with the fleet's environment: ROS_DOMAIN_ID,
     ROS_AUTOMATIC_DISCOVERY_RANGE). It prints a line starting with READY_PREFIX on stdout once
-    its subscriptions exist; stop it with `stop_recorder`."""
+    its subscriptions exist (with `expect`, the fleet state's only once those publishers are
+    matched, or after `expect_timeout` s: `BagRecorder`); stop it with `stop_recorder`."""
     command = [python or sys.executable, "-m", "mapf_fleet.cli", "record", str(bag_dir)]
     if namespace.strip("/"):
         command += ["--namespace", namespace]
     if topics:
         command += ["--topics", *topics]
+    if expect:
+        command += ["--expect", *(f"{topic}={count}" for topic, count in expect.items()),
+                    "--expect-timeout", f"{expect_timeout:g}"]
     return command
 
 
@@ -320,7 +404,24 @@ def main(argv: list[str] | None = None) -> int:
                              "/NS/robot_<i>/...")
     parser.add_argument("--duration", type=float, default=0.0,
                         help="stop after this many seconds (default: until SIGINT/SIGTERM)")
+    parser.add_argument("--expect", nargs="+", metavar="TOPIC=COUNT", default=[],
+                        help="subscribe to the fleet state (what `up`'s tick 0 waits for) only "
+                             "once each TOPIC has COUNT matched publishers and every other "
+                             "volatile topic recorded all its publishers (`up --bag`: every "
+                             "policy process's moves)")
+    parser.add_argument("--expect-timeout", type=float, default=120.0, metavar="SECONDS",
+                        help="with --expect: subscribe to the state anyway after this long "
+                             "(default 120)")
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
+    expect = {}
+    for item in args.expect:
+        topic, _, count = item.rpartition("=")
+        if not topic.startswith("/") or not count.isdigit() or int(count) < 1:
+            parser.error(f"--expect {item}: give TOPIC=COUNT, an absolute topic name and a "
+                         "count >= 1")
+        expect[topic] = int(count)
+    if args.expect_timeout <= 0:
+        parser.error(f"--expect-timeout must be > 0 (got {args.expect_timeout:g})")
     if args.topics:
         bad = [t for t in args.topics if not t.startswith("/")]
         if bad:
@@ -333,7 +434,8 @@ def main(argv: list[str] | None = None) -> int:
         if stop.event.is_set():
             return 0
         try:
-            recorder = BagRecorder(node, args.bag_dir, args.topics, namespace=args.namespace)
+            recorder = BagRecorder(node, args.bag_dir, args.topics, namespace=args.namespace,
+                                   expect=expect, expect_timeout=args.expect_timeout)
         except RecordError as exc:
             print(f"mapf-fleet record: {exc}", file=sys.stderr)
             return 2

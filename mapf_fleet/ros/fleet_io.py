@@ -287,6 +287,17 @@ class LockstepNode(Node):
     def start(self):
         self._thread.start()
 
+    def state_heard_by_fleet(self) -> bool:
+        """Tick 0's condition on the state's listeners (with every robot ready, and for the
+        aggregator every pose): every process whose robots reported ready hears the state (a
+        hub that has the map and its peers may not yet be matched by the state's publisher,
+        and a state it does not hear is a tick its robots miss), at least `state_subscribers`
+        do, and with `state_recorder` that node (`up --bag`'s recorder, which subscribes once
+        it has matched every topic it records) is among them."""
+        return self.channels.state_heard(
+            max(int(self.params["state_subscribers"]), self.ticker.ready_hosts()),
+            str(self.params["state_recorder"]))
+
     def run_ticks(self, run, summary_extra=lambda: "") -> FleetOutcome:
         """Tick `run` with `self._step` and `self._publish_state` until it ends
         (`fleet.tick_loop.TickLoop`, its docstring the specification); the outcome."""

@@ -122,6 +122,7 @@ def prepare(argv: list[str]):
     if warning:
         plan.warnings.append(warning)
     if args.bag:  # tick 0 waits until the hubs and the recorder hear the state: no tick missed
+        # (the recorder subscribes to it once it has matched every hub: bag_recording)
         from mapf_fleet.ros.bag import RECORDER_NODE
 
         sim["state_subscribers"] = (
@@ -275,7 +276,8 @@ def run_processes(num_robots, plan, args, env) -> tuple[int, str]:
     signals = stop_signals()
     if signals.requested:
         return signals.exit_code, ""
-    with bag_recording(args, env, signals) as recorder:
+    with bag_recording(args, env, signals, recorder_expectations(num_robots, plan, args),
+                       float(plan.sim["startup_timeout"])) as recorder:
         if recorder is False:
             return (signals.exit_code or 2), ""
         children: list[Child] = []
@@ -312,14 +314,29 @@ def run_processes(num_robots, plan, args, env) -> tuple[int, str]:
     return (1 if problem else code), problem
 
 
+def recorder_expectations(num_robots: int, plan, args) -> dict[str, int]:
+    """The publishers the bag recorder matches before it subscribes to the fleet state, which
+    tick 0 waits for (`bag.BagRecorder`, the simulator's `state_recorder`): every policy
+    process's moves (one publisher per process: /fleet/move_batches, or /fleet/moves with
+    per_robot_messages) and the simulator's (aggregator's) progress, in the fleet's namespace."""
+    per_robot = bool(plan.policy.get("per_robot_messages", False))
+    moves = common.MOVES_TOPIC if per_robot else common.MOVE_BATCHES_TOPIC
+    processes = policy_processes(num_robots, args.single_process, args.nodes_per_process)
+    return {common.in_namespace(moves, plan.namespace): processes,
+            common.in_namespace(common.PROGRESS_TOPIC, plan.namespace): 1}
+
+
 @contextlib.contextmanager
-def bag_recording(args, env, signals, ready_timeout: float = 120.0):
+def bag_recording(args, env, signals, expect: dict[str, int] | None = None,
+                  expect_timeout: float = 120.0, ready_timeout: float = 120.0):
     """With `--bag DIR`: the rosbag2 recorder (`mapf_fleet.ros.bag`, `mapf-fleet record DIR` in
     the fleet's namespace) as a child process, started before the fleet and ready (its
-    subscriptions exist) before the fleet starts, so nothing is missed; stopped after the fleet
-    with `bag.stop_recorder` (the last messages in flight, then SIGINT: the bag is closed).
-    Yields the recorder's `processes.Child`, None without --bag, False when it could not start
-    (its output is shown)."""
+    subscriptions exist) before the fleet starts; it subscribes to the fleet state, which tick
+    0 waits for, only once it has matched the publishers of `expect` ({topic: count},
+    `recorder_expectations`) or after `expect_timeout` s, so the bag misses no tick's message;
+    stopped after the fleet with `bag.stop_recorder` (the last messages in flight, then SIGINT:
+    the bag is closed). Yields the recorder's `processes.Child`, None without --bag, False
+    when it could not start (its output is shown)."""
     if not getattr(args, "bag", ""):
         yield None
         return
@@ -342,8 +359,10 @@ def bag_recording(args, env, signals, ready_timeout: float = 120.0):
         elif not args.quiet or line.startswith("mapf-fleet record:"):
             print(line, flush=True)
 
-    recorder = Child("bag recorder", recorder_command(args.bag, namespace=namespace or ""), env,
-                     echo=echo)
+    recorder = Child("bag recorder", recorder_command(args.bag, namespace=namespace or "",
+                                                      expect=expect,
+                                                      expect_timeout=expect_timeout),
+                     env, echo=echo)
     deadline = time.monotonic() + ready_timeout
     while not ready.wait(0.1):
         if recorder.poll() is not None or signals.requested or time.monotonic() > deadline:
@@ -372,7 +391,9 @@ def run_single_process(num_robots, plan, args) -> tuple[int, str]:
     from mapf_fleet.ros.processes import stop_signals
 
     signals = stop_signals()
-    with bag_recording(args, dict(os.environ), signals) as recorder:
+    with bag_recording(args, dict(os.environ), signals,
+                       recorder_expectations(num_robots, plan, args),
+                       float(plan.sim["startup_timeout"])) as recorder:
         if recorder is False:
             return (signals.exit_code or 2), ""
         code, problem = _run_in_this_process(num_robots, plan, args)

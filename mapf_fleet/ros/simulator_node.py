@@ -70,14 +70,8 @@ class SimulatorNode(fleet_io.LockstepNode):
 
     # ---- the lockstep loop (own thread) ----
     def _run(self):
-        subscribers = int(self.params["state_subscribers"])
-        # every process whose robots are ready must also hear the state: a hub that has the
-        # map and its peers may not yet match the state's publisher, and a state it does not
-        # hear is a tick its robots miss
         missing = self.ticker.wait_ready(float(self.params["startup_timeout"]),
-                                         also=lambda: self.channels.state_heard(
-                                             max(subscribers, self.ticker.ready_hosts()),
-                                             str(self.params["state_recorder"])))
+                                         also=self.state_heard_by_fleet)
         if self.ticker.stopped:
             self.get_logger().info(f"stopped while waiting for robots {missing}")
         elif missing:
