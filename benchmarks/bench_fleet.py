@@ -29,6 +29,7 @@ over the first and over the last fifth of the ticks (bounded or growing); a run 
         [--run-timeout 600]
         [--conflict-rule lacam --planning-budget 0.2]
         [--default-layout]         (no --nodes-per-process: the layout `up` chooses)
+        [--tick-period 0.75]       (a fixed control rate: the simulator's tick_period)
         [--batched-steps 20]       (steps of the batched evaluator timed beside each run)
 
 On the 2-core development machine one core was busy with a training job: figures are as measured.
@@ -122,7 +123,8 @@ def hub_split(log_dir: str) -> tuple[dict, float, float]:
 
 
 def run_fleet(checkpoint, robots, size, per_process, seed, steps, domain,
-              task_source="instance", conflict_rule=None, planning_budget=None, timeout=1800):
+              task_source="instance", conflict_rule=None, planning_budget=None, timeout=1800,
+              tick_period=0.0):
     """One `up` run: (its record or None when it wrote none, (tick times, ticks/s), the hubs'
     split, seconds from the launch to the first tick or None, peak memory of its processes in
     MB (their RSS summed, sampled every 2 s), the output's tail)."""
@@ -139,6 +141,8 @@ def run_fleet(checkpoint, robots, size, per_process, seed, steps, domain,
     if planning_budget is not None:
         cmd += ["--planning-budget", str(planning_budget)]
     cmd += ["--ros-args", "-p", "progress_every:=5"]
+    if tick_period:  # a fixed control rate: a tick starts every tick_period s at the earliest
+        cmd += ["-p", f"tick_period:={tick_period}"]
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     launched = time.time()
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
@@ -222,6 +226,9 @@ def main():
                              "robot count and the memory available (as a user types it)")
     parser.add_argument("--domain-id", type=int, default=150,
                         help="first ROS_DOMAIN_ID used (one per run; default: 150)")
+    parser.add_argument("--tick-period", type=float, default=0.0,
+                        help="the simulator's tick_period: a fixed control rate (0: as fast as "
+                             "the robots decide)")
     parser.add_argument("--run-timeout", type=float, default=1800,
                         help="seconds a run may take before it is stopped (default 1800)")
     args = parser.parse_args()
@@ -243,7 +250,7 @@ def main():
             run, ticks, (split, messages, calls), ready, memory, tail, chosen = run_fleet(
                 checkpoint, robots, size, None if args.default_layout else per_process,
                 args.seed, args.steps, domain, args.task_source, args.conflict_rule,
-                args.planning_budget, args.run_timeout)
+                args.planning_budget, args.run_timeout, args.tick_period)
             domain += 1
             if args.default_layout:
                 processes, per_process = chosen or (1, 1)  # no line: a process per robot

@@ -15,7 +15,7 @@ REPO = Path(__file__).resolve().parents[1]
 # distribution -> rosdep key (ros/rosdistro rosdep/python.yaml); None: no key exists, the library
 # must be named in package.xml's "no rosdep key" comment. A new library: add it to package.xml and here.
 ROSDEP_KEYS = {
-    "numpy": "python3-numpy", "PyYAML": "python3-yaml", "scipy": "python3-scipy", "torch": "python3-torch",
+    "numpy": "python3-numpy", "PyYAML": "python3-yaml", "scipy": "python3-scipy", "numba": "python3-numba", "torch": "python3-torch",
     "tqdm": "python3-tqdm", "matplotlib": "python3-matplotlib", "ImageIO": "python3-imageio",
     "tensorboard": "python3-tensorboard-pip", "rosbags": "python3-rosbags-pip", "ray": None, "pymapf": None,
     "foxglove-sdk": None, "cmaes": None,

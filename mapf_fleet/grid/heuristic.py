@@ -1,10 +1,11 @@
 """Distances to a goal over static obstacles (`DistanceTable`, one per map and guidance graph) and
 the four heuristic observation channels.
 
-Distances come from scipy's compiled breadth-first search over the 4-connected free cells, its
-visiting order cut into levels with numpy: compiled code, and on a unit-cost graph no priority
-queue, so faster than scipy's own Dijkstra (docs/results.md, "The core at scale"); a pure-Python
-BFS is what made the reference environments reset slowly.
+Distances come from a compiled breadth-first search over the 4-connected free cells
+(`search_kernel`, numba) that writes a goal's distance row and its heuristic bits in one pass,
+a batch of goals on every core: a fleet's first tick searches every robot's goal at once
+(docs/results.md, "The first tick at 10,000 agents"); a pure-Python BFS is what made the
+reference environments reset slowly.
 
 Conventions:
 - `bfs_distances` returns int32 steps to the goal; obstacle cells and free cells that cannot reach
@@ -26,9 +27,10 @@ from collections import OrderedDict
 
 import numpy as np
 from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import breadth_first_order, dijkstra
+from scipy.sparse.csgraph import dijkstra
 
 from .actions import move_targets
+from .search_kernel import Searcher
 
 UNREACHABLE = -1
 NUM_HEURISTIC_CHANNELS = 4
@@ -53,7 +55,8 @@ def _as_goals(goals, shape) -> np.ndarray:
 
 
 def _adjacency(blocked: np.ndarray) -> csr_matrix:
-    """Symmetric 4-connected adjacency of the free cells."""
+    """Symmetric 4-connected adjacency of the free cells (scipy's graph form: the tests' oracle
+    for the compiled search)."""
     h, w = blocked.shape
     free = ~blocked
     index = np.arange(h * w).reshape(h, w)
@@ -92,12 +95,17 @@ class DistanceTable:
             guidance = None  # unit costs are BFS steps: the integer tables, bit for bit
         self.guidance = guidance
         self.guided = guidance is not None
-        self.graph = _adjacency(blocked) if guidance is None else guidance.reverse_graph()
         self.step_costs = None if guidance is None else guidance.step_costs()
         self.unreachable = float("inf") if self.guided else self.size + 1
+        # unguided: the compiled BFS (rows and bits in one pass); guided: scipy's Dijkstra
+        self._searcher = None if self.guided else Searcher(blocked, self.unreachable)
+        self.graph = guidance.reverse_graph() if self.guided else None
+        # one distance row per goal (the canonical copy), its packed bits, and a few -1 arrays
+        self._rows: OrderedDict[int, np.ndarray] = OrderedDict()
+        self._bits: OrderedDict[int, np.ndarray] = OrderedDict()
         self._arrays: OrderedDict[int, np.ndarray] = OrderedDict()
-        self._rows: OrderedDict[int, array] = OrderedDict()
         self.keep = max(16, RECENT_BYTES // ((8 if self.guided else 4) * self.size))
+        self._recent_arrays = self.keep
         self._lock = threading.Lock()
         self.searches = 0
 
@@ -109,15 +117,43 @@ class DistanceTable:
             targets = np.where(np.isfinite(self.step_costs), targets, -1)
         return targets
 
-    def _search(self, goal: int) -> np.ndarray:
-        self.searches += 1
-        if self.blocked.flat[goal]:  # a goal on an obstacle: nothing reaches it
-            return np.full(self.size, UNREACHABLE, np.float64 if self.guided else np.int32)
+    def _search(self, goals: list[int]) -> tuple[list[np.ndarray], list[np.ndarray | None]]:
+        """Rows (unreachable at `unreachable`) and, unguided, bits of `goals`, searched now."""
+        self.searches += len(goals)
         if not self.guided:
-            return _bfs_steps(self.graph, goal, self.size)
-        dist = dijkstra(self.graph, directed=True, indices=goal)
-        dist[~np.isfinite(dist)] = UNREACHABLE
-        return dist
+            return self._searcher.search(goals)
+        rows = []
+        for goal in goals:
+            if self.blocked.flat[goal]:  # a goal on an obstacle: nothing reaches it
+                rows.append(np.full(self.size, np.inf))
+            else:
+                rows.append(dijkstra(self.graph, directed=True, indices=goal))
+        return rows, [None] * len(goals)
+
+    def _keep(self, cache: OrderedDict, goal: int, value, keep: int) -> None:
+        cache[goal] = value
+        while len(cache) > keep:
+            cache.popitem(last=False)
+
+    def prepare(self, goals) -> None:
+        """Search the flat `goals` not searched yet, all in one batch (the compiled search runs
+        a batch on every core): a fleet's first tick or a lifelong tick's new goals."""
+        with self._lock:
+            missing = list(dict.fromkeys(int(g) for g in goals if int(g) not in self._rows))
+        if missing:
+            self._store(missing)
+
+    def _store(self, goals: list[int]) -> list[np.ndarray]:
+        rows, bits = self._search(goals)
+        with self._lock:
+            self.keep = max(self.keep, len(goals))
+            for goal, row, bit in zip(goals, rows, bits):
+                row.setflags(write=False)
+                self._keep(self._rows, goal, row, self.keep)
+                if bit is not None:
+                    bit.setflags(write=False)
+                    self._keep(self._bits, goal, bit, self.keep)
+        return rows
 
     def reserve(self, goals: int) -> None:
         """Keep at least `goals` goals' distances (a fleet of N robots asks for N goals every
@@ -125,51 +161,72 @@ class DistanceTable:
         with self._lock:
             self.keep = max(self.keep, int(goals))
 
-    def array(self, goal: int) -> np.ndarray:
-        """(H*W,) read-only distances to flat cell `goal` (`UNREACHABLE` where none)."""
-        with self._lock:
-            found = self._arrays.get(goal)
-            if found is not None:
-                self._arrays.move_to_end(goal)
-                return found
-        found = self._search(int(goal))
-        found.setflags(write=False)
-        with self._lock:
-            self._arrays[goal] = found
-            while len(self._arrays) > self.keep:
-                self._arrays.popitem(last=False)
-        return found
-
-    def row(self, goal: int):
-        """`array(goal)` as a flat `array.array` ('i' steps, 'd' guided costs) indexed cell by
-        cell by the search loops (Python numbers, no numpy scalars; 4 bytes a cell where a list
-        costs 36), unreachable cells at `unreachable`."""
+    def _row(self, goal: int) -> np.ndarray:
         with self._lock:
             found = self._rows.get(goal)
             if found is not None:
                 self._rows.move_to_end(goal)
                 return found
+        return self._store([goal])[0]
+
+    def row(self, goal: int):
+        """Distances to flat cell `goal` as a flat read-only memoryview (Python ints for steps,
+        floats for guided costs: what the search loops index cell by cell), unreachable cells
+        and obstacles at `unreachable` (above any path)."""
+        return memoryview(self._row(int(goal)))
+
+    def array(self, goal: int) -> np.ndarray:
+        """(H*W,) read-only distances to flat cell `goal` (`UNREACHABLE` where none)."""
+        goal = int(goal)
         with self._lock:
-            dist = self._arrays.get(goal)
-        if dist is None:  # the rules read rows only: the array is not kept for them
-            dist = self._search(int(goal))
-        if self.guided:
-            found = array("d", np.where(dist >= 0, dist, np.inf).tobytes())
-        else:
-            found = array("i", np.where(dist >= 0, dist, self.unreachable).astype(np.int32).tobytes())
+            found = self._arrays.get(goal)
+            if found is not None:
+                self._arrays.move_to_end(goal)
+                return found
+        row = self._row(goal)
+        found = np.where(row >= self.unreachable, UNREACHABLE, row).astype(row.dtype)
+        found.setflags(write=False)
         with self._lock:
-            self._rows[goal] = found
-            while len(self._rows) > self.keep:
-                self._rows.popitem(last=False)
+            self._keep(self._arrays, goal, found, self._recent_arrays)
         return found
 
     def many(self, goals) -> np.ndarray:
         """(N, H, W) distances to each (row, col) goal of `goals` (N, 2), a copy."""
         goals = _as_goals(goals, self.shape)
         h, w = self.shape
+        flat = (goals[:, 0] * w + goals[:, 1]).tolist()
+        self.prepare(flat)
         out = np.empty((len(goals), h, w), dtype=np.float64 if self.guided else np.int32)
-        for k, (r, c) in enumerate(goals.tolist()):
-            out[k] = self.array(r * w + c).reshape(h, w)
+        for k, goal in enumerate(flat):
+            row = self._row(goal).reshape(h, w)
+            np.copyto(out[k], row)
+            out[k][row >= self.unreachable] = UNREACHABLE
+        return out
+
+    def bits_row(self, goal: int) -> np.ndarray:
+        """(H*W,) read-only packed heuristic bits to flat cell `goal` (`bits_of`'s, no copy)."""
+        goal = int(goal)
+        with self._lock:
+            found = self._bits.get(goal)
+            if found is not None:
+                self._bits.move_to_end(goal)
+                return found
+        r, c = divmod(goal, self.shape[1])
+        found = self.bits(self.many(np.array([[r, c]])))[0].reshape(-1)  # guided, or dropped
+        found.setflags(write=False)
+        with self._lock:
+            self._keep(self._bits, goal, found, self.keep)
+        return found
+
+    def bits_of(self, goals) -> np.ndarray:
+        """(N, H, W) packed heuristic bits to each flat goal cell of `goals` (`bits`), from the
+        search that found the distances."""
+        flat = [int(g) for g in goals]
+        self.prepare(flat)
+        h, w = self.shape
+        out = np.empty((len(flat), h, w), dtype=np.uint8)
+        for k, goal in enumerate(flat):
+            out[k] = self.bits_row(goal).reshape(h, w)
         return out
 
     def bits(self, dist: np.ndarray) -> np.ndarray:
@@ -208,25 +265,6 @@ def distance_table(grid, guidance=None) -> DistanceTable:
         while len(_TABLES) > _MAX_MAPS:
             _TABLES.popitem(last=False)
     return table
-
-
-def _bfs_steps(graph: csr_matrix, source: int, size: int) -> np.ndarray:
-    """int32 (size,) BFS steps from `source` over `graph`, UNREACHABLE where not reached.
-
-    A BFS visits its nodes level by level and discovers the children of earlier nodes first, so
-    the position of each node's predecessor in the visiting order never decreases along it: level
-    L+1 ends where that position first reaches the end of level L (one binary search a level)."""
-    order, pred = breadth_first_order(graph, source, directed=True, return_predecessors=True)
-    position = np.empty(size, dtype=np.int64)
-    position[order] = np.arange(order.size)
-    parent = position[pred[order[1:]]]  # non-decreasing
-    ends, end, find = [1], 1, parent.searchsorted
-    while end < order.size:
-        end = int(find(end)) + 1
-        ends.append(end)
-    steps = np.full(size, UNREACHABLE, dtype=np.int32)
-    steps[order] = np.repeat(np.arange(len(ends), dtype=np.int32), np.diff([0, *ends]))
-    return steps
 
 
 def _distances(blocked: np.ndarray, goals: np.ndarray, guidance=None) -> np.ndarray:
@@ -357,10 +395,10 @@ class HeuristicCache:
         self.misses += len(missing)
         self.hits += len(goal_keys) - len(missing)
         if missing:
-            dist = table.many(np.array(missing, dtype=np.int64))
-            computed = table.bits(dist)
+            h, w = blocked.shape
+            computed = table.bits_of([r * w + c for r, c in missing])
             if want_distances:
-                dist = compact_distances(dist)
+                dist = compact_distances(table.many(np.array(missing, dtype=np.int64)))
             for k, g in enumerate(missing):
                 computed[k].setflags(write=False)
                 bits_of.setdefault(g, computed[k])

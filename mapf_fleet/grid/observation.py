@@ -18,6 +18,7 @@ import numpy as np
 
 from .heuristic import (UNREACHABLE, HeuristicCache, compact_distances, default_cache,
                         pack_heuristic_channels)
+from .search_kernel import fill_static
 
 NUM_OBS_CHANNELS = 6  # the paper's observation
 OBSERVATIONS = ("paper", "cost_to_go")
@@ -286,16 +287,15 @@ class GoalObserver:
             if len(self._free) < len(missing):
                 self._grow(self._static.shape[0] + len(missing) - len(self._free))
             r = self.radius
+            self.table.prepare(missing)  # one batch: the compiled search on every core
+            blocked = self.blocked.reshape(-1).view(np.uint8)
             for start in range(0, len(missing), 64):  # bounded temporaries
                 chunk = missing[start:start + 64]
-                cells = np.array([divmod(g, w) for g in chunk], dtype=np.int64)
-                dist = self.table.many(cells)
-                bits = self.table.bits(dist)
+                if self._distances is not None:
+                    dist = self.table.many(np.array([divmod(g, w) for g in chunk], np.int64))
                 for k, g in enumerate(chunk):
                     slot = self._free.pop()
-                    static = self._static[slot].reshape(self.hp, self.wp)
-                    static[:] = 1
-                    static[r:r + h, r:r + w] = self.blocked | (bits[k] << 1)
+                    fill_static(blocked, self.table.bits_row(g), self._static[slot], h, w, r)
                     if self._distances is not None:
                         padded = self._distances[slot].reshape(self.hp, self.wp)
                         padded[:] = UNREACHABLE

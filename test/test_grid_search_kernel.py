@@ -1,0 +1,68 @@
+"""The compiled breadth-first search (`grid.search_kernel`) against scipy's graph search: its
+distance rows, its heuristic bits (one pass), its batches on several threads, and the
+`DistanceTable` views built on it (`row`, `array`, `bits_of`)."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.sparse.csgraph import shortest_path
+
+from mapf_fleet.grid.heuristic import (
+    UNREACHABLE, DistanceTable, _adjacency, _bits_from_distances,
+)
+from mapf_fleet.grid.search_kernel import Searcher
+
+
+def _oracle(grid: np.ndarray, flat: np.ndarray) -> np.ndarray:
+    h, w = grid.shape
+    dist = shortest_path(_adjacency(grid), method="D", unweighted=True, indices=flat)
+    dist = np.where(np.isinf(dist), -1, dist).astype(np.int32).reshape(-1, h, w)
+    dist[grid.reshape(-1)[flat]] = -1  # a goal on an obstacle: nothing reaches it
+    return dist
+
+
+def test_rows_and_bits_equal_scipy_on_random_maps_with_cut_off_parts():
+    rng = np.random.default_rng(3)
+    for trial in range(60):
+        h, w = (int(v) for v in rng.integers(1, 40, size=2))
+        grid = rng.random((h, w)) < rng.random() * 0.7  # dense ones fall apart into pieces
+        flat = rng.integers(0, h * w, size=5)  # obstacles too
+        expected = _oracle(grid, flat)
+        searcher = Searcher(grid, unreachable=h * w + 1, threads=1)
+        rows, bits = searcher.search(flat)
+        for k in range(len(flat)):
+            want = np.where(expected[k] < 0, h * w + 1, expected[k]).reshape(-1)
+            np.testing.assert_array_equal(rows[k], want, err_msg=f"trial {trial} goal {k}")
+            np.testing.assert_array_equal(bits[k], _bits_from_distances(expected[k][None])[0].reshape(-1),
+                                          err_msg=f"trial {trial} goal {k}")
+
+
+def test_a_batch_on_several_threads_equals_one_goal_at_a_time():
+    rng = np.random.default_rng(5)
+    grid = rng.random((48, 64)) < 0.3
+    flat = rng.integers(0, grid.size, size=97)
+    alone = [Searcher(grid, grid.size + 1, threads=1).search([g]) for g in flat]
+    rows, bits = Searcher(grid, grid.size + 1, threads=4).search(flat)
+    for k, (row, bit) in enumerate(alone):
+        np.testing.assert_array_equal(rows[k], row[0])
+        np.testing.assert_array_equal(bits[k], bit[0])
+
+
+def test_the_table_serves_rows_arrays_and_bits_of_one_search():
+    rng = np.random.default_rng(8)
+    grid = rng.random((30, 30)) < 0.35
+    table = DistanceTable(grid)
+    flat = [int(g) for g in rng.integers(0, grid.size, size=20)]
+    table.prepare(flat)
+    searched = table.searches
+    expected = _oracle(grid, np.array(flat))
+    np.testing.assert_array_equal(table.bits_of(flat), _bits_from_distances(expected))
+    for k, goal in enumerate(flat):
+        array = table.array(goal)
+        np.testing.assert_array_equal(array, expected[k].reshape(-1))
+        assert not array.flags.writeable
+        row = table.row(goal)
+        assert row.readonly and isinstance(row[0], int)
+        assert [row[c] for c in range(grid.size)] == \
+            np.where(expected[k].reshape(-1) == UNREACHABLE, table.unreachable, expected[k].reshape(-1)).tolist()
+    assert table.searches == searched  # every view came from the batch's one search
