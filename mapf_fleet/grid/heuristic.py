@@ -105,7 +105,10 @@ class DistanceTable:
         self._bits: OrderedDict[int, np.ndarray] = OrderedDict()
         self._arrays: OrderedDict[int, np.ndarray] = OrderedDict()
         self.keep = max(16, RECENT_BYTES // ((8 if self.guided else 4) * self.size))
+        # -1 arrays and bits are handed on (to the observations, the goal checks), not read
+        # tick after tick as rows are: the last batch's and `RECENT_BYTES`' worth are kept
         self._recent_arrays = self.keep
+        self._recent_bits = max(16, RECENT_BYTES // self.size)
         self._lock = threading.Lock()
         self.searches = 0
 
@@ -152,7 +155,7 @@ class DistanceTable:
                 self._keep(self._rows, goal, row, self.keep)
                 if bit is not None:
                     bit.setflags(write=False)
-                    self._keep(self._bits, goal, bit, self.keep)
+                    self._keep(self._bits, goal, bit, max(self._recent_bits, len(goals)))
         return rows
 
     def reserve(self, goals: int) -> None:
@@ -215,7 +218,7 @@ class DistanceTable:
         found = self.bits(self.many(np.array([[r, c]])))[0].reshape(-1)  # guided, or dropped
         found.setflags(write=False)
         with self._lock:
-            self._keep(self._bits, goal, found, self.keep)
+            self._keep(self._bits, goal, found, self._recent_bits)
         return found
 
     def bits_of(self, goals) -> np.ndarray:

@@ -287,10 +287,10 @@ class GoalObserver:
             if len(self._free) < len(missing):
                 self._grow(self._static.shape[0] + len(missing) - len(self._free))
             r = self.radius
-            self.table.prepare(missing)  # one batch: the compiled search on every core
             blocked = self.blocked.reshape(-1).view(np.uint8)
-            for start in range(0, len(missing), 64):  # bounded temporaries
-                chunk = missing[start:start + 64]
+            for start in range(0, len(missing), 256):  # bounded temporaries
+                chunk = missing[start:start + 256]
+                self.table.prepare(chunk)  # a batch: the compiled search on every core
                 if self._distances is not None:
                     dist = self.table.many(np.array([divmod(g, w) for g in chunk], np.int64))
                 for k, g in enumerate(chunk):
