@@ -112,6 +112,7 @@ def run_case(case: str, policy_name: str, args) -> dict:
            "density": args.density, "lifelong": lifelong, "rule": rule,
            "steps": args.steps, "threads": args.threads,
            "first_step_s": round(sum(first.values()), 4),
+           "first_step_split_s": {k: round(v, 3) for k, v in first.items()},
            "median_s": {k: round(statistics.median(v), 4) for k, v in parts.items()
                         if k != "goal_changes"},
            "mean_s": {k: round(statistics.fmean(v), 4) for k, v in parts.items()
@@ -149,7 +150,7 @@ def main(argv=None) -> int:
     torch.set_num_threads(args.threads)
     rows = []
     print(f"{'case':15s} {'policy':9s} {'rule':17s} {'obs ms':>8s} {'infer ms':>9s} {'rule ms':>8s} "
-          f"{'step ms':>8s} {'mean ms':>8s} {'cpu ms':>7s} {'first s':>8s} {'new goals':>9s} {'before ms':>9s}")
+          f"{'step ms':>8s} {'mean ms':>8s} {'cpu ms':>7s} {'first s':>8s} {'new goals':>9s} {'before ms':>9s} {'rss MB':>7s}")
     for case in args.case:
         for policy_name in args.policy:
             row = run_case(case, policy_name, args)
@@ -162,6 +163,8 @@ def main(argv=None) -> int:
                   f"{1e3 * row['step_cpu_median_s']:7.1f} "
                   f"{row['first_step_s']:8.2f} {row['goal_changes_per_step']:9.1f} "
                   f"{before:>9s} {row['max_rss_mb']:7d}", flush=True)
+            print(f"{'':15s} first step: " + ", ".join(
+                f"{k} {v:.2f} s" for k, v in row["first_step_split_s"].items()), flush=True)
     print(f"before: {BEFORE_SOURCE}")
     if args.json:
         Path(args.json).write_text(json.dumps({"command": " ".join(sys.argv),
