@@ -150,7 +150,8 @@ def main(argv=None) -> int:
     torch.set_num_threads(args.threads)
     rows = []
     print(f"{'case':15s} {'policy':9s} {'rule':17s} {'obs ms':>8s} {'infer ms':>9s} {'rule ms':>8s} "
-          f"{'step ms':>8s} {'mean ms':>8s} {'cpu ms':>7s} {'first s':>8s} {'new goals':>9s} {'before ms':>9s} {'rss MB':>7s}")
+          f"{'step ms':>8s} {'mean ms':>8s} {'cpu ms':>7s} {'first s':>8s} {'new goals':>9s} "
+          f"{'before ms':>9s} {'rss MB':>7s}")
     for case in args.case:
         for policy_name in args.policy:
             row = run_case(case, policy_name, args)
