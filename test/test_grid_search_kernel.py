@@ -28,7 +28,8 @@ def test_rows_and_bits_equal_scipy_on_random_maps_with_cut_off_parts():
         grid = rng.random((h, w)) < rng.random() * 0.7  # dense ones fall apart into pieces
         flat = rng.integers(0, h * w, size=5)  # obstacles too
         expected = _oracle(grid, flat)
-        searcher = Searcher(grid, unreachable=h * w + 1, threads=1)
+        searcher = Searcher(grid, threads=1)
+        assert searcher.unreachable == h * w + 1 and searcher.dtype == np.int16  # small maps
         rows, bits = searcher.search(flat)
         for k in range(len(flat)):
             want = np.where(expected[k] < 0, h * w + 1, expected[k]).reshape(-1)
@@ -41,8 +42,8 @@ def test_a_batch_on_several_threads_equals_one_goal_at_a_time():
     rng = np.random.default_rng(5)
     grid = rng.random((48, 64)) < 0.3
     flat = rng.integers(0, grid.size, size=97)
-    alone = [Searcher(grid, grid.size + 1, threads=1).search([g]) for g in flat]
-    rows, bits = Searcher(grid, grid.size + 1, threads=4).search(flat)
+    alone = [Searcher(grid, threads=1).search([g]) for g in flat]
+    rows, bits = Searcher(grid, threads=4).search(flat)
     for k, (row, bit) in enumerate(alone):
         np.testing.assert_array_equal(rows[k], row[0])
         np.testing.assert_array_equal(bits[k], bit[0])
@@ -66,3 +67,29 @@ def test_the_table_serves_rows_arrays_and_bits_of_one_search():
         assert [row[c] for c in range(grid.size)] == \
             np.where(expected[k].reshape(-1) == UNREACHABLE, table.unreachable, expected[k].reshape(-1)).tolist()
     assert table.searches == searched  # every view came from the batch's one search
+
+
+def _serpentine(side: int) -> np.ndarray:
+    """A one-cell corridor winding through a side x side map: paths of about side^2 / 2 steps."""
+    grid = np.zeros((side, side), dtype=bool)
+    grid[1::4, :-1] = True
+    grid[3::4, 1:] = True
+    return grid
+
+
+def test_rows_are_int16_only_where_no_path_can_reach_32767_steps():
+    rng = np.random.default_rng(2)
+    open_map = rng.random((200, 200)) < 0.25  # 40,000 cells, paths of a few hundred steps
+    winding = _serpentine(260)  # 67,600 cells, paths of over 30,000 steps
+    for grid, dtype, unreachable in ((open_map, np.int16, 32767),
+                                     (winding, np.int32, winding.size + 1)):
+        searcher = Searcher(grid, threads=1)
+        assert (searcher.dtype, searcher.unreachable) == (dtype, unreachable)
+        flat = np.flatnonzero(~grid.reshape(-1))[[0, -1]]  # the two ends of the corridor
+        expected = _oracle(grid, flat)
+        rows, _ = searcher.search(flat)
+        for k in range(len(flat)):
+            want = np.where(expected[k] < 0, unreachable, expected[k]).reshape(-1)
+            np.testing.assert_array_equal(rows[k], want)
+        assert rows[0].dtype == dtype
+    assert expected.max() > 32767  # the winding map needs int32

@@ -81,11 +81,12 @@ class DistanceTable:
     rebuild the graph nor search a goal twice. A goal's distances are searched when first asked
     for and the last ones are kept (up to `RECENT_BYTES`).
 
-    Unguided (guidance None or unit costs): int32 BFS steps. Guided: float64 least path costs
-    (Dijkstra on the guidance's costs, `grid.guidance`). Either way `UNREACHABLE` (-1) marks
-    obstacles and cells cut off from the goal in `array`; `row` gives the same distances as a
-    flat `array.array` for the search loops, unreachable cells above any path
-    (`unreachable`)."""
+    Unguided (guidance None or unit costs): BFS steps (`array`: int32; rows int16 wherever no
+    path can reach 32,767 steps, `grid.search_kernel.Searcher`). Guided: float64 least path
+    costs (Dijkstra on the guidance's costs, `grid.guidance`). Either way `UNREACHABLE` (-1)
+    marks obstacles and cells cut off from the goal in `array`; `row` gives the same distances
+    as a flat read-only memoryview for the search loops, unreachable cells at `unreachable`
+    (above any path)."""
 
     def __init__(self, blocked: np.ndarray, guidance=None):
         self.blocked = blocked
@@ -96,15 +97,16 @@ class DistanceTable:
         self.guidance = guidance
         self.guided = guidance is not None
         self.step_costs = None if guidance is None else guidance.step_costs()
-        self.unreachable = float("inf") if self.guided else self.size + 1
         # unguided: the compiled BFS (rows and bits in one pass); guided: scipy's Dijkstra
-        self._searcher = None if self.guided else Searcher(blocked, self.unreachable)
+        self._searcher = None if self.guided else Searcher(blocked)
+        self.unreachable = float("inf") if self.guided else self._searcher.unreachable
         self.graph = guidance.reverse_graph() if self.guided else None
         # one distance row per goal (the canonical copy), its packed bits, and a few -1 arrays
         self._rows: OrderedDict[int, np.ndarray] = OrderedDict()
         self._bits: OrderedDict[int, np.ndarray] = OrderedDict()
         self._arrays: OrderedDict[int, np.ndarray] = OrderedDict()
-        self.keep = max(16, RECENT_BYTES // ((8 if self.guided else 4) * self.size))
+        row_bytes = 8 if self.guided else np.dtype(self._searcher.dtype).itemsize
+        self.keep = max(16, RECENT_BYTES // (row_bytes * self.size))
         # -1 arrays and bits are handed on (to the observations, the goal checks), not read
         # tick after tick as rows are: the last batch's and `RECENT_BYTES`' worth are kept
         self._recent_arrays = self.keep
@@ -187,7 +189,8 @@ class DistanceTable:
                 self._arrays.move_to_end(goal)
                 return found
         row = self._row(goal)
-        found = np.where(row >= self.unreachable, UNREACHABLE, row).astype(row.dtype)
+        found = np.where(row >= self.unreachable, UNREACHABLE, row).astype(
+            np.float64 if self.guided else np.int32)
         found.setflags(write=False)
         with self._lock:
             self._keep(self._arrays, goal, found, self._recent_arrays)
