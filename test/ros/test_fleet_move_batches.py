@@ -4,7 +4,12 @@ on the per-robot /fleet/moves) and the simulator plays every tick with no decisi
 the policy parameter `per_robot_messages` the same fleet sends one RobotMove per robot and tick
 on /fleet/moves instead (the per-robot topic the docs promise, still served). The numbers of
 the moves are checked by the fleet == evaluator tests (test_fleet_equivalence.py), which run
-the batched path."""
+the batched path.
+
+The bags hold every tick from tick 0 because `up --bag`'s recorder subscribes to the fleet
+state (which tick 0 waits for) only once it has matched every policy process's moves publisher
+(bag.py, `--expect`; test_tick0_listeners.py). Before that the first ticks' bag could hold 2,
+1 or 0 batches (a race: this test was xfail); it is run repeatedly to show the race is gone."""
 
 # Loopback only: every ROS process these tests start runs with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 # and its own ROS_DOMAIN_ID (test/conftest.py, ros_env / _isolate_ros_tests).
@@ -48,11 +53,6 @@ def _run_with_bag(tmp_path, name, env, checkpoint, extra=()):
 
 @pytest.mark.ros
 @pytest.mark.slow
-@pytest.mark.xfail(reason="known race, found at the session's last full run: `up --bag` starts tick 0 "
-                          "once the recorder hears the state, not once it has matched every hub's "
-                          "/fleet/move_batches publisher, so a 0.1 s run's bag can miss a hub's "
-                          "batches (the simulator gets them all: 0 missed decisions); to fix in "
-                          "the recorder's readiness", strict=False)
 def test_a_policy_process_sends_one_move_message_per_tick(tmp_path, ros_env, checkpoints):
     run, topics, text = _run_with_bag(tmp_path, "batched", ros_env, checkpoints["dcc"])
     assert run["steps"] == 10 and run["missed_decisions"] == 0, text
