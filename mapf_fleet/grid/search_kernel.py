@@ -93,10 +93,12 @@ class Searcher:
             self.dtype, self.unreachable = np.int16, INT16_MAX
         else:
             self.dtype, self.unreachable = np.int32, blocked.size + 1
+        # the search's own scratch map in the same type: half the cache lines where int16
+        self.init = self.init.astype(self.dtype)
 
     def _one(self, goals, rows, bits) -> None:
         size = self.init.size
-        scratch = np.empty(size, np.int32)
+        scratch = np.empty(size, self.init.dtype)
         queue = np.empty(size + 4, np.int32)
         padded_bits = np.empty(size, np.uint8)
         for goal, row, out in zip(goals, rows, bits):
