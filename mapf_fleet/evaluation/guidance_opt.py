@@ -305,7 +305,8 @@ ROW_NAMES = {"none": "none (plain PIBT)", HIGHWAYS: "highways (hand-made)",
 
 def card_text(name, task, rows, state, model, args) -> str:
     online = isinstance(model, OnlineModel)
-    hand = max(rows.get(HIGHWAYS, 0.0), rows.get(CONGESTION, 0.0))
+    # every row but none and the learned one is hand-made (the starting point is a preset)
+    hand = max(v for k, v in rows.items() if k not in ("none", "learned"))
     gain = rows["learned"] / rows["none"] - 1 if rows["none"] else float("nan")
     vs_hand = rows["learned"] / hand - 1 if hand else float("nan")
     theta = ", ".join(f"{f} {v:+.3f}" for f, v in zip(FEATURES, model.theta))
