@@ -220,12 +220,14 @@ def optimize(args) -> int:
                                   bounds=np.tile([-args.bound, args.bound], (dim, 1)))}
     evaluate = Evaluator(args.workers, args.address)
     opt = state["optimizer"]
-    # cmaes pickles its optimiser without the sampler's generator and unpickles a fresh, unseeded
-    # one: a resumed run would draw other candidates than the run it continues. The generator's
-    # state travels in our state instead (a state written without it: seeded by the generation)
-    opt._rng = np.random.RandomState([args.seed, state["generation"]])
-    if state.get("rng") is not None:
-        opt._rng.set_state(state["rng"])
+    if state["generation"]:
+        # cmaes pickles its optimiser without the sampler's generator and unpickles a fresh,
+        # unseeded one: a resumed run would draw other candidates than the run it continues. The
+        # generator's state travels in our state instead (written without it: seeded by the
+        # generation)
+        opt._rng = np.random.RandomState([args.seed, state["generation"]])
+        if state.get("rng") is not None:
+            opt._rng.set_state(state["rng"])
     with StopSignals() as stop:
         while state["generation"] < args.generations and not stop.requested:
             began = time.perf_counter()
