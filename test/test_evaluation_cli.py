@@ -167,13 +167,16 @@ def test_structured_families_refuse_what_does_not_fit(capsys):
 
 
 def test_evaluate_measures_what_up_runs_by_default():
-    """One default everywhere (issue 41 item 7): with no --conflict-rule, --ranking or guidance,
-    `evaluate` runs the rule `up` runs, and a checkpoint ranks as the fleet's policy nodes rank
-    it (the same `default_ranking` of the same recorded metadata)."""
+    """One default everywhere (issue 41 items 3 and 7): with no --conflict-rule, --ranking or
+    --guidance, `evaluate` (one-shot and lifelong) runs the rule and the guidance `up` runs, and
+    a checkpoint ranks as the fleet's policy nodes rank it (the same `default_ranking` of the
+    same recorded metadata). The shipped default records no guidance: it runs under the
+    fleet's, the hand-made highways (docs/results.md, "Which guidance is the fleet's default")."""
     from mapf_fleet.coordination.ranking import default_ranking
+    from mapf_fleet.coordination.rules import FLEET_GUIDANCE
     from mapf_fleet.evaluation.cli import build_parser
     from mapf_fleet.evaluation.lifelong import build_parser as lifelong_parser
-    from mapf_fleet.evaluation.policies import parse_policy, with_conflict_rule
+    from mapf_fleet.evaluation.policies import parse_policy, with_conflict_rule, with_guidance
     from mapf_fleet.fleet import parameters
     from mapf_fleet.models.checkpoint import read_checkpoint
 
@@ -181,8 +184,13 @@ def test_evaluate_measures_what_up_runs_by_default():
     fleet_rule = parameters.SIMULATOR["conflict_rule"].default
     assert args.conflict_rule == [fleet_rule]
     life = lifelong_parser().parse_args(["--lifelong"])
-    assert life.conflict_rule == [fleet_rule] and [str(g) for g in life.guidance] == ["none"]
-    assert parameters.GUIDANCE.default == "none"
+    assert life.conflict_rule == [fleet_rule] and life.guidance is None
+    fleet_guidance = parameters.SIMULATOR["guidance"].default
+    assert fleet_guidance == parameters.POLICY["guidance"].default == FLEET_GUIDANCE == "highways"
     spec = with_conflict_rule(parse_policy("models/default.pt"), fleet_rule)
-    recorded = read_checkpoint("models/default.pt")[1].get("rankings")
-    assert spec.resolved_ranking == default_ranking(fleet_rule, recorded)
+    recorded = read_checkpoint("models/default.pt")[1]
+    assert spec.resolved_ranking == default_ranking(fleet_rule, recorded.get("rankings"))
+    assert "guidance" not in recorded and spec.default_guidance == fleet_guidance
+    heuristic = with_conflict_rule(parse_policy("heuristic"), fleet_rule)
+    assert [s.guidance for s in with_guidance([spec, heuristic], args.guidance)] == \
+        [fleet_guidance, fleet_guidance]

@@ -479,7 +479,7 @@ def test_append_adds_the_shielded_rows_to_an_existing_card(tmp_path):
     common = ["--sizes", "40", "--agents", "4", "--instances", "2", "--quiet"]
     assert evaluate_main(["--conflict-rule", "revert", "--checkpoint", str(checkpoint), "--no-references", "--json", str(plain), *common]) == 0
     assert evaluate_main(["--checkpoint", str(checkpoint), "heuristic", "--no-references", "--conflict-rule", "pibt",
-                          "--json", str(shielded), *common]) == 0
+                          "--guidance", "none", "--json", str(shielded), *common]) == 0
     card = tmp_path / "rand.md"
     assert card_main(["--checkpoint", str(checkpoint), "--eval", str(plain), "--out", str(card)]) == 0
     before = card.read_text()

@@ -74,7 +74,8 @@ def test_evaluate_cli_shield_rows(tmp_path, dcc_checkpoint):
     out = tmp_path / "eval.json"
     code = evaluate_main(["--checkpoint", dcc_checkpoint, "heuristic", "--no-references",
                           "--conflict-rule", "revert", "pibt", "--sizes", "40", "--agents", "8",
-                          "--instances", "4", "--max-steps", "40", "--quiet", "--json", str(out)])
+                          "--instances", "4", "--max-steps", "40", "--quiet", "--json", str(out),
+                          "--guidance", "none"])  # the rows' labels without a guidance suffix
     assert code == 0
     rows = {r["policy"]: r for r in json.loads(out.read_text())["results"]}
     assert set(rows) == {"dcc", "dcc +PIBT", "heuristic", "heuristic +PIBT"}

@@ -23,7 +23,7 @@ def test_every_parameter_has_its_row_with_option_and_default():
             option = f"`{param.option.flag}`" if param.option else ""
             assert f"| `{name}` | {option} | " in text, name
     assert "| `device` | `--device` | `'auto'` |" in text
-    assert "| `guidance` | `--guidance` | `'none'` |" in text
+    assert "| `guidance` | `--guidance` | `'highways'` |" in text  # the fleet's, FLEET_GUIDANCE
 
 
 def test_the_check_fails_on_a_doc_that_differs_and_the_update_mends_it(tmp_path, monkeypatch,

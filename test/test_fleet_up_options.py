@@ -88,9 +88,15 @@ def test_device_reaches_every_policy_node_and_is_checked():
         _plan([], ros_argv=["--ros-args", "-p", "device:=gpu"])
 
 
-def test_guidance_is_none_or_an_existing_file_and_one_value_for_the_fleet(tmp_path):
-    _, plan = _plan([])
-    assert plan.guidance is None and plan.sim["guidance"] == "none"
+def test_guidance_is_the_fleets_by_default_none_or_an_existing_file_and_one_value_for_the_fleet(
+        tmp_path):
+    from mapf_fleet.coordination.rules import FLEET_GUIDANCE
+
+    _, plan = _plan([])  # the fleet's guidance, what `evaluate` measures by default
+    assert plan.guidance == plan.sim["guidance"] == FLEET_GUIDANCE == "highways"
+    assert {plan.values[n]["guidance"] for n in plan.values} == {FLEET_GUIDANCE}
+    _, plan = _plan(["--guidance", "none"])  # the unguided world, asked for
+    assert plan.guidance is None and {plan.values[n]["guidance"] for n in plan.values} == {"none"}
     with pytest.raises(U.UpError) as caught:
         _plan(["--guidance", str(tmp_path / "missing.yaml")])
     assert str(caught.value) == (f"--guidance must be none, highways, an existing "

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import heapq
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -214,20 +215,23 @@ def test_evaluate_lifelong_runs_with_and_without_guidance(tmp_path):
     from mapf_fleet.evaluation.lifelong import main
 
     common = ["--lifelong", "--steps", "6", "--instances", "1", "--agents", "6", "--quiet"]
-    assert main(common + ["--json", str(tmp_path / "a.json")]) == 0  # the default: none
+    # the default: the fleet's guidance (`FLEET_GUIDANCE`, highways), what `up` runs
+    assert main(common + ["--json", str(tmp_path / "a.json")]) == 0
     assert main(common + ["--guidance", "none", "highways", "congestion",
                           "--json", str(tmp_path / "b.json")]) == 0
     rows = json.loads((tmp_path / "b.json").read_text())["results"]
     assert [r["guidance"] for r in rows] == ["none", "highways", "congestion"]
     first = json.loads((tmp_path / "a.json").read_text())["results"][0]
-    assert first["guidance"] == "none" and first["goals"] == rows[0]["goals"]
+    assert first["guidance"] == "highways" and first["goals"] == rows[1]["goals"]
 
 
 def test_a_checkpoint_is_evaluated_under_the_guidance_it_was_trained_on(tmp_path):
     """One default everywhere: a checkpoint records the guidance its heuristic channels were
     trained on (metadata guidance); `evaluate` without --guidance runs it there, the heuristic
-    and an unrecording checkpoint under none."""
+    and a checkpoint that records none of its own under the fleet's (what `up` runs), and the
+    paper's rule `revert` unguided (the paper's protocol)."""
     torch = pytest.importorskip("torch")
+    from mapf_fleet.coordination.rules import FLEET_GUIDANCE
     from mapf_fleet.evaluation.policies import parse_policy, with_conflict_rule, with_guidance
     from mapf_fleet.models.checkpoint import build_model, save_checkpoint
     from mapf_fleet.models.config import ModelConfig
@@ -236,7 +240,65 @@ def test_a_checkpoint_is_evaluated_under_the_guidance_it_was_trained_on(tmp_path
     path = save_checkpoint(tmp_path / "g.pt", build_model(ModelConfig.preset("dhc", "small")), {
         "alpha": 0.0, "curriculum": {}, "learner_steps": 0, "training_config": {},
         "guidance": "highways"})
-    specs = [with_conflict_rule(parse_policy(p), "pibt_anchor_swap")
-             for p in (str(path), "heuristic")]
-    assert [s.guidance for s in with_guidance(specs, None)] == ["highways", "none"]
-    assert [s.guidance for s in with_guidance(specs, ["none"])] == ["none", "none"]
+    unguided = save_checkpoint(tmp_path / "u.pt", build_model(ModelConfig.preset("dhc", "small")), {
+        "alpha": 0.0, "curriculum": {}, "learner_steps": 0, "training_config": {},
+        "guidance": "none"})
+    unrecorded = save_checkpoint(tmp_path / "o.pt", build_model(ModelConfig.preset("dhc", "small")),
+                                 {"alpha": 0.0, "curriculum": {}, "learner_steps": 0,
+                                  "training_config": {}})
+    names = (str(path), str(unguided), str(unrecorded), "heuristic")
+    specs = [with_conflict_rule(parse_policy(p), "pibt_anchor_swap") for p in names]
+    assert [s.guidance for s in with_guidance(specs, None)] == [
+        "highways", "none", FLEET_GUIDANCE, FLEET_GUIDANCE]
+    assert [s.guidance for s in with_guidance(specs, ["none"])] == ["none"] * 4
+    paper = [with_conflict_rule(parse_policy(p), "revert") for p in names]
+    assert [s.guidance for s in with_guidance(paper, None)] == ["highways", "none", "none", "none"]
+
+
+def _maps_the_fleet_accepts():
+    """Maps of every shape the fleet takes: the smallest and odd-sided ones, one-cell corridors
+    and dead ends (where lanes could cut a cell off), a map without a free cell, every
+    generated kind at odd and even sides, and the shipped real-robot instance."""
+    from mapf_fleet.fleet.instances import load_instance_yaml
+    from mapf_fleet.grid.maps import GENERATED_KINDS, generate_kind_instance
+
+    maps = {"1x1": np.zeros((1, 1), np.uint8), "1x7": np.zeros((1, 7), np.uint8),
+            "6x1": np.zeros((6, 1), np.uint8), "2x3": np.zeros((2, 3), np.uint8),
+            "blocked": np.ones((3, 3), np.uint8),
+            # a one-cell corridor with a dead-end spur: every move is the only way somewhere
+            "corridor": np.array([[0, 0, 0, 0, 0], [1, 1, 0, 1, 1], [1, 1, 0, 1, 1],
+                                  [0, 0, 0, 1, 1]], np.uint8)}
+    for kind in GENERATED_KINDS:
+        for size in (9, 16, 33):
+            try:
+                inst = generate_kind_instance(kind, size, 2, np.random.default_rng(size))
+            except ValueError:
+                continue  # a kind without a map of that side
+            maps[f"{kind} {size}"] = np.asarray(inst.grid)
+    small = load_instance_yaml(Path(__file__).resolve().parents[1] / "config" / "fleet" / "instance_small.yaml")
+    maps["instance_small.yaml"] = np.asarray(small.grid)
+    return maps
+
+
+def test_highways_are_a_valid_graph_on_every_map_the_fleet_accepts():
+    """The fleet's default guidance (`FLEET_GUIDANCE`) exists for any map: its lanes are soft
+    (never forbidden), so it passes the guidance checks on every shape, and from every free
+    cell each cell of its region stays reachable at a guided distance between the BFS steps and
+    `HIGHWAY_AGAINST` times them."""
+    from mapf_fleet.coordination.rules import FLEET_GUIDANCE
+    from mapf_fleet.grid.guidance_made import HIGHWAY_AGAINST
+
+    assert FLEET_GUIDANCE == "highways"
+    for name, grid in _maps_the_fleet_accepts().items():
+        guidance = GuidanceSource.parse(FLEET_GUIDANCE).for_map(grid)
+        assert guidance is not None and guidance.shape == grid.shape, name
+        free = [tuple(map(int, cell)) for cell in np.argwhere(grid == 0)]
+        goals = free[:: max(1, len(free) // 6)]
+        if not goals:
+            continue
+        guided = distance_table(grid, guidance).many(goals)
+        bfs = bfs_distances_many(grid, goals)
+        reach = bfs >= 0
+        assert np.array_equal(guided >= 0, reach), name  # nothing cut off, nothing new
+        assert (guided[reach] >= bfs[reach]).all(), name
+        assert (guided[reach] <= HIGHWAY_AGAINST * bfs[reach]).all(), name

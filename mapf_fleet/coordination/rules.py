@@ -42,6 +42,13 @@ EPIBT_RULES = tuple(f"{rule}_{EPIBT}" for rule in PIBT_RULES if "hindrance" not 
 CONFLICT_RULES = (*COORDINATED_RULES, REVERT, *EPIBT_RULES)
 # The fleet's rule: what `mapf-fleet up` runs and `evaluate` measures by default
 FLEET_RULE = "pibt_anchor_swap"
+# The fleet's guidance graph (a `grid.guidance_made.GuidanceSource` spelling): what `mapf-fleet
+# up` reads and `evaluate` measures by default, for the heuristic and for a checkpoint that
+# records no guidance of its own. The best graph that needs no per-map training: the hand-made
+# highways were level or better for the shipped policy under FLEET_RULE on every family measured
+# (docs/results.md, "Which guidance is the fleet's default, and why"); `--guidance none` is the
+# unguided world, bit for bit.
+FLEET_GUIDANCE = "highways"
 # `patient`: the anchor waits until the top agent has gone this many ticks without getting closer
 # to its goal than before; a plan or a policy may keep it waiting that long and it still reaches
 # its goal within (patience + 1) x its distance ticks (docs/coordination.md; the value was chosen
@@ -160,4 +167,4 @@ def parse_rules(values, what: str = "conflict rule") -> list[Rule]:
 
 __all__ = ["Rule", "parse_rules", "rule_arg", "CONFLICT_RULES", "COORDINATED_RULES", "PIBT_RULES", "REVERT",
            "EPIBT_RULES", "EPIBT_HORIZON",
-           "LACAM", "FLEET_RULE", "ANCHOR_PATIENCE", "RULE_OPTIONS"]
+           "LACAM", "FLEET_RULE", "FLEET_GUIDANCE", "ANCHOR_PATIENCE", "RULE_OPTIONS"]

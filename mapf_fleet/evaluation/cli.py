@@ -28,7 +28,7 @@ from mapf_fleet.grid.maps import DENSE
 from mapf_fleet.version import code_version
 
 from mapf_fleet.aliases import renamed_options
-from mapf_fleet.coordination.rules import FLEET_RULE, REVERT, rule_arg
+from mapf_fleet.coordination.rules import FLEET_GUIDANCE, FLEET_RULE, REVERT, rule_arg
 from mapf_fleet.coordination.ranking import DEFAULT_RANKING_BY_RULE, RANKINGS
 
 from .policies import REFERENCE_NAMES, parse_policy, unique_names, with_conflict_rule, with_guidance
@@ -79,7 +79,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "each: none, highways (hand-made crisscross lanes), a guidance file "
                         "(*.guidance.npz, one map) or a cost model (*.costmodel.json) "
                         "(default: a checkpoint's recorded guidance, the one it was trained to "
-                        "read; else none, what `up` runs by default)")
+                        f"read; else the fleet's, {FLEET_GUIDANCE}, what `mapf-fleet up` runs, "
+                        "and none under revert, the paper's protocol; none: BFS distances, the "
+                        "unguided world)")
     p.add_argument("--config", default=str(DEFAULT_CONFIG), help="protocol YAML (default %(default)s)")
     p.add_argument("--sizes", nargs="+", type=int, help="map sizes to run (default: all of the protocol)")
     p.add_argument("--agents", nargs="+", type=int, help="agent counts to run (with --map: exactly one)")

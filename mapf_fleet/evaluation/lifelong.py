@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mapf_fleet.coordination.rules import CONFLICT_RULES, REVERT, rule_arg
+from mapf_fleet.coordination.rules import CONFLICT_RULES, FLEET_GUIDANCE, REVERT, rule_arg
 from mapf_fleet.coordination.ranking import rank_actions, tie_breakers
 from mapf_fleet.fleet.arbiter import DEFAULT_CONFLICT_RULE, single_choice_ranking
 from mapf_fleet.fleet.record import Decisions
@@ -249,11 +249,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--instances", type=int, default=16, help="episodes per scenario (default 16)")
     p.add_argument("--steps", type=int, default=256, help="episode length in steps (default 256)")
     p.add_argument("--seed", type=int, default=0, help="seed of maps, starts and goal streams")
-    p.add_argument("--guidance", nargs="+", default=["none"], type=_guidance_arg, metavar="G",
+    p.add_argument("--guidance", nargs="+", default=None, type=_guidance_arg, metavar="G",
                    help="guidance graph(s) every distance reads, one row each: none, highways "
                         "(hand-made crisscross lanes), a guidance file (*.guidance.npz, --map "
                         "with one map) or a cost model (*.costmodel.json, any map) "
-                        "(default: none)")
+                        "(default: a checkpoint's recorded guidance, else the fleet's, "
+                        f"{FLEET_GUIDANCE}, what `mapf-fleet up` runs; none under revert and "
+                        "for lacam)")
     p.add_argument("--planner-time-limit", type=float, default=1.0,
                    help="lacam: seconds per replanning call (default 1)")
     p.add_argument("--planning-budget", type=float, metavar="S",
@@ -315,9 +317,12 @@ def evaluate_lifelong(args) -> list[LifelongResult]:
 
                 torch.set_num_threads(1)
             policy = None if base.is_planner else build_policy(spec)
+            # not given: the spec's own (`PolicySpec.default_guidance`: the checkpoint's recorded
+            # guidance, else the fleet's, as `up` runs it)
+            given = args.guidance if args.guidance is not None else [spec.default_guidance]
             for label, instances, guidance in ((label, instances, guidance)
                                                for guidance in dict.fromkeys(
-                                                   map(GuidanceSource.parse, args.guidance))
+                                                   map(GuidanceSource.parse, given))
                                                for label, instances in scenarios(args)):
                 began = time.perf_counter()
                 # a plan's moves are conflict-free: plain PIBT passes them unchanged (the anchor

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from mapf_fleet.coordination.planners import PLANNER_NAMES
-from mapf_fleet.coordination.rules import PIBT_RULES, REVERT, Rule
+from mapf_fleet.coordination.rules import FLEET_GUIDANCE, PIBT_RULES, REVERT, Rule
 from mapf_fleet.coordination.ranking import (DEFAULT_RANKING, Q_RANKINGS, RANKINGS, default_ranking,
                                              recorded_ranking)
 
@@ -48,7 +48,9 @@ class PolicySpec:
     ranking: str | None = None  # the ranking asked for under the rule (None: the default)
     # a checkpoint's recorded rankings (metadata `rankings`), ((rule, ranking), ...): its default
     rankings: tuple[tuple[str, str], ...] = ()
-    recorded_guidance: str = "none"  # a checkpoint's metadata guidance (what it was trained on)
+    # a checkpoint's metadata guidance (what its heuristic channels were trained on; None: not
+    # recorded, `default_guidance` then)
+    recorded_guidance: str | None = None
     planning_budget: float | None = None  # rule "lacam": seconds per re-plan (None: default)
     # the guidance graph every distance reads (`GuidanceSource` spelling): observations, rule
     guidance: str = "none"
@@ -67,6 +69,17 @@ class PolicySpec:
         if self.kind == "heuristic":
             return "distance"
         return default_ranking(self.conflict_rule, dict(self.rankings))
+
+    @property
+    def default_guidance(self) -> str:
+        """The guidance the spec runs under when none is asked for: what its checkpoint records
+        (the graph its heuristic channels were trained to read), else the fleet's
+        (`coordination.rules.FLEET_GUIDANCE`, what `mapf-fleet up` reads). Under the paper's
+        rule `revert` (the paper's protocol, whose figures are unguided) none, and a centralized
+        planner plans unguided."""
+        if self.recorded_guidance is not None and not self.is_planner:
+            return self.recorded_guidance
+        return "none" if self.is_planner or self.conflict_rule == REVERT else FLEET_GUIDANCE
 
 
 def with_conflict_rule(spec: PolicySpec, rule: str, ranking: str | None = None) -> PolicySpec:
@@ -97,8 +110,9 @@ def with_guidance(specs: list[PolicySpec], values) -> list[PolicySpec]:
 
     out = []
     for spec in specs:
-        # not given: what the checkpoint was trained to read (metadata guidance), else none
-        given = values if values is not None else [spec.recorded_guidance]
+        # not given: what the checkpoint was trained to read (metadata guidance), else the fleet's
+        # (`PolicySpec.default_guidance`)
+        given = values if values is not None else [spec.default_guidance]
         sources = list(dict.fromkeys(GuidanceSource.parse(v) for v in given))
         for k, source in enumerate(sources):
             if spec.is_planner or spec.conflict_rule == REVERT and spec.kind != "checkpoint":
@@ -129,7 +143,8 @@ def parse_policy(arg: str, *, device: str = "cpu", planner_time_limit: float = 1
     rankings = meta.get("rankings") or {}
     return PolicySpec("checkpoint", path.stem, path=str(path), device=device,
                       rankings=tuple(sorted(rankings.items())),
-                      recorded_guidance=str(meta.get("guidance", "none")))
+                      recorded_guidance=(None if meta.get("guidance") is None
+                                         else str(meta["guidance"])))
 
 
 def unique_names(specs: list[PolicySpec]) -> list[PolicySpec]:

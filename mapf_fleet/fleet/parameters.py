@@ -28,6 +28,7 @@ import yaml
 from mapf_fleet.aliases import PARAMETERS as PARAMETER_ALIASES
 from mapf_fleet.coordination.ranking import (DEFAULT_RANKING_BY_RULE, RANKINGS,
                                              default_ranking)
+from mapf_fleet.coordination.rules import FLEET_GUIDANCE
 from mapf_fleet.fleet.arbiter import CONFLICT_RULES, DEFAULT_CONFLICT_RULE
 from mapf_fleet.fleet.param import (GENERATED_MAP, LIFELONG, NAV2_MAP, REAL_ROBOTS, Applies,
                                     Option, Param)
@@ -63,11 +64,13 @@ def _guidance_ok(value: str) -> bool:
         return False
 
 
-# the simulator's, the aggregator's and the policy nodes' guidance: one value for the fleet
-GUIDANCE = Param("none", "guidance graph read by every distance to a goal (the rule's order, "
-                         "the robots' heuristic channels): none, highways (hand-made crisscross "
-                         "lanes), a guidance file (*.guidance.npz) or a cost model "
-                         "(*.costmodel.json); every node of the fleet gets the same",
+# the simulator's, the aggregator's and the policy nodes' guidance: one value for the fleet,
+# by default the fleet's (`coordination.rules.FLEET_GUIDANCE`, what `evaluate` measures)
+GUIDANCE = Param(FLEET_GUIDANCE, "guidance graph read by every distance to a goal (the rule's "
+                                 "order, the robots' heuristic channels): none (BFS steps), "
+                                 "highways (hand-made crisscross lanes), a guidance file "
+                                 "(*.guidance.npz) or a cost model (*.costmodel.json); every "
+                                 "node of the fleet gets the same",
                  _guidance_ok, "none, highways, an existing *.guidance.npz or *.costmodel.json "
                                "(congestion guidance: evaluate --lifelong only)",
                  option=Option("--guidance", metavar="none|highways|FILE"))

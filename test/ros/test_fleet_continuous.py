@@ -34,32 +34,39 @@ def _first_difference(got, want):
     return None if len(got) == len(want) else f"{len(got)} ticks != {len(want)}"
 
 
-def _lifelong_rollout(checkpoint, instance, steps, seed):
+def _lifelong_rollout(checkpoint, instance, steps, seed, guidance):
     import torch
 
     from mapf_fleet.evaluation.lifelong import rollout
     from mapf_fleet.evaluation.policies import CheckpointBatchPolicy
     from mapf_fleet.fleet.run import FleetRun
     from mapf_fleet.fleet.tasks import LifelongTasks
+    from mapf_fleet.grid.guidance_made import GuidanceSource
 
     torch.set_num_threads(1)
     run = FleetRun(instance.grid, instance.starts, LifelongTasks(grid=instance.grid, seed=seed),
-                   instance.goals, rule=RULE, max_steps=steps)
+                   instance.goals, rule=RULE, max_steps=steps,
+                   guidance=GuidanceSource.parse(guidance).for_map(instance.grid))
     rollout(CheckpointBatchPolicy(checkpoint, ranking="q"), [run], shielded=True)
     return run
 
 
 @pytest.mark.ros
 @pytest.mark.slow
-@pytest.mark.parametrize("algo", ["dhc", "dcc_sensitive"])
+@pytest.mark.parametrize("algo,guidance", [("dhc", "none"), ("dcc_sensitive", None)])
 def test_lifelong_fleet_equals_the_evaluators_lifelong_rollout(tmp_path, ros_env, checkpoints,
-                                                               algo):
+                                                               algo, guidance):
     """16 robots, 200 ticks, two policy processes of 8: every cell of every tick and every goal
     change equal `evaluate --lifelong`'s rollout (`evaluation.lifelong.rollout` over the same
-    `FleetRun`), goal stream seeded alike."""
+    `FleetRun`), goal stream seeded alike; unguided (`--guidance none`) and under `up`'s default
+    guidance (None: no --guidance, the fleet's `FLEET_GUIDANCE`: every node's distances, the
+    robots' heuristic channels and the rule read the same graph as the rollout's)."""
+    from mapf_fleet.coordination.rules import FLEET_GUIDANCE
+
     seed, steps = 5, 200
     instance = InstanceSource(num_robots=16, size=16, density=0.2, seed=seed).load()
-    expected = _lifelong_rollout(checkpoints[algo], instance, steps, seed)
+    expected = _lifelong_rollout(checkpoints[algo], instance, steps, seed,
+                                 FLEET_GUIDANCE if guidance is None else guidance)
     assigned = [e for e in expected.recorder.record["goal_events"] if e["event"] == "assigned"]
     assert len(assigned) > 16 + 4  # robots really got new goals on arrival
     record_path = tmp_path / "lifelong.json"
@@ -68,6 +75,7 @@ def test_lifelong_fleet_equals_the_evaluators_lifelong_rollout(tmp_path, ros_env
                                 "--task-source", "lifelong", "--max-steps", str(steps),
                                 "--nodes-per-process", "8", "--ranking", "q",
                                 "--conflict-rule", RULE,
+                                *([] if guidance is None else ["--guidance", guidance]),
                                 "--record", str(record_path)],
                           env=ros_env, capture_output=True, text=True, timeout=900)
     assert record_path.exists(), proc.stdout + proc.stderr

@@ -89,7 +89,8 @@ def run_fleet(tmp_path, env, checkpoint, seed, num_robots, size, max_steps, extr
     record = tmp_path / f"run_{seed}.json"
     cmd = [sys.executable, "-m", "mapf_fleet.cli", "up", "--checkpoint", checkpoint,
            "--num-robots", str(num_robots), "--size", str(size), "--seed", str(seed),
-           "--max-steps", str(max_steps), "--record", str(record), "--quiet", *extra]
+           "--max-steps", str(max_steps), "--record", str(record), "--quiet",
+           "--guidance", "none", *extra]  # the batched rollouts here are unguided (MAPFEnv)
     # ros_env (test/conftest.py) sets ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and ROS_DOMAIN_ID
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True,
                           timeout=240)
