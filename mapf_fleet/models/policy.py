@@ -15,9 +15,25 @@ from mapf_fleet.grid.actions import NUM_ACTIONS
 
 
 def resolve_device(device: str | torch.device = "auto") -> torch.device:
-    if isinstance(device, str) and device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(device)
+    """The torch device for `device`, the one reading of a device name for the fleet's policy
+    processes, the evaluator and the trainers: auto is cuda when torch sees a CUDA device, else
+    cpu; cpu, cuda and cuda:N as torch reads them. ValueError (one line) for an unknown name or
+    for cuda where torch sees none."""
+    if isinstance(device, torch.device):
+        return device
+    available = torch.cuda.is_available()
+    if device == "auto":
+        return torch.device("cuda" if available else "cpu")
+    try:
+        found = torch.device(device)
+    except (RuntimeError, TypeError):
+        found = None
+    if found is None or found.type not in ("cpu", "cuda"):
+        raise ValueError(f"device must be auto, cpu, cuda or cuda:N, got {device!r}")
+    if found.type == "cuda" and not available:
+        raise ValueError(f"device is {device}, but torch sees no CUDA device here "
+                         "(torch.cuda.is_available() is false): use device auto or cpu")
+    return found
 
 
 class LearnedPolicy:

@@ -206,17 +206,15 @@ def split_ros_args(argv: list[str]) -> tuple[list[str], list[str]]:
 
 
 def resolve_device(device: str) -> str:
-    """The torch device of parameter `device` (fleet.parameters.DEVICES): auto is cuda when
-    torch sees a CUDA device, else cpu; ValueError (one line) for cuda without one."""
-    import torch
+    """The torch device of parameter `device` (fleet.parameters.DEVICES), read by
+    `models.policy.resolve_device`: auto is cuda when torch sees a CUDA device, else cpu;
+    ValueError (one line) for cuda without one."""
+    from mapf_fleet.models.policy import resolve_device as torch_device
 
-    available = torch.cuda.is_available()
-    if device == "auto":
-        return "cuda" if available else "cpu"
-    if device == "cuda" and not available:
-        raise ValueError("parameter device is cuda, but torch sees no CUDA device here "
-                         "(torch.cuda.is_available() is false): use device auto or cpu")
     if device not in DEVICES:
         raise ValueError(f"parameter device must be one of {', '.join(DEVICES)}, "
                          f"got {device!r}")
-    return device
+    try:
+        return torch_device(device).type
+    except ValueError as err:
+        raise ValueError(f"parameter {err}") from None

@@ -44,15 +44,17 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from mapf_fleet.models.policy import resolve_device
+
 from .config import TrainConfig
-from .modelio import build_model, model_step, pick_device
+from .modelio import build_model, model_step
 from .replay import FAR_AWAY, SequenceBatch
 
 
 class Learner:
     def __init__(self, cfg: TrainConfig, device: str | torch.device | None = None):
         self.cfg = cfg
-        self.device = pick_device(cfg.device) if device is None else torch.device(device)
+        self.device = resolve_device(cfg.device) if device is None else torch.device(device)
         self.model = build_model(cfg).to(self.device)
         self.target = copy.deepcopy(self.model).eval()
         for p in self.target.parameters():

@@ -41,7 +41,3 @@ def model_step(model, algo: str, obs, positions, hidden, last_actions, agent_mas
     return model.step(obs, positions, hidden=hidden, agent_mask=agent_mask)
 
 
-def pick_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)

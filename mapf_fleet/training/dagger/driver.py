@@ -21,9 +21,9 @@ import torch
 import yaml
 
 from mapf_fleet.files import atomic_write
+from mapf_fleet.models.policy import resolve_device
 from mapf_fleet.stop_signals import StopSignals
 
-from ..modelio import pick_device
 from ..ray_pool import make_pool
 from .config import DaggerConfig, DaggerConfigError
 from .data import (SHARD_COUNTERS, LabelledData, read_shard, shard_name, window_loss,
@@ -51,7 +51,7 @@ class Dagger:
         (self.run_dir / DATA_DIR).mkdir(exist_ok=True)
         torch.manual_seed(cfg.seed)
         torch.set_num_threads(cfg.threads)
-        self.device = pick_device(cfg.device)
+        self.device = resolve_device(cfg.device)
         model, meta = load_checkpoint(cfg.init_checkpoint)
         if cfg.observation is not None:
             try:
