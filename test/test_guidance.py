@@ -302,3 +302,32 @@ def test_highways_are_a_valid_graph_on_every_map_the_fleet_accepts():
         assert np.array_equal(guided >= 0, reach), name  # nothing cut off, nothing new
         assert (guided[reach] >= bfs[reach]).all(), name
         assert (guided[reach] <= HIGHWAY_AGAINST * bfs[reach]).all(), name
+
+
+def test_up_runs_a_checkpoint_under_the_guidance_it_records(tmp_path):
+    """`up` without --guidance takes the guidance the checkpoint records, as `evaluate` does (one
+    default everywhere), the fleet's where it records none; --guidance overrides it; a recorded
+    value `up` cannot run (online congestion) is refused in one line naming the file."""
+    pytest.importorskip("rclpy")
+    pytest.importorskip("torch")
+    from mapf_fleet.coordination.rules import FLEET_GUIDANCE
+    from mapf_fleet.models.checkpoint import build_model, save_checkpoint
+    from mapf_fleet.models.config import ModelConfig
+    from mapf_fleet.ros import launcher
+
+    def saved(name, **extra):
+        return str(save_checkpoint(tmp_path / name, build_model(ModelConfig.preset("dhc", "small")),
+                                   {"alpha": 0.0, "curriculum": {}, "learner_steps": 0,
+                                    "training_config": {}, **extra}))
+
+    def guidance(*argv):
+        _, plan, _ = launcher.prepare([*argv, "--num-robots", "4", "--size", "12"])
+        return [plan.sim["guidance"]] + sorted({plan.values[n]["guidance"] for n in plan.values})
+
+    unguided, unrecorded = saved("u.pt", guidance="none"), saved("o.pt")
+    assert guidance("--checkpoint", unguided) == ["none", "none"]
+    assert guidance("--checkpoint", unrecorded) == [FLEET_GUIDANCE, FLEET_GUIDANCE]
+    assert guidance("--checkpoint", unguided, "--guidance", "highways") == ["highways"] * 2
+    online = saved("c.pt", guidance="congestion")
+    with pytest.raises(launcher.UpError, match=r"c\.pt: its metadata field guidance: must be "):
+        guidance("--checkpoint", online)

@@ -25,11 +25,10 @@ metadata fields:
                      (coordination.ranking.default_ranking)
     guidance         str (optional): the guidance graph the heuristic channels were trained to
                      read (a `grid.guidance_made.GuidanceSource` spelling: none, highways, a
-                     file; the trainer and DAgger write their config's); the evaluator runs the
-                     checkpoint under it unless --guidance is given. Absent (files written
-                     before the field existed, e.g. models/default.pt): the fleet's guidance
-                     (coordination.rules.FLEET_GUIDANCE), which `mapf-fleet up` runs unless
-                     --guidance is given (`up` does not read this field)
+                     file; the trainer and DAgger write their config's); the evaluator and
+                     `mapf-fleet up` run the checkpoint under it unless --guidance is given.
+                     Absent (files written before the field existed, e.g. models/default.pt):
+                     the fleet's guidance (coordination.rules.FLEET_GUIDANCE)
 Writes are atomic (temporary file in the same directory + os.replace), so a reader never sees
 half a file.
 """

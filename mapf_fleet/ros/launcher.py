@@ -92,6 +92,15 @@ def prepare(argv: list[str]):
     if problem:  # before anything starts: the policy processes would die one by one
         raise UpError(problem)
     sim = plan.sim
+    if plan.origin[plan.sim_name]["guidance"] == "default":
+        # the guidance the checkpoint was trained for, as `evaluate` reads it (one default)
+        recorded = recorded_guidance(checkpoint)
+        if recorded is not None:
+            problem = P.GUIDANCE.problem(recorded)
+            if problem:
+                raise UpError(f"{checkpoint}: its metadata field guidance: {problem}; pass "
+                              f"--guidance")
+            sim["guidance"] = recorded
     available = available_memory_mb()
     if not (sim["instance_file"] or sim["map_file"]):  # before the map takes the memory
         problem = map_size_problem(int(sim["size"]), available)
@@ -162,6 +171,15 @@ def checkpoint_problem(path: str) -> str:
     except (ValueError, OSError) as exc:  # CheckpointError is a ValueError
         return str(exc).strip().splitlines()[0] if str(exc).strip() else repr(exc)
     return ""
+
+
+def recorded_guidance(path: str) -> str | None:
+    """The guidance checkpoint `path` records it was trained for (metadata field guidance,
+    `models.checkpoint`), None where it records none (the fleet's default applies)."""
+    from mapf_fleet.models.checkpoint import read_checkpoint
+
+    value = read_checkpoint(path)[1].get("guidance")
+    return None if value is None else str(value)
 
 
 START_MARGIN_S = 120.0  # a process's own start-up (imports, DDS) on a loaded machine
