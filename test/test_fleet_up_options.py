@@ -100,8 +100,8 @@ def test_guidance_is_the_fleets_by_default_none_or_an_existing_file_and_one_valu
     with pytest.raises(U.UpError) as caught:
         _plan(["--guidance", str(tmp_path / "missing.yaml")])
     assert str(caught.value) == (f"--guidance must be none, highways, an existing "
-                                 f"*.guidance.npz or *.costmodel.json (congestion guidance: "
-                                 f"evaluate --lifelong only), got "
+                                 f"*.guidance.npz or *.costmodel.json (online guidance, "
+                                 f"congestion or *.online.json: evaluate --lifelong only), got "
                                  f"'{tmp_path / 'missing.yaml'}'")
     _, plan = _plan(["--guidance", "highways"])
     assert plan.guidance == "highways"

@@ -32,3 +32,17 @@ def test_a_learned_policy_runs_where_auto_says():
     expected = "cuda" if torch.cuda.is_available() else "cpu"
     assert policy.device.type == expected
     assert next(policy.model.parameters()).device.type == expected
+
+
+def test_the_evaluators_default_is_the_fleets_auto_and_bad_names_are_refused():
+    import argparse
+
+    from mapf_fleet.evaluation import cli, lifelong, render
+
+    for parser in (cli.build_parser(), lifelong.build_parser(), render.build_parser()):
+        device = next(a for a in parser._actions if a.dest == "device")
+        assert device.default == "auto"  # what the policy processes' parameter device defaults to
+        assert device.type("cpu") == "cpu"
+        with pytest.raises(argparse.ArgumentTypeError,
+                           match=r"^device must be auto, cpu, cuda or cuda:N, got 'tpu'"):
+            device.type("tpu")

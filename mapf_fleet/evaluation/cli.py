@@ -30,6 +30,7 @@ from mapf_fleet.version import code_version
 from mapf_fleet.aliases import renamed_options
 from mapf_fleet.coordination.rules import FLEET_GUIDANCE, FLEET_RULE, REVERT, rule_arg
 from mapf_fleet.coordination.ranking import DEFAULT_RANKING_BY_RULE, RANKINGS
+from mapf_fleet.models.policy import DEVICE_HELP, device_arg
 
 from .policies import REFERENCE_NAMES, parse_policy, unique_names, with_conflict_rule, with_guidance
 from .protocol import (
@@ -107,7 +108,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-steps", type=int, help=f"step limit for --map (default {SMALL_MAP_LIMIT} up to 40x40, else {LARGE_MAP_LIMIT})")
     p.add_argument("--workers", type=int, default=1, help="parallel processes")
     p.add_argument("--batch-size", type=int, default=200, help="episodes stepped together per job")
-    p.add_argument("--device", default="cpu", help="torch device of learned policies")
+    p.add_argument("--device", default="auto", type=device_arg,
+                   help=f"torch device of learned policies: {DEVICE_HELP}")
     p.add_argument("--planner-time-limit", type=float, help="seconds of planning per instance")
     p.add_argument("--planning-budget", type=float, metavar="S",
                    help="--conflict-rule lacam: seconds of planning per re-plan, one tick's budget "

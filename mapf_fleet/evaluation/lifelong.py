@@ -44,6 +44,7 @@ from mapf_fleet.fleet.record import Decisions
 from mapf_fleet.fleet.run import FleetRun
 from mapf_fleet.fleet.tasks import LifelongTasks
 from mapf_fleet.grid.guidance_made import GuidanceSource
+from mapf_fleet.models.policy import DEVICE_HELP, device_arg
 
 from .policies import parse_policy, unique_names, with_conflict_rule
 from .protocol import InstanceSet
@@ -252,7 +253,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--guidance", nargs="+", default=None, type=_guidance_arg, metavar="G",
                    help="guidance graph(s) every distance reads, one row each: none, highways "
                         "(hand-made crisscross lanes), a guidance file (*.guidance.npz, --map "
-                        "with one map) or a cost model (*.costmodel.json, any map) "
+                        "with one map), a cost model (*.costmodel.json, any map), online "
+                        "congestion costs (congestion) or an online learned model "
+                        "(*.online.json, any map) "
                         "(default: a checkpoint's recorded guidance, else the fleet's, "
                         f"{FLEET_GUIDANCE}, what `mapf-fleet up` runs; none under revert and "
                         "for lacam)")
@@ -260,7 +263,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="lacam: seconds per replanning call (default 1)")
     p.add_argument("--planning-budget", type=float, metavar="S",
                    help="--conflict-rule lacam: seconds per re-plan (default 1)")
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--device", default="auto", type=device_arg,
+                   help=f"torch device of learned policies: {DEVICE_HELP}")
     p.add_argument("--json", metavar="OUT")
     p.add_argument("--csv", metavar="OUT")
     p.add_argument("--markdown", metavar="OUT")

@@ -162,6 +162,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="mapf-fleet render", description=__doc__.split("\n")[0],
                                 epilog="A fleet's recorded run: mapf-fleet render --run F.json|BAG_DIR --out "
                                        "F.gif (mapf-fleet render --run X --help for its options).")
+    from mapf_fleet.models.policy import DEVICE_HELP, device_arg
+
     from .policies import REFERENCE_NAMES
 
     p.add_argument("--checkpoint", required=True, help=f"checkpoint file or one of {', '.join(REFERENCE_NAMES)}")
@@ -174,7 +176,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-steps", type=int, help="step limit (default: the protocol's for the size)")
     p.add_argument("--out", required=True, help="output .gif / .webp / .mp4, or a folder for PNG frames")
     p.add_argument("--fps", type=float, default=8.0, help="frames per second of the GIF (default %(default)s)")
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--device", default="auto", type=device_arg,
+                   help=f"torch device of learned policies: {DEVICE_HELP}")
     return p
 
 

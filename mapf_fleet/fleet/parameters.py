@@ -57,8 +57,9 @@ def _guidance_ok(value: str) -> bool:
     from mapf_fleet.grid.guidance_made import GuidanceSource
 
     try:
-        # online (congestion) guidance changes as the run goes: the policy processes would need
-        # its costs every period, so the fleet over ROS takes static graphs only
+        # online guidance (congestion, *.online.json) changes as the run goes: the policy
+        # processes would need its costs every period, so the fleet over ROS takes static
+        # graphs only
         return not GuidanceSource.parse(value).online
     except ValueError:
         return False
@@ -72,7 +73,8 @@ GUIDANCE = Param(FLEET_GUIDANCE, "guidance graph read by every distance to a goa
                                  "(*.guidance.npz) or a cost model (*.costmodel.json); every "
                                  "node of the fleet gets the same",
                  _guidance_ok, "none, highways, an existing *.guidance.npz or *.costmodel.json "
-                               "(congestion guidance: evaluate --lifelong only)",
+                               "(online guidance, congestion or *.online.json: evaluate "
+                               "--lifelong only)",
                  option=Option("--guidance", metavar="none|highways|FILE"))
 
 

@@ -36,6 +36,21 @@ def resolve_device(device: str | torch.device = "auto") -> torch.device:
     return found
 
 
+DEVICE_HELP = "auto (cuda when torch sees a CUDA device, else cpu), cpu, cuda or cuda:N"
+
+
+def device_arg(value: str) -> str:
+    """argparse type of a --device option: `value` when `resolve_device` reads it, else the
+    one-line refusal."""
+    import argparse
+
+    try:
+        resolve_device(value)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+    return value
+
+
 class LearnedPolicy:
     def __init__(self, model: nn.Module, device: str | torch.device = "auto"):
         self.device = resolve_device(device)
