@@ -2,13 +2,21 @@
 
     python -m mapf_fleet.evaluation.pogema_bench --family random --agents 64 --instances 32 \\
         --mode lifelong --conflict-rule pibt_anchor_swap --guidance none highways
+    python -m mapf_fleet.evaluation.pogema_bench --checkpoint models/default.pt \\
+        --guidance congestion models/guidance/online_warehouse_33x33_128.online.json
 
 POGEMA (pogema 1.4.0, `requirements-pogema.txt`; scripts/setup.sh installs it into
 <venv>/pogema, which only this module puts on sys.path) is the environment of the learned-MAPF
 field's benchmark (pogema-benchmark, ICLR 2025). Each step, the project's coordination layer
-computes the joint move (`coordination.factory.make_shield(rule, grid, goals, guidance=...)`;
-rankings `coordination.plan.distance_rankings`: plain PIBT under the rule) and POGEMA executes
-it. Every step is checked three ways:
+computes the joint move (`coordination.factory.make_shield(rule, grid, goals, guidance=...)`)
+and POGEMA executes it. The rankings: plain PIBT's (`coordination.plan.distance_rankings`, the
+default, `--checkpoint heuristic`), or a checkpoint's (`--checkpoint FILE`: the evaluator's
+`CheckpointBatchPolicy` on the observations `evaluation.lifelong.observe_runs` builds from
+POGEMA's positions and goals, ranked as `evaluate` ranks it under the rule: the checkpoint's
+recorded ranking for the rule, else the rule's default). Online guidance (`congestion`,
+`*.online.json`) is stepped as a fleet run steps it (`fleet.run.FleetRun.advance`): the
+source's flow observes every tick's moves and hands the shield a new graph every period ticks
+(`set_guidance`), and the observations read the same graph. Every step is checked three ways:
 
 - `rule mismatches`: the project's own conflict rules (`grid.env.resolve_moves`, the paper's
   rules that the simulator runs) applied to the same actions give other cells than the shield
@@ -53,6 +61,10 @@ from mapf_fleet.coordination.rules import Rule
 from mapf_fleet.grid.actions import actions_between
 from mapf_fleet.grid.env import resolve_moves
 from mapf_fleet.grid.guidance_made import GuidanceSource
+from mapf_fleet.models.policy import DEVICE_HELP, device_arg
+
+from .lifelong import observe_runs
+from .policies import HEURISTIC, build_policy, parse_policy, with_conflict_rule
 
 POGEMA_VERSION = "1.4.0"
 DATA = Path(__file__).resolve().parent / "data" / "pogema_benchmark"
@@ -150,7 +162,8 @@ class EpisodeResult:
     rule_mismatches: int = 0  # agent-steps where resolve_moves disagrees with the shield
     collisions: int = 0  # agent-steps resolve_moves reverts
     pogema_mismatches: int = 0  # agent-steps where POGEMA's cell differs from the shield's
-    seconds: float = 0.0  # the coordination layer's time (shield + rankings)
+    seconds: float = 0.0  # the tick's own time: shield, rankings (policy), guidance updates
+    guidance_updates: int = 0  # online guidance: new graphs handed to the shield
 
 
 def make_env(pogema, mode: str, family: str, map_text: str, map_name: str, seed: int,
@@ -165,10 +178,21 @@ def make_env(pogema, mode: str, family: str, map_text: str, map_name: str, seed:
     return pogema.pogema_v0(grid_config=config)
 
 
+class EpisodeView:
+    """What `evaluation.lifelong.observe_runs` reads of a run (grid, positions, goals, guidance):
+    the episode's state inside POGEMA, so a policy sees the observations the evaluator builds."""
+
+    def __init__(self, grid, positions, goals, guidance):
+        self.grid = np.asarray(grid) != 0
+        self.positions, self.goals, self.guidance = positions, goals, guidance
+
+
 def run_episode(pogema, mode: str, family: str, map_name: str, map_text: str, seed: int,
                 agents: int, rule: Rule, guidance: GuidanceSource,
-                planning_budget: float | None = None) -> EpisodeResult:
-    """One episode in POGEMA with the shield of `rule` making every move (module docstring)."""
+                planning_budget: float | None = None, policy=None) -> EpisodeResult:
+    """One episode in POGEMA with the shield of `rule` making every move (module docstring).
+    policy: None (plain PIBT's distance rankings) or a batch policy of `evaluation.policies`
+    (`rank` on the lifelong evaluator's observations, told what was `executed`)."""
     env = make_env(pogema, mode, family, map_text, map_name, seed, agents)
     env.reset(seed=seed)
     grid_obj = env.unwrapped.grid
@@ -180,23 +204,44 @@ def run_episode(pogema, mode: str, family: str, map_name: str, map_text: str, se
     positions = cells(grid_obj.get_agents_xy(ignore_borders=True))
     goals = cells(grid_obj.get_targets_xy(ignore_borders=True))
     began = time.perf_counter()
-    shield = make_shield(rule, grid, goals, planning_budget=planning_budget,
-                         guidance=guidance.for_map(grid))
+    graph = guidance.for_map(grid)
+    shield = make_shield(rule, grid, goals, planning_budget=planning_budget, guidance=graph)
+    flow = guidance.flow(grid)  # online guidance (None: static)
+    view = EpisodeView(grid, positions, shield.goals, graph)
+    if policy is not None:
+        policy.reset(1, agents)
     spent = time.perf_counter() - began
     result = EpisodeResult(figure=0.0, steps=0)
     while True:
         began = time.perf_counter()
-        step = shield.step(positions, distance_rankings(shield, positions))
-        spent += time.perf_counter() - began
+        if policy is None:
+            rankings = distance_rankings(shield, positions)
+        else:
+            view.positions, view.goals = positions, shield.goals
+            obs = observe_runs([view], policy.observation)
+            rankings = policy.rank(obs, positions[None], result.steps)[0]
+        step = shield.step(positions, rankings)
         ours = np.asarray(step.positions, dtype=np.int64)
         actions = actions_between(positions, ours)
+        if policy is not None:
+            policy.executed(actions[None])  # DCC's last action: the executed one
+        spent += time.perf_counter() - began
         by_rules, collided = resolve_moves(grid, positions, actions)
         result.rule_mismatches += int((by_rules != ours).any(axis=1).sum())
         result.collisions += int(collided.sum())
         _, _, terminated, truncated, infos = env.step(actions.tolist())
         result.steps += 1
-        positions = cells(grid_obj.get_agents_xy(ignore_borders=True))
+        before, positions = positions, cells(grid_obj.get_agents_xy(ignore_borders=True))
         result.pogema_mismatches += int((positions != ours).any(axis=1).sum())
+        if flow is not None:  # as `FleetRun.advance`: the next ticks read the updated costs
+            began = time.perf_counter()
+            flow.observe(before, positions)
+            graph = flow.guidance()
+            if graph is not None:
+                shield.set_guidance(graph)
+                view.guidance = graph
+                result.guidance_updates += 1
+            spent += time.perf_counter() - began
         if all(terminated) or all(truncated):
             metrics = infos[0].get("metrics", {})
             result.figure = float(metrics["avg_throughput"] if mode == "lifelong"
@@ -221,17 +266,21 @@ class Row:
     guidance: str
     instances: list
     episodes: list = field(default_factory=list)
+    policy: str = HEURISTIC  # heuristic: plain PIBT's distance rankings; else a checkpoint's stem
+    ranking: str = "distance"  # the ranking the rule arbitrates
 
     def summary(self) -> dict:
         e = self.episodes
         ticks = sum(r.steps for r in e)
         return {"family": self.family, "mode": self.mode, "agents": self.agents,
+                "policy": self.policy, "ranking": self.ranking,
                 "rule": self.rule, "guidance": self.guidance, "episodes": len(e),
                 "figure": round(float(np.mean([r.figure for r in e])), 4) if e else None,
                 "rule_mismatches": sum(r.rule_mismatches for r in e),
                 "collisions": sum(r.collisions for r in e),
                 "pogema_mismatches": sum(r.pogema_mismatches for r in e),
-                "ms_per_tick": round(1000 * sum(r.seconds for r in e) / max(ticks, 1), 2)}
+                "ms_per_tick": round(1000 * sum(r.seconds for r in e) / max(ticks, 1), 2),
+                "guidance_updates": sum(r.guidance_updates for r in e)}
 
 
 PUBLISHED_METHODS = {"lifelong": ("RHCR", "Follower", "MATS-LP"),
@@ -248,7 +297,8 @@ def table(rows: list[Row], published: dict) -> str:
         what = "goals per step" if mode == "lifelong" else "success rate"
         methods = PUBLISHED_METHODS[mode]
         lines.append(f"{mode} ({what}; published: {PUBLISHED_SOURCE}, same instances)")
-        lines.append(f"{'family':10} {'agents':>6} {'rule':22} {'guidance':10} {'n':>4} "
+        lines.append(f"{'family':10} {'agents':>6} {'policy':10} {'rule':22} {'guidance':26} "
+                     f"{'n':>4} "
                      f"{'ours':>7} " + " ".join(f"{m:>9}" for m in methods)
                      + f" {'rule mism.':>10} {'pogema mism.':>12} {'ms/tick':>8}")
         for r in mine:
@@ -259,7 +309,7 @@ def table(rows: list[Row], published: dict) -> str:
                                               r.instances[:len(r.episodes)])
                 pubs.append("      n/a" if value is None else
                             f"{value:9.3f}" if count == len(r.episodes) else f"{value:6.3f}/{count:<2}")
-            lines.append(f"{r.family:10} {r.agents:>6} {r.rule:22} {r.guidance:10} "
+            lines.append(f"{r.family:10} {r.agents:>6} {r.policy:10} {r.rule:22} {r.guidance:26} "
                          f"{s['episodes']:>4} {s['figure']:>7.3f} " + " ".join(pubs)
                          + f" {s['rule_mismatches']:>10} {s['pogema_mismatches']:>12} "
                          f"{s['ms_per_tick']:>8.2f}")
@@ -277,8 +327,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--first", type=int, default=0, help="the first instance index")
     p.add_argument("--conflict-rule", nargs="+", default=["pibt_anchor_swap"],
                    help="coordinated rules of coordination.rules (revert has no shield)")
+    p.add_argument("--checkpoint", nargs="+", default=[HEURISTIC], metavar="C",
+                   help="whose rankings the rule arbitrates, one row each: heuristic (plain "
+                        "PIBT's distance rankings, the default) or a checkpoint file (its "
+                        "recorded ranking for the rule, as `evaluate`)")
+    p.add_argument("--device", default="auto", type=device_arg,
+                   help=f"torch device of checkpoints: {DEVICE_HELP}")
     p.add_argument("--guidance", nargs="+", default=["none"],
-                   help="none | highways | MODEL.costmodel.json (a guidance file fits one map only)")
+                   help="none | highways | congestion (online) | MODEL.costmodel.json | "
+                        "MODEL.online.json (online) (a guidance file fits one map only)")
     p.add_argument("--planning-budget", type=float, default=None,
                    help="seconds per re-plan of the lacam rule")
     p.add_argument("--out", type=Path, help="write the rows as JSON here")
@@ -297,8 +354,11 @@ def main(argv: list[str] | None = None) -> int:
             if not r.coordinated:
                 raise ValueError(f"--conflict-rule {r}: has no shield to make the moves")
         sources = [GuidanceSource.parse(g) for g in args.guidance]
+        # (checkpoint, rule) -> its spec under the rule; read here, refused before anything runs
+        specs = {(c, str(r)): policy_spec(c, r, args.device)
+                 for c in dict.fromkeys(args.checkpoint) for r in rules}
         pogema = import_pogema()
-    except (ValueError, PogemaMissing) as err:
+    except (ValueError, FileNotFoundError, PogemaMissing) as err:
         print(f"{prog}: error: {err}", file=sys.stderr)
         return 2
     published = load_published()
@@ -308,21 +368,26 @@ def main(argv: list[str] | None = None) -> int:
         maps = load_maps(family)
         for mode in args.mode:
             for agents in args.agents:
-                for rule in rules:
+                for (checkpoint, rule_name), spec in specs.items():
+                    rule = Rule.parse(rule_name)
+                    policy = policy_of(spec)
                     for source in sources:
-                        row = Row(family, mode, agents, str(rule), source.label, instances)
+                        row = Row(family, mode, agents, str(rule), source.label, instances,
+                                  policy=spec.kind if policy is None else Path(checkpoint).stem,
+                                  ranking=spec.resolved_ranking)
                         for k in instances:
                             name, text, seed = FAMILIES[family].instance(maps, k)
                             with warnings.catch_warnings():
                                 warnings.simplefilter("ignore")  # pogema's own notices
                                 row.episodes.append(run_episode(
                                     pogema, mode, family, name, text, seed, agents, rule, source,
-                                    args.planning_budget))
+                                    args.planning_budget, policy))
                         rows.append(row)
                         s = row.summary()
-                        print(f"{family} {mode} {agents} {rule} {source.label}: {s['figure']} "
-                              f"(rule mismatches {s['rule_mismatches']}, pogema mismatches "
-                              f"{s['pogema_mismatches']})", flush=True)
+                        print(f"{family} {mode} {agents} {row.policy} {rule} {source.label}: "
+                              f"{s['figure']} (rule mismatches {s['rule_mismatches']}, pogema "
+                              f"mismatches {s['pogema_mismatches']}, {s['ms_per_tick']} ms/tick)",
+                              flush=True)
     print()
     print(table(rows, published))
     if args.out:
@@ -330,8 +395,34 @@ def main(argv: list[str] | None = None) -> int:
         args.out.write_text(json.dumps({"command": " ".join([prog, *map(shlex.quote, argv or
                                                                         sys.argv[1:])]),
                                         "pogema": POGEMA_VERSION,
+                                        "date": time.strftime("%Y-%m-%dT%H:%M:%SZ",
+                                                              time.gmtime()),
                                         "rows": [r.summary() for r in rows]}, indent=1))
     return 0
+
+
+def policy_spec(checkpoint: str, rule: Rule, device: str):
+    """`--checkpoint`'s value under `rule` as `evaluate` reads it (`policies.parse_policy`,
+    `with_conflict_rule`); a planner name is refused (the shield makes every move here)."""
+    spec = parse_policy(checkpoint, device=device)
+    if spec.is_planner:
+        raise ValueError(f"--checkpoint {checkpoint}: a planner has no rankings for the rule "
+                         f"(here: heuristic or a checkpoint file; the planning arbiter is "
+                         f"--conflict-rule lacam)")
+    return with_conflict_rule(spec, rule.name)
+
+
+def policy_of(spec):
+    """The batch policy `run_episode` steps for `spec`: None for the heuristic (plain PIBT's
+    distance rankings straight from the shield), else the evaluator's `CheckpointBatchPolicy`."""
+    if spec.kind != "checkpoint":
+        return None
+    import torch
+
+    # one torch thread, as `evaluate --lifelong`: on a shared machine a second thread's barrier
+    # waits for a core another process holds
+    torch.set_num_threads(1)
+    return build_policy(spec)
 
 
 if __name__ == "__main__":
