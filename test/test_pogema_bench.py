@@ -165,8 +165,106 @@ def test_without_pogema_one_line_says_how_to_install_it(tmp_path):
 def test_bad_arguments_are_refused_in_one_line():
     for args, word in ((["--instances", "200"], "128 instances"),
                        (["--conflict-rule", "revert"], "revert"),
-                       (["--guidance", "nowhere.costmodel.json"], "nowhere")):
+                       (["--guidance", "nowhere.costmodel.json"], "nowhere"),
+                       (["--checkpoint", "nowhere.pt"], "nowhere.pt"),
+                       (["--checkpoint", "lacam"], "planner")):
         out = _main(*args)
         assert out.returncode == 2, args
         lines = out.stderr.strip().splitlines()
         assert len(lines) == 1 and word in lines[0], (args, out.stderr)
+
+
+def _shield_recorder(monkeypatch):
+    """make_shield wrapped: the graphs each episode's shield is handed (`set_guidance`)."""
+    real, given = pb.make_shield, []
+
+    def make(*args, **kwargs):
+        shield = real(*args, **kwargs)
+        own = shield.set_guidance
+
+        def set_guidance(graph):
+            given.append(graph)
+            own(graph)
+
+        shield.set_guidance = set_guidance
+        return shield
+
+    monkeypatch.setattr(pb, "make_shield", make)
+    return given
+
+
+@pytest.mark.parametrize("guidance", ["congestion",
+                                      "models/guidance/online_warehouse_33x33_128.online.json"])
+def test_online_guidance_is_stepped_inside_pogema(pogema, monkeypatch, guidance):
+    """The source's flow observes every tick and hands the shield a new graph every period
+    ticks (as FleetRun.advance); the moves still match our rules and POGEMA's."""
+    from dataclasses import replace
+
+    monkeypatch.setitem(pb.FAMILIES, "random", replace(pb.FAMILIES["random"], lifelong_steps=40))
+    given = _shield_recorder(monkeypatch)
+    source = GuidanceSource.parse(guidance if guidance == "congestion" else str(REPO / guidance))
+    assert source.online
+    period = source.flow(np.zeros((4, 4))).period
+    name, text, seed = _instance("random")
+    result = pb.run_episode(pogema, "lifelong", "random", name, text, seed, 32,
+                            Rule.parse("pibt_anchor_swap"), source)
+    assert result.steps == 40
+    assert result.rule_mismatches == 0 and result.collisions == 0
+    assert result.pogema_mismatches == 0
+    assert result.guidance_updates == 40 // period == len(given)
+    # graphs of the robots' traffic: they change from update to update
+    assert all(g is not None for g in given)
+    assert all(not np.array_equal(a.costs, b.costs) for a, b in zip(given, given[1:]))
+
+
+def _tiny_checkpoint(path, **meta):
+    torch = pytest.importorskip("torch")
+    from mapf_fleet.models.checkpoint import build_model, save_checkpoint
+    from mapf_fleet.models.config import ModelConfig
+
+    torch.manual_seed(0)
+    return save_checkpoint(path, build_model(ModelConfig.preset("dhc", "small")), {
+        "alpha": 0.0, "curriculum": {}, "learner_steps": 0, "training_config": {}, **meta})
+
+
+def test_a_checkpoint_ranks_inside_pogema_on_the_evaluators_observations(pogema, monkeypatch,
+                                                                         tmp_path):
+    """--checkpoint: the network ranks every tick (its recorded ranking for the rule), from the
+    observations observe_runs builds under the episode's current graph (online guidance too)."""
+    from dataclasses import replace
+
+    monkeypatch.setitem(pb.FAMILIES, "random", replace(pb.FAMILIES["random"], lifelong_steps=24))
+    path = _tiny_checkpoint(tmp_path / "tiny.pt", rankings={"pibt_anchor_swap": "confidence"})
+    rule = Rule.parse("pibt_anchor_swap")
+    spec = pb.policy_spec(str(path), rule, "cpu")
+    assert spec.resolved_ranking == "confidence"
+    policy = pb.policy_of(spec)
+    ranked, seen = [], []
+    rank, observe = policy.rank, pb.observe_runs
+    monkeypatch.setattr(policy, "rank", lambda *a: ranked.append(a[2]) or rank(*a))
+    monkeypatch.setattr(pb, "observe_runs",
+                        lambda runs, obs: seen.append(runs[0].guidance) or observe(runs, obs))
+    given = _shield_recorder(monkeypatch)
+    name, text, seed = _instance("random")
+    result = pb.run_episode(pogema, "lifelong", "random", name, text, seed, 16, rule,
+                            GuidanceSource.parse("congestion"), policy=policy)
+    assert ranked == list(range(24))
+    assert result.rule_mismatches == 0 and result.collisions == 0
+    assert result.pogema_mismatches == 0
+    # updates after ticks 8, 16 and 24 (the last, after the episode's final tick, unread)
+    assert len(given) == 3 and all(any(g is s for s in seen) for g in given[:-1])
+    # no policy: plain PIBT, the network is never asked
+    pb.run_episode(pogema, "lifelong", "random", name, text, seed, 16, rule,
+                   GuidanceSource.parse("none"))
+    assert len(ranked) == 24
+
+
+def test_the_checkpoint_option_writes_its_rows(pogema, tmp_path):
+    path = _tiny_checkpoint(tmp_path / "tiny.pt")
+    out = _main("--family", "mazes", "--agents", "8", "--instances", "1", "--device", "cpu",
+                "--checkpoint", "heuristic", str(path), "--out", str(tmp_path / "rows.json"))
+    assert out.returncode == 0, out.stderr
+    rows = __import__("json").loads((tmp_path / "rows.json").read_text())["rows"]
+    assert [(r["policy"], r["ranking"]) for r in rows] == [
+        ("heuristic", "distance"), ("tiny", Rule.parse("pibt_anchor_swap").default_ranking)]
+    assert all(r["rule_mismatches"] == r["pogema_mismatches"] == 0 for r in rows)
