@@ -268,3 +268,4 @@ def test_the_checkpoint_option_writes_its_rows(pogema, tmp_path):
     assert [(r["policy"], r["ranking"]) for r in rows] == [
         ("heuristic", "distance"), ("tiny", Rule.parse("pibt_anchor_swap").default_ranking)]
     assert all(r["rule_mismatches"] == r["pogema_mismatches"] == 0 for r in rows)
+    assert all(r["cpu_ms_per_tick"] > 0 and r["ms_per_tick"] > 0 for r in rows)

@@ -163,6 +163,7 @@ class EpisodeResult:
     collisions: int = 0  # agent-steps resolve_moves reverts
     pogema_mismatches: int = 0  # agent-steps where POGEMA's cell differs from the shield's
     seconds: float = 0.0  # the tick's own time: shield, rankings (policy), guidance updates
+    cpu_seconds: float = 0.0  # the same spans' CPU time (wall time also counts waiting for a core)
     guidance_updates: int = 0  # online guidance: new graphs handed to the shield
 
 
@@ -176,6 +177,22 @@ def make_env(pogema, mode: str, family: str, map_text: str, map_name: str, seed:
         on_target="restart" if lifelong else "nothing", collision_system=COLLISION_SYSTEM,
         obs_radius=OBS_RADIUS, observation_type="POMAPF")
     return pogema.pogema_v0(grid_config=config)
+
+
+class Clock:
+    """Wall and CPU time of the spans run under `with clock:` (on a loaded machine the wall time
+    also counts the waits for a core that other processes hold; the CPU time does not)."""
+
+    def __init__(self):
+        self.wall = self.cpu = 0.0
+
+    def __enter__(self):
+        self._wall, self._cpu = time.perf_counter(), time.process_time()
+        return self
+
+    def __exit__(self, *exc):
+        self.wall += time.perf_counter() - self._wall
+        self.cpu += time.process_time() - self._cpu
 
 
 class EpisodeView:
@@ -203,29 +220,28 @@ def run_episode(pogema, mode: str, family: str, map_name: str, map_text: str, se
 
     positions = cells(grid_obj.get_agents_xy(ignore_borders=True))
     goals = cells(grid_obj.get_targets_xy(ignore_borders=True))
-    began = time.perf_counter()
-    graph = guidance.for_map(grid)
-    shield = make_shield(rule, grid, goals, planning_budget=planning_budget, guidance=graph)
-    flow = guidance.flow(grid)  # online guidance (None: static)
-    view = EpisodeView(grid, positions, shield.goals, graph)
-    if policy is not None:
-        policy.reset(1, agents)
-    spent = time.perf_counter() - began
+    clock = Clock()
+    with clock:
+        graph = guidance.for_map(grid)
+        shield = make_shield(rule, grid, goals, planning_budget=planning_budget, guidance=graph)
+        flow = guidance.flow(grid)  # online guidance (None: static)
+        view = EpisodeView(grid, positions, shield.goals, graph)
+        if policy is not None:
+            policy.reset(1, agents)
     result = EpisodeResult(figure=0.0, steps=0)
     while True:
-        began = time.perf_counter()
-        if policy is None:
-            rankings = distance_rankings(shield, positions)
-        else:
-            view.positions, view.goals = positions, shield.goals
-            obs = observe_runs([view], policy.observation)
-            rankings = policy.rank(obs, positions[None], result.steps)[0]
-        step = shield.step(positions, rankings)
-        ours = np.asarray(step.positions, dtype=np.int64)
-        actions = actions_between(positions, ours)
-        if policy is not None:
-            policy.executed(actions[None])  # DCC's last action: the executed one
-        spent += time.perf_counter() - began
+        with clock:
+            if policy is None:
+                rankings = distance_rankings(shield, positions)
+            else:
+                view.positions, view.goals = positions, shield.goals
+                obs = observe_runs([view], policy.observation)
+                rankings = policy.rank(obs, positions[None], result.steps)[0]
+            step = shield.step(positions, rankings)
+            ours = np.asarray(step.positions, dtype=np.int64)
+            actions = actions_between(positions, ours)
+            if policy is not None:
+                policy.executed(actions[None])  # DCC's last action: the executed one
         by_rules, collided = resolve_moves(grid, positions, actions)
         result.rule_mismatches += int((by_rules != ours).any(axis=1).sum())
         result.collisions += int(collided.sum())
@@ -234,14 +250,13 @@ def run_episode(pogema, mode: str, family: str, map_name: str, map_text: str, se
         before, positions = positions, cells(grid_obj.get_agents_xy(ignore_borders=True))
         result.pogema_mismatches += int((positions != ours).any(axis=1).sum())
         if flow is not None:  # as `FleetRun.advance`: the next ticks read the updated costs
-            began = time.perf_counter()
-            flow.observe(before, positions)
-            graph = flow.guidance()
-            if graph is not None:
-                shield.set_guidance(graph)
-                view.guidance = graph
-                result.guidance_updates += 1
-            spent += time.perf_counter() - began
+            with clock:
+                flow.observe(before, positions)
+                graph = flow.guidance()
+                if graph is not None:
+                    shield.set_guidance(graph)
+                    view.guidance = graph
+                    result.guidance_updates += 1
         if all(terminated) or all(truncated):
             metrics = infos[0].get("metrics", {})
             result.figure = float(metrics["avg_throughput"] if mode == "lifelong"
@@ -250,10 +265,9 @@ def run_episode(pogema, mode: str, family: str, map_name: str, map_text: str, se
         if mode == "lifelong":
             new_goals = cells(grid_obj.get_targets_xy(ignore_borders=True))
             if (new_goals != shield.goals).any():
-                began = time.perf_counter()
-                shield.set_goals(new_goals)
-                spent += time.perf_counter() - began
-    result.seconds = spent
+                with clock:
+                    shield.set_goals(new_goals)
+    result.seconds, result.cpu_seconds = clock.wall, clock.cpu
     return result
 
 
@@ -280,6 +294,7 @@ class Row:
                 "collisions": sum(r.collisions for r in e),
                 "pogema_mismatches": sum(r.pogema_mismatches for r in e),
                 "ms_per_tick": round(1000 * sum(r.seconds for r in e) / max(ticks, 1), 2),
+                "cpu_ms_per_tick": round(1000 * sum(r.cpu_seconds for r in e) / max(ticks, 1), 2),
                 "guidance_updates": sum(r.guidance_updates for r in e)}
 
 
@@ -300,7 +315,7 @@ def table(rows: list[Row], published: dict) -> str:
         lines.append(f"{'family':10} {'agents':>6} {'policy':10} {'rule':22} {'guidance':26} "
                      f"{'n':>4} "
                      f"{'ours':>7} " + " ".join(f"{m:>9}" for m in methods)
-                     + f" {'rule mism.':>10} {'pogema mism.':>12} {'ms/tick':>8}")
+                     + f" {'rule mism.':>10} {'pogema mism.':>12} {'ms/tick':>8} {'cpu ms':>7}")
         for r in mine:
             s = r.summary()
             pubs = []
@@ -312,7 +327,7 @@ def table(rows: list[Row], published: dict) -> str:
             lines.append(f"{r.family:10} {r.agents:>6} {r.policy:10} {r.rule:22} {r.guidance:26} "
                          f"{s['episodes']:>4} {s['figure']:>7.3f} " + " ".join(pubs)
                          + f" {s['rule_mismatches']:>10} {s['pogema_mismatches']:>12} "
-                         f"{s['ms_per_tick']:>8.2f}")
+                         f"{s['ms_per_tick']:>8.2f} {s['cpu_ms_per_tick']:>7.2f}")
     return "\n".join(lines)
 
 
@@ -386,7 +401,8 @@ def main(argv: list[str] | None = None) -> int:
                         s = row.summary()
                         print(f"{family} {mode} {agents} {row.policy} {rule} {source.label}: "
                               f"{s['figure']} (rule mismatches {s['rule_mismatches']}, pogema "
-                              f"mismatches {s['pogema_mismatches']}, {s['ms_per_tick']} ms/tick)",
+                              f"mismatches {s['pogema_mismatches']}, {s['ms_per_tick']} ms/tick, "
+                              f"CPU {s['cpu_ms_per_tick']} ms/tick)",
                               flush=True)
     print()
     print(table(rows, published))
