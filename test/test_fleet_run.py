@@ -403,3 +403,21 @@ def test_the_readmes_32_robot_example_is_solved_by_the_fleet_core():
     ranking = default_ranking("pibt_anchor", metadata.get("rankings"))
     rollout(CheckpointBatchPolicy(checkpoint, ranking=ranking), [run], shielded=True)
     assert run.on_goal().all(), f"{int(run.on_goal().sum())}/{run.num_robots} on goal"
+
+
+def test_steps_to_a_cell_are_cells_whatever_the_guidance():
+    """A robot's distance left (the action's feedback) is a length in cells: BFS steps, not the
+    guided cost that orders its moves (a step against a highway lane costs more than one)."""
+    import numpy as np
+
+    from mapf_fleet.fleet.run import FleetRun
+    from mapf_fleet.fleet.tasks import InstanceTasks
+    from mapf_fleet.grid.guidance_made import highways
+    from mapf_fleet.grid.heuristic import bfs_distances
+
+    grid = np.zeros((9, 9), dtype=np.uint8)
+    run = FleetRun(grid, np.array([[0, 0]]), InstanceTasks(), np.array([[8, 8]]),
+                   guidance=highways(grid))
+    steps = run.steps_to((8, 8))
+    np.testing.assert_array_equal(steps, bfs_distances(grid, (8, 8)))
+    assert (run.distance_to((8, 8)) > steps).any()  # the guided costs differ: lanes

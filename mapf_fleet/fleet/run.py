@@ -158,6 +158,14 @@ class FleetRun(RunReport):
         h, w = self.grid.shape
         return self.distances.array(int(cell[0]) * w + int(cell[1])).reshape(h, w)
 
+    def steps_to(self, cell) -> np.ndarray:
+        """(H, W) BFS steps to `cell` (-1 unreachable), whatever the guidance: what a robot has
+        left to drive, in cells (a guided distance is a cost, not a length)."""
+        from mapf_fleet.grid.heuristic import distance_table
+
+        h, w = self.grid.shape
+        return distance_table(self.grid).array(int(cell[0]) * w + int(cell[1])).reshape(h, w)
+
     def goal_problem(self, robot, cell, *, ignore_robot: int | None = None) -> str:
         """Why `cell` cannot be `robot`'s goal now ("" when it can); robot None: any robot."""
         h, w = self.grid.shape
