@@ -241,8 +241,12 @@ def main(argv: list[str] | None = None) -> int:
             print(f"mapf-fleet echo: topic {args.topic} not found within {args.timeout:g} s",
                   file=sys.stderr)
             return 1
+        if not publishers:  # what --timeout waits for: nothing would ever arrive
+            print(f"mapf-fleet echo: no publisher of {args.topic} found within "
+                  f"{args.timeout:g} s", file=sys.stderr)
+            return 1
         offered = sorted({p.topic_type for p in publishers})
-        if args.type is not None and offered and args.type not in offered:
+        if args.type is not None and args.type not in offered:
             print(f"mapf-fleet echo: topic {args.topic} has type {', '.join(offered)}, not "
                   f"--type {args.type}", file=sys.stderr)
             return 2

@@ -272,10 +272,22 @@ def test_echo_once_ends_at_its_timeout_on_a_silent_topic_and_names_a_wrong_type(
         assert done.returncode == 1, done.stderr
         assert "0 of 1 message on /fleet/progress within 8 s" in done.stderr
         assert time.monotonic() - started < 60
-        done = subprocess.run(cli + ["--once", "--timeout", "3", "--type", "std_msgs/msg/String"],
+        done = subprocess.run(cli + ["--once", "--timeout", "8", "--type", "std_msgs/msg/String"],
                               env=ros_env, capture_output=True, text=True, timeout=120)
         assert done.returncode == 2 and "has type mapf_fleet_interfaces/msg/FleetProgress" in \
             done.stderr, done.stderr
     finally:
         node.destroy_node()
         rclpy.try_shutdown(context=context)
+
+
+def test_echo_with_a_type_and_no_publisher_says_so(ros_env):
+    """--type skips waiting for the topic's type, not for its publisher: with none within
+    --timeout, echo says there is no publisher (exit 1) instead of waiting for messages that
+    cannot come and reporting "0 of 1 message"."""
+    cli = [sys.executable, "-m", "mapf_fleet.cli", "echo", "/fleet/nobody_publishes", "--once",
+           "--timeout", "2", "--type", "std_msgs/msg/String"]
+    done = subprocess.run(cli, env=ros_env, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 1
+    assert done.stderr == "mapf-fleet echo: no publisher of /fleet/nobody_publishes found " \
+                          "within 2 s\n"
