@@ -534,6 +534,12 @@ def test_shielded_rows_are_compared_with_plain_pibt_in_success_and_steps():
     better = [row("m +PIBT", 16, 1.0, 60.0), row(PLAIN_PIBT, 16, 0.9, 70.0)]
     assert "at every agent count" in _against_plain_pibt(better, "m +PIBT", [16])[0]
     assert _against_plain_pibt(rows[:1], "m +PIBT", [16]) == []  # no PIBT row: nothing said
+    # under a guidance graph the bar is plain PIBT under the same graph
+    guided = [row("m +PIBT +highways", 16, 1.0, 60.0), row(PLAIN_PIBT, 16, 0.5, 90.0),
+              row(PLAIN_PIBT + " +highways", 16, 1.0, 59.0)]
+    text = _against_plain_pibt(guided, "m +PIBT +highways", [16])[0]
+    assert text.startswith(f"m +PIBT +highways against plain PIBT ({PLAIN_PIBT} +highways, ")
+    assert "average steps at most PIBT's at no agent count" in text
 
 
 def test_card_of_a_dagger_round_states_its_dagger_record(tmp_path):

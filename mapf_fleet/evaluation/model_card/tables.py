@@ -188,8 +188,13 @@ def _against_plain_pibt(rows: list[dict], name: str, agents: list[int]) -> list[
     """Where this checkpoint under the shield is at least plain PIBT (the non-learned ranking
     under the same shield: the bar a learned ranking must clear), in success rate and in average steps, from
     the measured rows only."""
+    # under a guidance graph both rows carry its label last ("m +PIBT +highways"): the bar is
+    # plain PIBT under the same graph
+    tokens = name.split(" ")
+    guided = len(tokens) >= 3 and tokens[-1].startswith("+") and tokens[-2].startswith("+")
+    plain = PLAIN_PIBT + (" " + tokens[-1] if guided else "")
     mine = {int(r["agents"]): r for r in rows if r["policy"] == name}
-    pibt = {int(r["agents"]): r for r in rows if r["policy"] == PLAIN_PIBT}
+    pibt = {int(r["agents"]): r for r in rows if r["policy"] == plain}
     shared = [n for n in agents if n in mine and n in pibt]
     if not shared:
         return []
@@ -201,7 +206,7 @@ def _against_plain_pibt(rows: list[dict], name: str, agents: list[int]) -> list[
 
     success = [n for n in shared if mine[n]["success_rate"] >= pibt[n]["success_rate"]]
     steps = [n for n in shared if mine[n]["average_steps"] <= pibt[n]["average_steps"]]
-    return [f"{name} against plain PIBT ({PLAIN_PIBT}, same shield): success rate at least "
+    return [f"{name} against plain PIBT ({plain}, same shield): success rate at least "
             f"PIBT's {verdict(success)}, average steps at most PIBT's {verdict(steps)} "
             f"(of {', '.join(map(str, shared))}).", ""]
 
