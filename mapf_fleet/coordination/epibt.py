@@ -157,13 +157,11 @@ class EPIBTShield(PIBTShield):
             paths[:, :, t + 1] = np.where(valid, nxt, prev)
         if self._step_costs is None:
             cost[:] = h
-        # distances along the way: per agent its goal's row (shared table, searched once a goal)
+        # distances along the way: per agent its goal's row (shared table, searched once a goal;
+        # a view, unreachable cells already above any path)
         along = np.empty((n, k, h), dtype=np.float64)
-        unreachable = float(self.distances.unreachable)
         for i in range(n):
-            dist = self.distance_map(i)
-            d = dist[paths[i, :, 1:]]
-            along[i] = np.where(d >= 0, d, unreachable)
+            along[i] = np.asarray(self._distance_list(i))[paths[i, :, 1:]]
         cost += along[:, :, -1]
         cost = np.where(valid, np.round(cost, 9), np.inf)
         rank_of = np.empty((n, NUM_ACTIONS), dtype=np.int64)

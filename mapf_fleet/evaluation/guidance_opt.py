@@ -28,7 +28,6 @@ throughput before and after, CPU-hours, command).
 from __future__ import annotations
 
 import argparse
-import os
 import pickle
 import shlex
 import sys
@@ -38,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from mapf_fleet.coordination.rules import FLEET_RULE
+from mapf_fleet.files import atomic_write
 from mapf_fleet.grid.guidance_made import (CONGESTION, FEATURES, HIGHWAYS, LOG_COST_CLIP,
                                            ONLINE, CostModel, GuidanceSource)
 from mapf_fleet.grid.guidance_online import PRESETS, TRAFFIC, OnlineModel
@@ -174,12 +174,7 @@ class Evaluator:
 
 
 def _save(path: Path, state: dict) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        pickle.dump(state, f)
-        f.flush()
-        os.fsync(f.fileno())
-    tmp.replace(path)
+    atomic_write(path, lambda handle: pickle.dump(state, handle))
 
 
 def _task(args) -> dict:

@@ -251,8 +251,7 @@ def run_episode(pogema, mode: str, family: str, map_name: str, map_text: str, se
         result.pogema_mismatches += int((positions != ours).any(axis=1).sum())
         if flow is not None:  # as `FleetRun.advance`: the next ticks read the updated costs
             with clock:
-                flow.observe(before, positions)
-                graph = flow.guidance()
+                graph = flow.step(before, positions)
                 if graph is not None:
                     shield.set_guidance(graph)
                     view.guidance = graph

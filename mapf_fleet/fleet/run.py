@@ -284,8 +284,7 @@ class FleetRun(RunReport):
         before, self.positions = self.positions, np.asarray(positions, dtype=np.int64).copy()
         self.last_actions = np.asarray(last_actions, dtype=np.int64).copy()
         if self.flow is not None:  # online guidance: the next ticks read the updated costs
-            self.flow.observe(before, self.positions)
-            guidance = self.flow.guidance()
+            guidance = self.flow.step(before, self.positions)
             if guidance is not None:
                 self.set_guidance(guidance)
         self.tick += 1

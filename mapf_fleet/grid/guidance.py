@@ -38,6 +38,8 @@ import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components
 
+from mapf_fleet.files import atomic_write
+
 from .actions import NUM_ACTIONS, move_targets
 
 NONE = "none"  # the spelling of "no guidance" on every command line and ROS parameter
@@ -120,12 +122,9 @@ class Guidance:
 
     def save(self, path) -> Path:
         """Write the guidance file (atomically: a reader never sees half a file)."""
-        path = Path(path)
-        tmp = path.with_name(path.name + ".tmp.npz")
-        np.savez_compressed(tmp, costs=self.costs, obstacles=self.obstacles.astype(np.uint8),
-                            meta=np.array(json.dumps(self.meta)))
-        tmp.replace(path)
-        return path
+        return atomic_write(path, lambda handle: np.savez_compressed(
+            handle, costs=self.costs, obstacles=self.obstacles.astype(np.uint8),
+            meta=np.array(json.dumps(self.meta))))
 
     # --- what the distance table reads ----------------------------------------------------------
     @property

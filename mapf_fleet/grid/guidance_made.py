@@ -29,6 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
+from mapf_fleet.files import atomic_write
+
 from .actions import NUM_ACTIONS, move_targets
 from .guidance import NONE, SUFFIX, Guidance, GuidanceError
 
@@ -132,13 +134,9 @@ class CostModel:
                                    source="cost model")
 
     def save(self, path) -> Path:
-        path = Path(path)
         data = {"features": list(FEATURES), "theta": self.theta.tolist(), "wait": self.wait,
                 "meta": self.meta}
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text(json.dumps(data, indent=1) + "\n")
-        tmp.replace(path)
-        return path
+        return atomic_write(path, (json.dumps(data, indent=1) + "\n").encode())
 
     @classmethod
     def load(cls, path) -> "CostModel":
@@ -249,8 +247,8 @@ class CongestionFlow:
     """Traffic-flow guidance from where the robots are and are heading (Chen et al., AAAI 2024,
     the hand-made counterpart of learned guidance): a decayed count of the moves robots made along
     each directed edge; moving against recent traffic costs 1 + beta x (the flow the other way) /
-    (1 + the flow this way), so opposite streams keep apart. `observe(before, after)` after each
-    tick; `guidance()` every `period` ticks gives the new graph (None between updates)."""
+    (1 + the flow this way), so opposite streams keep apart. `step(before, after)` after each
+    tick: the new graph every `period` ticks, None between updates."""
 
     def __init__(self, grid, beta: float = CONGESTION_BETA, decay: float = CONGESTION_DECAY,
                  period: int = CONGESTION_PERIOD):
@@ -263,6 +261,11 @@ class CongestionFlow:
         self._opposite = np.array([0, 2, 1, 4, 3])  # up <-> down, left <-> right
         targets = move_targets(self.blocked)
         self._targets = targets
+
+    def step(self, before, after) -> "Guidance | None":
+        """Count one tick's moves (`before` -> `after` cells); the new graph when a period ends."""
+        self.observe(before, after)
+        return self.guidance()
 
     def observe(self, before, after) -> None:
         before = np.asarray(before, dtype=np.int64)

@@ -46,6 +46,8 @@ from pathlib import Path
 
 import numpy as np
 
+from mapf_fleet.files import atomic_write
+
 from .actions import NUM_ACTIONS
 from .guidance import Guidance, GuidanceError
 from .guidance_made import (CONGESTION_BETA, CONGESTION_DECAY, CONGESTION_PERIOD, FEATURES,
@@ -126,15 +128,11 @@ class OnlineModel:
 
     # --- the file ----------------------------------------------------------------------------
     def save(self, path) -> Path:
-        path = Path(path)
         data = {"kind": ONLINE, "static_features": list(FEATURES),
                 "traffic_features": list(TRAFFIC), "theta": self.theta.tolist(),
                 "phi": self.phi.tolist(), "wait": self.wait, "decay": self.decay,
                 "period": self.period, "meta": self.meta}
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text(json.dumps(data, indent=1) + "\n")
-        tmp.replace(path)
-        return path
+        return atomic_write(path, (json.dumps(data, indent=1) + "\n").encode())
 
     @classmethod
     def load(cls, path) -> "OnlineModel":

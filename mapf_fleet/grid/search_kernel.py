@@ -96,7 +96,7 @@ class Searcher:
         # the search's own scratch map in the same type: half the cache lines where int16
         self.init = self.init.astype(self.dtype)
 
-    def _one(self, goals, rows, bits) -> None:
+    def _one(self, goals, rows, bits, unreachable: int) -> None:
         size = self.init.size
         scratch = np.empty(size, self.init.dtype)
         queue = np.empty(size + 4, np.int32)
@@ -104,7 +104,7 @@ class Searcher:
         for goal, row, out in zip(goals, rows, bits):
             r, c = divmod(int(goal), self.w)
             _search(self.init, self.W, (r + 1) * self.W + c + 1, scratch, queue, padded_bits,
-                    row, out, self.h, self.w, self.unreachable)
+                    row, out, self.h, self.w, unreachable)
 
     def search(self, goals) -> tuple[list[np.ndarray], list[np.ndarray]]:
         """(rows, bits): for each flat goal cell of `goals`, a new (H*W,) distance row (`dtype`)
@@ -115,11 +115,12 @@ class Searcher:
         bits = [np.empty(n, np.uint8) for _ in goals]
         workers = min(self.threads, max(1, len(goals) // 8))
         if workers == 1:
-            self._one(goals, rows, bits)
+            self._one(goals, rows, bits, self.unreachable)
         else:
             parts = [slice(k, None, workers) for k in range(workers)]
             with ThreadPoolExecutor(workers) as pool:
-                list(pool.map(lambda s: self._one(goals[s], rows[s], bits[s]), parts))
+                list(pool.map(lambda s: self._one(goals[s], rows[s], bits[s], self.unreachable),
+                              parts))
         return rows, bits
 
 
@@ -136,8 +137,7 @@ def _longest_path_bound(searcher: Searcher, blocked: np.ndarray) -> int:
     cell = int(np.flatnonzero(pieces.reshape(-1) == order[0] + 1)[0])
     row = np.empty(blocked.size, np.int32)
     bits = np.empty(blocked.size, np.uint8)
-    searcher.unreachable = -1
-    searcher._one([cell], [row], [bits])
+    searcher._one([cell], [row], [bits], -1)
     other = int(sizes[order[1]]) - 1 if count > 1 else 0
     return max(2 * int(row.max()), other)
 
