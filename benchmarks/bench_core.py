@@ -87,6 +87,7 @@ def run_case(case: str, policy_name: str, args) -> dict:
     observation = getattr(policy, "observation", "paper")
     parts = {"observations": [], "inference": [], "conflict_rule": [], "goal_changes": []}
     cpu = []
+    every = []  # every step's wall time, warm-up included: the first ticks after a cold start
     first = None
     for step in range(args.warmup + args.steps):
         goals_before = run.goals.copy()
@@ -99,6 +100,7 @@ def run_case(case: str, policy_name: str, args) -> dict:
         policy.executed(result.actions[None])
         t3, c3 = time.perf_counter(), time.process_time()
         split = {"observations": t1 - t0, "inference": t2 - t1, "conflict_rule": t3 - t2}
+        every.append(round(t3 - t0, 3))
         if step == 0:
             first = split
         if step >= args.warmup:
@@ -113,6 +115,7 @@ def run_case(case: str, policy_name: str, args) -> dict:
            "steps": args.steps, "threads": args.threads,
            "first_step_s": round(sum(first.values()), 4),
            "first_step_split_s": {k: round(v, 3) for k, v in first.items()},
+           "every_step_s": every,
            "median_s": {k: round(statistics.median(v), 4) for k, v in parts.items()
                         if k != "goal_changes"},
            "mean_s": {k: round(statistics.fmean(v), 4) for k, v in parts.items()
@@ -166,6 +169,8 @@ def main(argv=None) -> int:
                   f"{before:>9s} {row['max_rss_mb']:7d}", flush=True)
             print(f"{'':15s} first step: " + ", ".join(
                 f"{k} {v:.2f} s" for k, v in row["first_step_split_s"].items()), flush=True)
+            print(f"{'':15s} every step, s: " + " ".join(f"{v:.2f}" for v in row["every_step_s"]),
+                  flush=True)
     print(f"before: {BEFORE_SOURCE}")
     if args.json:
         Path(args.json).write_text(json.dumps({"command": " ".join(sys.argv),

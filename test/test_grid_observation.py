@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from mapf_fleet.grid.actions import ACTION_DELTAS
 from mapf_fleet.grid.env import EnvConfig, MAPFEnv, observe
 from mapf_fleet.grid.heuristic import bfs_distances_many, cached_heuristic_channels
 from mapf_fleet.grid.instance import generate_instance
@@ -63,8 +64,11 @@ def test_bad_calls_say_what_is_wrong():
         two_maps.observe(instance.starts[:2])
 
 
+@pytest.mark.parametrize("window_from", [None, 0])
 @pytest.mark.parametrize("observation", ["paper", "cost_to_go"])
-def test_the_goal_observer_equals_a_builder_rebuilt_for_every_step(observation):
+def test_the_goal_observer_equals_a_builder_rebuilt_for_every_step(observation, window_from):
+    """window_from 0: every batch of new goals is first searched in windows around its agents
+    (the agents jump here: most windows are searched whole at once)."""
     from mapf_fleet.grid.heuristic import HeuristicCache
     from mapf_fleet.grid.observation import GoalObserver
 
@@ -76,7 +80,8 @@ def test_the_goal_observer_equals_a_builder_rebuilt_for_every_step(observation):
         if len(free) < 2:
             continue
         n = int(rng.integers(1, min(len(free), 12) + 1))
-        observer = GoalObserver(grid, 4, observation, spare=int(rng.integers(0, 3)))
+        observer = GoalObserver(grid, 4, observation, spare=int(rng.integers(0, 3)),
+                                window_from=window_from)
         goals = free[rng.integers(0, len(free), n)]
         for step in range(8):  # a few goals change each step, some come back
             positions = free[rng.choice(len(free), n, replace=False)]
@@ -89,6 +94,42 @@ def test_the_goal_observer_equals_a_builder_rebuilt_for_every_step(observation):
             assert got.dtype == expected.dtype
             np.testing.assert_array_equal(got, expected, err_msg=f"trial {trial} step {step}")
     assert observer.searched > 0
+
+
+@pytest.mark.parametrize("observation", ["paper", "cost_to_go"])
+def test_windows_hold_walking_agents_until_their_goals_are_searched_whole(observation):
+    """A first tick's goals searched in windows (`window_from` 0): agents walking a cell a step
+    see what a rebuilt builder shows, every window is searched whole within `WINDOW_MARGIN`
+    observations, and the bounded searches settle fewer cells than whole searches would."""
+    from mapf_fleet.grid.heuristic import HeuristicCache, distance_table
+    from mapf_fleet.grid.observation import WINDOW_MARGIN, GoalObserver
+
+    rng = np.random.default_rng(3)
+    for trial in range(6):
+        side = int(rng.integers(30, 60))
+        grid = rng.random((side, side)) < 0.3
+        free = np.argwhere(~grid)
+        n = 24
+        observer = GoalObserver(grid, 4, observation, window_from=0)
+        positions = free[rng.choice(len(free), n, replace=False)]
+        goals = free[rng.integers(0, len(free), n)]
+        before = distance_table(grid).window_cells
+        for step in range(WINDOW_MARGIN + 2):
+            expected = ObservationBuilder.for_goals(grid, goals, 4, observation,
+                                                    HeuristicCache()).observe(positions)
+            got = observer.observe(positions, goals)
+            np.testing.assert_array_equal(got, expected, err_msg=f"trial {trial} step {step}")
+            if step == 0:
+                assert observer.windowed == len(np.unique(goals[:, 0] * side + goals[:, 1]))
+                assert observer.searched == 0
+            moves = ACTION_DELTAS[rng.integers(0, 5, n)]
+            nxt = positions + moves
+            ok = (nxt >= 0).all(1) & (nxt < side).all(1)
+            ok[ok] &= ~grid[nxt[ok, 0], nxt[ok, 1]]
+            positions = np.where(ok[:, None], nxt, positions)  # overlaps do not matter here
+        assert not observer._window_of, "every window searched whole within the margin"
+        settled = distance_table(grid).window_cells - before
+        assert 0 < settled < observer.windowed * (~grid).sum()
 
 
 def test_bfs_distances_equal_scipy_dijkstra_on_random_maps():

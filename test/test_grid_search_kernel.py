@@ -93,3 +93,48 @@ def test_rows_are_int16_only_where_no_path_can_reach_32767_steps():
             np.testing.assert_array_equal(rows[k], want)
         assert rows[0].dtype == dtype
     assert expected.max() > 32767  # the winding map needs int32
+
+
+def test_bounded_windows_equal_the_whole_search_around_their_centres():
+    """`Searcher.windows` (A* bounded to a window and one ring around it) gives exactly the
+    whole search's distances and padded static bytes there: maps that fall apart into pieces,
+    goals on obstacles and inside the window, windows over the map's edge, both threads."""
+    from mapf_fleet.grid.search_kernel import fill_static
+
+    rng = np.random.default_rng(5)
+    for trial in range(40):
+        h, w = (int(v) for v in rng.integers(1, 45, size=2))
+        grid = rng.random((h, w)) < rng.random() * 0.7
+        n = int(rng.integers(1, 24))
+        flat = rng.integers(0, h * w, size=n)  # obstacles too
+        centres = np.stack([rng.integers(0, h, n), rng.integers(0, w, n)], 1)
+        half = int(rng.integers(0, 7))
+        searcher = Searcher(grid, threads=int(rng.integers(1, 3)))
+        static, dist, settled = searcher.windows(flat, centres, half)
+        expected = _oracle(grid, flat)
+        s = 2 * half + 1
+        blocked = grid.reshape(-1).view(np.uint8)
+        for k in range(n):
+            padded = np.empty((h + 2 * half) * (w + 2 * half), np.uint8)
+            fill_static(blocked, _bits_from_distances(expected[k][None])[0].reshape(-1),
+                        padded, h, w, half)
+            r, c = centres[k]
+            want = padded.reshape(h + 2 * half, w + 2 * half)[r:r + s, c:c + s]
+            np.testing.assert_array_equal(static[k].reshape(s, s), want,
+                                          err_msg=f"trial {trial} goal {k}")
+            far = np.full((h + 2 * half, w + 2 * half), -1, np.int32)
+            far[half:half + h, half:half + w] = expected[k]
+            np.testing.assert_array_equal(dist[k].reshape(s, s), far[r:r + s, c:c + s],
+                                          err_msg=f"trial {trial} goal {k}")
+        assert settled <= n * int((~grid).sum())
+
+
+def test_a_bounded_window_settles_a_fraction_of_a_large_map():
+    """What the first tick at scale pays for: a window 40 steps from its goal on an open 200x200
+    map settles a few of its 40,000 cells (the whole search settles them all)."""
+    grid = np.zeros((200, 200), dtype=bool)
+    grid[20, 90:111] = True  # a wall between them to go round
+    searcher = Searcher(grid, threads=1)
+    _, dist, settled = searcher.windows([100], [(40, 100)], 8)  # goal (0, 100)
+    assert dist.reshape(17, 17)[8, 8] == 40 + 2 * 11
+    assert settled < 0.1 * grid.size

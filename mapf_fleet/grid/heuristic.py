@@ -112,7 +112,8 @@ class DistanceTable:
         self._recent_arrays = self.keep
         self._recent_bits = max(16, RECENT_BYTES // self.size)
         self._lock = threading.Lock()
-        self.searches = 0
+        self.searches = 0  # whole searches
+        self.window_cells = 0  # cells settled by bounded searches (`windows`)
 
     def move_targets(self) -> np.ndarray:
         """(H*W, 5) the flat cell each action leads to (`grid.actions.move_targets`), -1 also
@@ -234,6 +235,18 @@ class DistanceTable:
         for k, goal in enumerate(flat):
             out[k] = self.bits_row(goal).reshape(h, w)
         return out
+
+    def windows(self, goals, centres, half: int) -> tuple[np.ndarray, np.ndarray]:
+        """A first look at many new goals (unguided tables only): for each flat goal cell of
+        `goals` and cell (row, col) of `centres`, the (2 half + 1)^2 cells around the centre as
+        `search_kernel.fill_static` writes them (obstacle bit, heuristic bits) and their
+        distances (-1 where none), from a search bounded to those cells
+        (`search_kernel.Searcher.windows`: exact, as the whole search's). Nothing is kept."""
+        if self.guided:
+            raise ValueError("windows: bounded searches are for unguided tables (BFS steps)")
+        static, dist, settled = self._searcher.windows(goals, centres, half)
+        self.window_cells += settled
+        return static, dist
 
     def bits(self, dist: np.ndarray) -> np.ndarray:
         """Packed heuristic bits (N, H, W) uint8 from `many`'s distances: bit k where the move

@@ -210,6 +210,18 @@ def _assemble(agents, static, distances, channels: int, radius: int) -> np.ndarr
     return obs.reshape(n, channels, s, s)
 
 
+# A batch of new goals whose whole searches would write at least this many bytes (distance
+# rows, heuristic bits and the observer's padded maps) is first searched only around its agents
+# (`GoalObserver`'s windows): a fleet's first tick at 10,000 agents on a 512x512 map would
+# otherwise write about 10 GB before the first decision (docs/results.md, "The first tick at
+# 10,000 agents").
+WINDOW_FROM_BYTES = 1 << 30
+# How far (cells) an agent may move from where its goal's window was searched before the
+# window no longer holds its field of view; the windows are searched whole within this many
+# observations (a robot moves at most one cell a tick).
+WINDOW_MARGIN = 8
+
+
 class GoalObserver:
     """FOV observations of agents on one map whose goals change (a lifelong run, a fleet process):
     `observe(positions, goals, agents)` equals `ObservationBuilder.for_goals(grid, goals, radius,
@@ -222,10 +234,17 @@ class GoalObserver:
     (one byte a cell, three with distances on maps under 32,767 cells) per current goal plus `spare`.
     guidance: a `grid.guidance.Guidance` for the map: the heuristic bits (and distances) are the
     guided ones (`heuristic.DistanceTable`); None: BFS steps.
+
+    A first tick's many new goals (whole searches writing `window_from` bytes or more, unguided)
+    are first searched only in a window around the agent holding each (`WINDOW_MARGIN` cells
+    beyond its field of view; `DistanceTable.windows`, exact): a goal is then searched whole
+    before its agent's field of view leaves the window, the windows whose agents moved farthest
+    first, enough each observation that all are whole within `WINDOW_MARGIN` observations.
+    Observations are the same either way (a test).
     """
 
     def __init__(self, grid, radius: int = 4, observation: str = "paper", spare: int = 256,
-                 guidance=None):
+                 guidance=None, window_from: int | None = None):
         from .heuristic import _as_grid, distance_table
 
         self.blocked = _as_grid(grid)
@@ -248,7 +267,32 @@ class GoalObserver:
         self._distances = None
         self._slot_of: dict[int, int] = {}  # goal flat cell -> slot, least recently used first
         self._free: list[int] = []
-        self.searched = 0  # goals searched so far
+        self.searched = 0  # goals searched whole so far
+        # windows: goal -> (window slot, centre row, centre col); the FOV's offsets in a window
+        self.window_from = WINDOW_FROM_BYTES if window_from is None else int(window_from)
+        self.margin = WINDOW_MARGIN
+        self.half = r + self.margin
+        self.wside = 2 * self.half + 1
+        self.in_window = (offsets[:, None] * self.wside + offsets[None, :]).reshape(-1)
+        self._window_of: dict[int, tuple[int, int, int]] = {}
+        self._win_static = np.empty((0, self.wside ** 2), dtype=np.uint8)
+        self._win_dist = np.empty((0, self.wside ** 2), dtype=np.int32)
+        self._win_free: list[int] = []
+        self._rate = 0  # windows searched whole each observation
+        self.windowed = 0  # goals first searched in a window so far
+
+    def _whole_bytes(self) -> int:
+        """Bytes a goal's whole search writes: its distance row and bits, and the pool's maps."""
+        cells = self.blocked.size
+        row = 8 if self.table.guided else 2 if cells < np.iinfo(np.int16).max else 4
+        pool = self.hp * self.wp * (1 + (self._distances_dtype().itemsize
+                                         if self.channels > NUM_OBS_CHANNELS else 0))
+        return cells * (row + 1) + pool
+
+    def _distances_dtype(self) -> np.dtype:
+        # int16 while every distance fits (compact_distances' rule)
+        fits = self.blocked.size < np.iinfo(np.int16).max
+        return np.dtype(np.float32 if self.table.guided else np.int16 if fits else np.int32)
 
     def _grow(self, needed: int) -> None:
         old = self._static.shape[0]
@@ -257,71 +301,160 @@ class GoalObserver:
         static[:old] = self._static
         self._static = static
         if self.channels > NUM_OBS_CHANNELS:
-            # int16 while every distance fits (compact_distances' rule)
-            fits = self.blocked.size < np.iinfo(np.int16).max
-            dtype = np.float32 if self.table.guided else np.int16 if fits else np.int32
-            dist = np.empty((cap, self.hp * self.wp), dtype=dtype)
+            dist = np.empty((cap, self.hp * self.wp), dtype=self._distances_dtype())
             if old:
                 dist[:old] = self._distances
             self._distances = dist
         self._free.extend(range(cap - 1, old - 1, -1))
 
     def slots(self, goals) -> np.ndarray:
-        """int64 (M,) the pool slots of `goals` (M, 2), searching the goals not in the pool."""
+        """int64 (M,) the pool slots of `goals` (M, 2), searching whole the goals not in it."""
         from .heuristic import _as_goals
 
-        h, w = self.blocked.shape
+        w = self.blocked.shape[1]
         goals = _as_goals(goals, self.blocked.shape)
         flat = goals[:, 0] * w + goals[:, 1]
         unique = np.unique(flat).tolist()
+        for g in unique:
+            if g in self._window_of:
+                self._win_free.append(self._window_of.pop(g)[0])
+        self._whole(unique, [g for g in unique if g not in self._slot_of])
+        lookup = np.array([self._slot_of[g] for g in unique], dtype=np.int64)
+        return lookup[np.searchsorted(np.asarray(unique, dtype=np.int64), flat)]
+
+    def _whole(self, current: list[int], missing: list[int]) -> None:
+        """Search `missing` whole into the pool; `current` (every goal held now) are kept."""
         slot_of = self._slot_of
-        missing = [g for g in unique if g not in slot_of]
-        for g in unique:  # most recently used last
+        for g in current:  # most recently used last
             if g in slot_of:
                 slot_of[g] = slot_of.pop(g)
-        if missing:
-            in_use = len(unique) - len(missing)
-            keep = in_use + len(missing) + self.spare
-            while len(slot_of) + len(missing) > keep:  # the least recently used goals go first
-                self._free.append(slot_of.pop(next(iter(slot_of))))
-            if len(self._free) < len(missing):
-                self._grow(self._static.shape[0] + len(missing) - len(self._free))
-            r = self.radius
-            blocked = self.blocked.reshape(-1).view(np.uint8)
-            for start in range(0, len(missing), 256):  # bounded temporaries
-                chunk = missing[start:start + 256]
-                self.table.prepare(chunk)  # a batch: the compiled search on every core
+        if not missing:
+            return
+        in_use = sum(1 for g in current if g in slot_of)
+        keep = in_use + len(missing) + self.spare
+        while len(slot_of) + len(missing) > keep:  # the least recently used goals go first
+            self._free.append(slot_of.pop(next(iter(slot_of))))
+        if len(self._free) < len(missing):
+            self._grow(self._static.shape[0] + len(missing) - len(self._free))
+        h, w = self.blocked.shape
+        r = self.radius
+        blocked = self.blocked.reshape(-1).view(np.uint8)
+        for start in range(0, len(missing), 256):  # bounded temporaries
+            chunk = missing[start:start + 256]
+            self.table.prepare(chunk)  # a batch: the compiled search on every core
+            if self._distances is not None:
+                dist = self.table.many(np.array([divmod(g, w) for g in chunk], np.int64))
+            for k, g in enumerate(chunk):
+                slot = self._free.pop()
+                fill_static(blocked, self.table.bits_row(g), self._static[slot], h, w, r)
                 if self._distances is not None:
-                    dist = self.table.many(np.array([divmod(g, w) for g in chunk], np.int64))
-                for k, g in enumerate(chunk):
-                    slot = self._free.pop()
-                    fill_static(blocked, self.table.bits_row(g), self._static[slot], h, w, r)
-                    if self._distances is not None:
-                        padded = self._distances[slot].reshape(self.hp, self.wp)
-                        padded[:] = UNREACHABLE
-                        padded[r:r + h, r:r + w] = dist[k]
-                    slot_of[g] = slot
-            self.searched += len(missing)
-        lookup = np.array([slot_of[g] for g in unique], dtype=np.int64)
-        return lookup[np.searchsorted(np.asarray(unique, dtype=np.int64), flat)]
+                    padded = self._distances[slot].reshape(self.hp, self.wp)
+                    padded[:] = UNREACHABLE
+                    padded[r:r + h, r:r + w] = dist[k]
+                slot_of[g] = slot
+        self.searched += len(missing)
+
+    def _open_windows(self, goals: list[int], centres: np.ndarray) -> None:
+        """Search `goals` in windows around `centres` (M, 2)."""
+        if len(self._win_free) < len(goals):
+            old = self._win_static.shape[0]
+            cap = max(old + len(goals) - len(self._win_free), old + old // 2)
+            for name in ("_win_static", "_win_dist"):
+                grown = np.empty((cap, self.wside ** 2), getattr(self, name).dtype)
+                grown[:old] = getattr(self, name)
+                setattr(self, name, grown)
+            self._win_free.extend(range(cap - 1, old - 1, -1))
+        # the pool's room for them now (untouched memory costs nothing yet): growing it by half
+        # at each batch of upgrades would copy it again and again
+        room = len(self._slot_of) + len(self._window_of) + len(goals) + self.spare
+        if self._static.shape[0] < room:
+            self._grow(room)
+        static, dist = self.table.windows(goals, centres, self.half)
+        slots = [self._win_free.pop() for _ in goals]
+        self._win_static[slots] = static
+        self._win_dist[slots] = dist
+        for g, slot, (cr, cc) in zip(goals, slots, centres.tolist()):
+            self._window_of[g] = (slot, cr, cc)
+        self.windowed += len(goals)
+
+    def _place(self, flat: np.ndarray, own: np.ndarray) -> list[int]:
+        """Make every goal of `flat` (M,) observable for agents at `own` (M, 2): in the pool,
+        or in a window that holds its agents' fields of view. Returns the unique goals."""
+        unique, first = np.unique(flat, return_index=True)
+        unique = unique.tolist()
+        window_of = self._window_of
+        if window_of:  # windows of goals nobody holds any more are given back
+            current = set(unique)
+            for g in [g for g in window_of if g not in current]:
+                self._win_free.append(window_of.pop(g)[0])
+        new = [k for k, g in enumerate(unique) if g not in self._slot_of and g not in window_of]
+        whole = [unique[k] for k in new]
+        if whole and not self.table.guided \
+                and len(whole) * self._whole_bytes() >= self.window_from:
+            self._open_windows(whole, own[first[new]])
+            self._rate = max(self._rate, -(-len(window_of) // self.margin))
+            whole, rate = [], 0  # this observation only windows: the first tick's time
+        else:
+            rate = self._rate
+        if window_of:
+            # how far each windowed goal's agents are from its window's centre
+            held = np.fromiter((g in window_of for g in flat.tolist()), bool, len(flat))
+            goals = flat[held]
+            centres = np.array([window_of[g][1:] for g in goals.tolist()], np.int64)
+            moved = np.abs(own[held] - centres).max(axis=1)
+            farthest: dict[int, int] = {}
+            for g, m in zip(goals.tolist(), moved.tolist()):
+                farthest[g] = max(farthest.get(g, 0), m)
+            order = sorted(farthest, key=farthest.get, reverse=True)
+            upgrade = order[:rate] + [g for g in order[rate:] if farthest[g] > self.margin]
+            for g in upgrade:
+                self._win_free.append(window_of.pop(g)[0])
+            whole += upgrade
+            if not window_of:
+                self._rate = 0
+        self._whole(unique, whole)
+        return unique
 
     def observe(self, positions, goals, agents=None) -> np.ndarray:
         """float32 (M, C, S, S) of agents `agents` (M,) (None: all N) heading to `goals` (M, 2),
         given every agent's `positions` (N, 2): the other agents are seen in channel 0 too."""
+        from .heuristic import _as_goals
+
         positions = check_positions(positions, self.blocked.shape)
         own = positions if agents is None else positions[np.asarray(agents, dtype=np.int64)]
         goals = np.asarray(goals)
         if goals.shape != (len(own), 2):
             raise ValueError(f"goals must have shape ({len(own)}, 2), got {goals.shape}")
-        slots = self.slots(goals)
+        goals = _as_goals(goals, self.blocked.shape)
+        flat = goals[:, 0] * self.blocked.shape[1] + goals[:, 1]
+        self._place(flat, own)
         occupancy = np.zeros(self.hp * self.wp, dtype=np.uint8)
         occupancy[positions[:, 0] * self.wp + positions[:, 1] + self.centre] = 1
         corners = own[:, 0] * self.wp + own[:, 1]
         windows = corners[:, None] + self.window  # (M, S*S)
-        return _assemble(occupancy[windows], self._static[slots[:, None], windows],
-                         None if self._distances is None
-                         else self._distances[slots[:, None], windows],
-                         self.channels, self.radius)
+        cost_to_go = self.channels > NUM_OBS_CHANNELS
+        pooled = np.fromiter((g in self._slot_of for g in flat.tolist()), bool, len(flat))
+        if pooled.all():
+            slots = np.array([self._slot_of[g] for g in flat.tolist()], np.int64)[:, None]
+            static = self._static[slots, windows]
+            dist = self._distances[slots, windows] if cost_to_go else None
+        else:
+            static = np.empty((len(own), self.size ** 2), np.uint8)
+            dist = np.empty((len(own), self.size ** 2), np.int32) if cost_to_go else None
+            if pooled.any():
+                slots = np.array([self._slot_of[g] for g in flat[pooled].tolist()],
+                                 np.int64)[:, None]
+                static[pooled] = self._static[slots, windows[pooled]]
+                if cost_to_go:
+                    dist[pooled] = self._distances[slots, windows[pooled]]
+            held = ~pooled
+            entry = np.array([self._window_of[g] for g in flat[held].tolist()], np.int64)
+            offset = own[held] - entry[:, 1:] + self.margin  # the FOV's corner in the window
+            inside = (offset[:, 0] * self.wside + offset[:, 1])[:, None] + self.in_window
+            static[held] = self._win_static[entry[:, :1], inside]
+            if cost_to_go:
+                dist[held] = self._win_dist[entry[:, :1], inside]
+        return _assemble(occupancy[windows], static, dist, self.channels, self.radius)
 
 
 def observe(grid, positions, goals, channels, radius: int = 4, distances=None) -> np.ndarray:
