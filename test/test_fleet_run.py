@@ -3,6 +3,8 @@ the evaluator's lifelong rollout; goals and tasks at run time."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -421,3 +423,41 @@ def test_steps_to_a_cell_are_cells_whatever_the_guidance():
     steps = run.steps_to((8, 8))
     np.testing.assert_array_equal(steps, bfs_distances(grid, (8, 8)))
     assert (run.distance_to((8, 8)) > steps).any()  # the guided costs differ: lanes
+
+
+@pytest.mark.parametrize("rule", ["pibt_anchor_swap", "pibt_anchor_swap_epibt"])
+def test_a_cold_start_in_windows_runs_the_same_lifelong_episode(rule, monkeypatch):
+    """The first tick's goals searched in windows (`grid.observation.WINDOW_FROM_BYTES` 0: every
+    batch of new goals) and the conflict rule reading them (`DistanceTable.row`'s `WindowRow`)
+    give the episode of whole searches, step for step, DCC `default.pt` ranking."""
+    from collections import OrderedDict
+
+    from mapf_fleet.evaluation.lifelong import observe_runs
+    from mapf_fleet.evaluation.policies import CheckpointBatchPolicy
+    from mapf_fleet.grid import heuristic, observation
+
+    checkpoint = Path(__file__).resolve().parents[1] / "models" / "default.pt"
+    inst = generate_instance(40, 48, 0.3, 4)
+
+    def episode(window_from: int):
+        monkeypatch.setattr(heuristic, "_TABLES", OrderedDict())  # nothing searched before
+        monkeypatch.setattr(observation, "WINDOW_FROM_BYTES", window_from)
+        run = FleetRun(inst.grid, inst.starts, LifelongTasks(grid=inst.grid, seed=4),
+                       inst.goals, rule=rule, max_steps=30)
+        policy = CheckpointBatchPolicy(str(checkpoint))
+        policy.reset(1, run.num_robots)
+        cells, windowed = [], 0
+        while not run.finished():
+            obs = observe_runs([run], "paper")
+            prefs = policy.rank(obs, run.positions[None], run.tick)
+            result, _ = run.step(Decisions.complete(run.tick, prefs[0]))
+            policy.executed(result.actions[None])
+            cells.append(run.positions.copy())
+            windowed = max(windowed, heuristic.distance_table(inst.grid).window_cells)
+        return np.stack(cells), windowed, run.goals_reached
+
+    whole, none, reached = episode(1 << 62)
+    windows, some, reached_too = episode(0)
+    assert none == 0 and some > 0
+    np.testing.assert_array_equal(windows, whole)
+    assert reached_too == reached > 0

@@ -97,12 +97,18 @@ def test_the_goal_observer_equals_a_builder_rebuilt_for_every_step(observation, 
 
 
 @pytest.mark.parametrize("observation", ["paper", "cost_to_go"])
-def test_windows_hold_walking_agents_until_their_goals_are_searched_whole(observation):
+def test_windows_hold_walking_agents_until_their_goals_are_searched_whole(observation,
+                                                                          monkeypatch):
     """A first tick's goals searched in windows (`window_from` 0): agents walking a cell a step
     see what a rebuilt builder shows, every window is searched whole within `WINDOW_MARGIN`
     observations, and the bounded searches settle fewer cells than whole searches would."""
-    from mapf_fleet.grid.heuristic import HeuristicCache, distance_table
+    from collections import OrderedDict
+
+    from mapf_fleet.grid import heuristic
+    from mapf_fleet.grid.heuristic import DistanceTable, distance_table
     from mapf_fleet.grid.observation import WINDOW_MARGIN, GoalObserver
+
+    monkeypatch.setattr(heuristic, "_TABLES", OrderedDict())  # no goal searched whole before
 
     rng = np.random.default_rng(3)
     for trial in range(6):
@@ -114,9 +120,11 @@ def test_windows_hold_walking_agents_until_their_goals_are_searched_whole(observ
         positions = free[rng.choice(len(free), n, replace=False)]
         goals = free[rng.integers(0, len(free), n)]
         before = distance_table(grid).window_cells
+        oracle = DistanceTable(grid)  # its own: the shared table's whole searches end windows
+        bits = oracle.bits_of(goals[:, 0] * side + goals[:, 1])
+        dist = oracle.many(goals) if observation == "cost_to_go" else None
         for step in range(WINDOW_MARGIN + 2):
-            expected = ObservationBuilder.for_goals(grid, goals, 4, observation,
-                                                    HeuristicCache()).observe(positions)
+            expected = ObservationBuilder(grid, bits, 4, distances=dist).observe(positions)
             got = observer.observe(positions, goals)
             np.testing.assert_array_equal(got, expected, err_msg=f"trial {trial} step {step}")
             if step == 0:

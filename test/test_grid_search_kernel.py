@@ -138,3 +138,32 @@ def test_a_bounded_window_settles_a_fraction_of_a_large_map():
     _, dist, settled = searcher.windows([100], [(40, 100)], 8)  # goal (0, 100)
     assert dist.reshape(17, 17)[8, 8] == 40 + 2 * 11
     assert settled < 0.1 * grid.size
+
+
+def test_a_windowed_goal_reads_as_its_whole_row_and_is_searched_whole_outside_it():
+    """`DistanceTable.open_windows`: `row` serves the window's cells without a whole search,
+    a read outside it searches the goal whole (and the window goes), `numpy.asarray` gives the
+    whole row; values equal the whole search's everywhere."""
+    rng = np.random.default_rng(9)
+    grid = rng.random((40, 50)) < 0.3
+    free = np.flatnonzero(~grid.reshape(-1))
+    goals = rng.choice(free, 6, replace=False)
+    centres = np.argwhere(~grid)[rng.choice(len(free), 6, replace=False)]
+    whole = DistanceTable(grid)
+    table = DistanceTable(grid)
+    table.open_windows(goals, centres, 5)
+    assert table.searches == 0 and table.window_cells > 0
+    for g, (r, c) in zip(goals.tolist(), centres.tolist()):
+        row, want = table.row(g), whole.row(g)
+        inside = [(r + dr) * 50 + c + dc for dr in range(-5, 6) for dc in range(-5, 6)
+                  if 0 <= r + dr < 40 and 0 <= c + dc < 50]
+        assert [row[k] for k in inside] == [want[k] for k in inside]
+        assert table.searches == 0 and table.window(g) is not None
+    g = int(goals[0])
+    r, c = centres[0]
+    outside = ((r + 20) % 40) * 50 + (c + 25) % 50
+    assert table.row(g)[outside] == whole.row(g)[outside]
+    assert table.searches == 1 and table.window(g) is None
+    np.testing.assert_array_equal(np.asarray(table.row(int(goals[1]))),
+                                  np.asarray(whole.row(int(goals[1]))))
+    assert table.window(int(goals[1])) is None

@@ -268,16 +268,13 @@ class GoalObserver:
         self._slot_of: dict[int, int] = {}  # goal flat cell -> slot, least recently used first
         self._free: list[int] = []
         self.searched = 0  # goals searched whole so far
-        # windows: goal -> (window slot, centre row, centre col); the FOV's offsets in a window
+        # windows (`DistanceTable.open_windows`): the FOV's offsets in one
         self.window_from = WINDOW_FROM_BYTES if window_from is None else int(window_from)
         self.margin = WINDOW_MARGIN
         self.half = r + self.margin
         self.wside = 2 * self.half + 1
         self.in_window = (offsets[:, None] * self.wside + offsets[None, :]).reshape(-1)
-        self._window_of: dict[int, tuple[int, int, int]] = {}
-        self._win_static = np.empty((0, self.wside ** 2), dtype=np.uint8)
-        self._win_dist = np.empty((0, self.wside ** 2), dtype=np.int32)
-        self._win_free: list[int] = []
+        self._window_of: set[int] = set()  # goals seen through the table's windows
         self._rate = 0  # windows searched whole each observation
         self.windowed = 0  # goals first searched in a window so far
 
@@ -315,9 +312,7 @@ class GoalObserver:
         goals = _as_goals(goals, self.blocked.shape)
         flat = goals[:, 0] * w + goals[:, 1]
         unique = np.unique(flat).tolist()
-        for g in unique:
-            if g in self._window_of:
-                self._win_free.append(self._window_of.pop(g)[0])
+        self._window_of.difference_update(unique)
         self._whole(unique, [g for g in unique if g not in self._slot_of])
         lookup = np.array([self._slot_of[g] for g in unique], dtype=np.int64)
         return lookup[np.searchsorted(np.asarray(unique, dtype=np.int64), flat)]
@@ -356,26 +351,15 @@ class GoalObserver:
 
     def _open_windows(self, goals: list[int], centres: np.ndarray) -> None:
         """Search `goals` in windows around `centres` (M, 2)."""
-        if len(self._win_free) < len(goals):
-            old = self._win_static.shape[0]
-            cap = max(old + len(goals) - len(self._win_free), old + old // 2)
-            for name in ("_win_static", "_win_dist"):
-                grown = np.empty((cap, self.wside ** 2), getattr(self, name).dtype)
-                grown[:old] = getattr(self, name)
-                setattr(self, name, grown)
-            self._win_free.extend(range(cap - 1, old - 1, -1))
         # the pool's room for them now (untouched memory costs nothing yet): growing it by half
         # at each batch of upgrades would copy it again and again
         room = len(self._slot_of) + len(self._window_of) + len(goals) + self.spare
         if self._static.shape[0] < room:
             self._grow(room)
-        static, dist = self.table.windows(goals, centres, self.half)
-        slots = [self._win_free.pop() for _ in goals]
-        self._win_static[slots] = static
-        self._win_dist[slots] = dist
-        for g, slot, (cr, cc) in zip(goals, slots, centres.tolist()):
-            self._window_of[g] = (slot, cr, cc)
-        self.windowed += len(goals)
+        self.table.open_windows(goals, centres, self.half)
+        opened = [g for g in goals if self.table.window(g) is not None]  # not whole already
+        self._window_of.update(opened)
+        self.windowed += len(opened)
 
     def _place(self, flat: np.ndarray, own: np.ndarray) -> list[int]:
         """Make every goal of `flat` (M,) observable for agents at `own` (M, 2): in the pool,
@@ -383,32 +367,36 @@ class GoalObserver:
         unique, first = np.unique(flat, return_index=True)
         unique = unique.tolist()
         window_of = self._window_of
-        if window_of:  # windows of goals nobody holds any more are given back
-            current = set(unique)
-            for g in [g for g in window_of if g not in current]:
-                self._win_free.append(window_of.pop(g)[0])
+        if window_of:
+            gone = window_of.difference(unique)  # nobody heads there any more
+            self.table.close_windows(gone)
+            window_of.difference_update(gone)
+            # a conflict rule that read outside a window had the goal searched whole
+            window_of.difference_update([g for g in window_of if self.table.window(g) is None])
         new = [k for k, g in enumerate(unique) if g not in self._slot_of and g not in window_of]
         whole = [unique[k] for k in new]
         if whole and not self.table.guided \
                 and len(whole) * self._whole_bytes() >= self.window_from:
             self._open_windows(whole, own[first[new]])
             self._rate = max(self._rate, -(-len(window_of) // self.margin))
-            whole, rate = [], 0  # this observation only windows: the first tick's time
+            whole = [g for g in whole if g not in window_of]  # those searched whole already
+            rate = 0  # this observation only windows: the first tick's time
         else:
             rate = self._rate
         if window_of:
             # how far each windowed goal's agents are from its window's centre
             held = np.fromiter((g in window_of for g in flat.tolist()), bool, len(flat))
             goals = flat[held]
-            centres = np.array([window_of[g][1:] for g in goals.tolist()], np.int64)
+            half = self.half
+            centres = np.array([(w.row0 + half, w.col0 + half) for w in
+                                map(self.table.window, goals.tolist())], np.int64)
             moved = np.abs(own[held] - centres).max(axis=1)
             farthest: dict[int, int] = {}
             for g, m in zip(goals.tolist(), moved.tolist()):
                 farthest[g] = max(farthest.get(g, 0), m)
             order = sorted(farthest, key=farthest.get, reverse=True)
             upgrade = order[:rate] + [g for g in order[rate:] if farthest[g] > self.margin]
-            for g in upgrade:
-                self._win_free.append(window_of.pop(g)[0])
+            window_of.difference_update(upgrade)
             whole += upgrade
             if not window_of:
                 self._rate = 0
@@ -448,12 +436,13 @@ class GoalObserver:
                 if cost_to_go:
                     dist[pooled] = self._distances[slots, windows[pooled]]
             held = ~pooled
-            entry = np.array([self._window_of[g] for g in flat[held].tolist()], np.int64)
-            offset = own[held] - entry[:, 1:] + self.margin  # the FOV's corner in the window
+            seen = [self.table.window(g) for g in flat[held].tolist()]
+            corner = np.array([(w.row0, w.col0) for w in seen], np.int64)
+            offset = own[held] - corner - self.radius  # the FOV's corner in the window
             inside = (offset[:, 0] * self.wside + offset[:, 1])[:, None] + self.in_window
-            static[held] = self._win_static[entry[:, :1], inside]
+            static[held] = np.take_along_axis(np.stack([w.static for w in seen]), inside, 1)
             if cost_to_go:
-                dist[held] = self._win_dist[entry[:, :1], inside]
+                dist[held] = np.take_along_axis(np.stack([w.dist for w in seen]), inside, 1)
         return _assemble(occupancy[windows], static, dist, self.channels, self.radius)
 
 
