@@ -167,3 +167,26 @@ def test_a_windowed_goal_reads_as_its_whole_row_and_is_searched_whole_outside_it
     np.testing.assert_array_equal(np.asarray(table.row(int(goals[1]))),
                                   np.asarray(whole.row(int(goals[1]))))
     assert table.window(int(goals[1])) is None
+
+
+def test_a_search_writing_padded_maps_writes_fill_statics_bytes():
+    """`Searcher.search(goals, statics, pad)`: the padded static bytes the observations' pool
+    keeps, written by the search itself, equal `fill_static` of the search's bits."""
+    from mapf_fleet.grid.search_kernel import fill_static
+
+    rng = np.random.default_rng(13)
+    for trial in range(20):
+        h, w = (int(v) for v in rng.integers(1, 30, size=2))
+        grid = rng.random((h, w)) < rng.random() * 0.6
+        pad = int(rng.integers(0, 5))
+        flat = rng.integers(0, h * w, size=int(rng.integers(1, 20)))
+        searcher = Searcher(grid, threads=int(rng.integers(1, 3)))
+        rows, bits = searcher.search(flat)
+        statics = [np.full((h + 2 * pad) * (w + 2 * pad), 77, np.uint8) for _ in flat]
+        rows_too, none = searcher.search(flat, statics, pad)
+        assert none is None
+        for k in range(len(flat)):
+            want = np.empty_like(statics[k])
+            fill_static(grid.reshape(-1).view(np.uint8), bits[k], want, h, w, pad)
+            np.testing.assert_array_equal(statics[k], want, err_msg=f"trial {trial} goal {k}")
+            np.testing.assert_array_equal(rows_too[k], rows[k])

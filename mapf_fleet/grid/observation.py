@@ -18,7 +18,6 @@ import numpy as np
 
 from .heuristic import (UNREACHABLE, HeuristicCache, compact_distances, default_cache,
                         pack_heuristic_channels)
-from .search_kernel import fill_static
 
 NUM_OBS_CHANNELS = 6  # the paper's observation
 OBSERVATIONS = ("paper", "cost_to_go")
@@ -279,12 +278,12 @@ class GoalObserver:
         self.windowed = 0  # goals first searched in a window so far
 
     def _whole_bytes(self) -> int:
-        """Bytes a goal's whole search writes: its distance row and bits, and the pool's maps."""
+        """Bytes a goal's whole search writes: its distance row and the pool's maps."""
         cells = self.blocked.size
         row = 8 if self.table.guided else 2 if cells < np.iinfo(np.int16).max else 4
         pool = self.hp * self.wp * (1 + (self._distances_dtype().itemsize
                                          if self.channels > NUM_OBS_CHANNELS else 0))
-        return cells * (row + 1) + pool
+        return cells * row + pool
 
     def _distances_dtype(self) -> np.dtype:
         # int16 while every distance fits (compact_distances' rule)
@@ -333,15 +332,14 @@ class GoalObserver:
             self._grow(self._static.shape[0] + len(missing) - len(self._free))
         h, w = self.blocked.shape
         r = self.radius
-        blocked = self.blocked.reshape(-1).view(np.uint8)
         for start in range(0, len(missing), 256):  # bounded temporaries
             chunk = missing[start:start + 256]
-            self.table.prepare(chunk)  # a batch: the compiled search on every core
+            slots = [self._free.pop() for _ in chunk]
+            # a batch: the compiled search on every core, writing the pool's slots itself
+            self.table.prepare_static(chunk, [self._static[slot] for slot in slots], r)
             if self._distances is not None:
                 dist = self.table.many(np.array([divmod(g, w) for g in chunk], np.int64))
-            for k, g in enumerate(chunk):
-                slot = self._free.pop()
-                fill_static(blocked, self.table.bits_row(g), self._static[slot], h, w, r)
+            for k, (g, slot) in enumerate(zip(chunk, slots)):
                 if self._distances is not None:
                     padded = self._distances[slot].reshape(self.hp, self.wp)
                     padded[:] = UNREACHABLE

@@ -36,7 +36,10 @@ BLOCKED, UNSEEN = -2, -1
 
 
 @njit(cache=True, nogil=True)
-def _search(init, W, goal, scratch, queue, bits, row, out_bits, h, w, unreachable):  # pragma: no cover (compiled)
+def _search(init, W, goal, scratch, queue, bits, row, out_bits, h, w, unreachable, static,
+            pad):  # pragma: no cover (compiled)
+    """One goal's BFS: its row, and its bits into `out_bits` (pad < 0) or, as `fill_static`
+    writes them, into the padded map `static` (pad >= 0: no bits array to touch and copy)."""
     scratch[:] = init
     bits[:] = 0
     tail = 0
@@ -65,12 +68,27 @@ def _search(init, W, goal, scratch, queue, bits, row, out_bits, h, w, unreachabl
             scratch[u] = dv if new else du
             # from u, v lies in the opposite direction (k ^ 1) and is one step closer
             bits[u] |= np.uint8((new | (du == dv)) << (k ^ 1))
+    if pad < 0:
+        for r in range(h):
+            base = (r + 1) * W + 1
+            for c in range(w):
+                d = scratch[base + c]
+                row[r * w + c] = d if d >= 0 else unreachable
+                out_bits[r * w + c] = bits[base + c]
+        return
+    wp = w + 2 * pad
+    static[:pad * wp] = 1  # off the map: obstacles
+    static[(h + pad) * wp:] = 1
     for r in range(h):
         base = (r + 1) * W + 1
+        at = (r + pad) * wp
+        static[at:at + pad] = 1
+        static[at + pad + w:at + wp] = 1
+        at += pad
         for c in range(w):
             d = scratch[base + c]
             row[r * w + c] = d if d >= 0 else unreachable
-            out_bits[r * w + c] = bits[base + c]
+            static[at + c] = np.uint8(d == BLOCKED) | (bits[base + c] << 1)
 
 
 INT16_MAX = int(np.iinfo(np.int16).max)
@@ -104,31 +122,40 @@ class Searcher:
         # the search's own scratch map in the same type: half the cache lines where int16
         self.init = self.init.astype(self.dtype)
 
-    def _one(self, goals, rows, bits, unreachable: int) -> None:
+    def _one(self, goals, rows, bits, unreachable: int, statics=None, pad: int = -1) -> None:
         size = self.init.size
         scratch = np.empty(size, self.init.dtype)
         queue = np.empty(size + 4, np.int32)
         padded_bits = np.empty(size, np.uint8)
-        for goal, row, out in zip(goals, rows, bits):
+        none = np.empty(0, np.uint8)
+        for k, (goal, row) in enumerate(zip(goals, rows)):
             r, c = divmod(int(goal), self.w)
             _search(self.init, self.W, (r + 1) * self.W + c + 1, scratch, queue, padded_bits,
-                    row, out, self.h, self.w, unreachable)
+                    row, none if bits is None else bits[k], self.h, self.w, unreachable,
+                    none if statics is None else statics[k], pad)
 
-    def search(self, goals) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    def search(self, goals, statics=None, pad: int = 0) -> tuple[list[np.ndarray], list]:
         """(rows, bits): for each flat goal cell of `goals`, a new (H*W,) distance row (`dtype`)
-        and a new uint8 (H*W,) bits array."""
+        and a new uint8 (H*W,) bits array; with `statics` (one uint8 array of
+        (H + 2 pad) * (W + 2 pad) per goal) the bits go there instead, as `fill_static` writes
+        them, and bits is None."""
         goals = [int(g) for g in goals]
         n = self.h * self.w
         rows = [np.empty(n, self.dtype) for _ in goals]
-        bits = [np.empty(n, np.uint8) for _ in goals]
+        bits = None if statics is not None else [np.empty(n, np.uint8) for _ in goals]
+        pad = -1 if statics is None else int(pad)
         workers = min(self.threads, max(1, len(goals) // 8))
+        parts = [slice(k, None, workers) for k in range(workers)]
+
+        def run(s):
+            self._one(goals[s], rows[s], None if bits is None else bits[s], self.unreachable,
+                      None if statics is None else statics[s], pad)
+
         if workers == 1:
-            self._one(goals, rows, bits, self.unreachable)
+            run(parts[0])
         else:
-            parts = [slice(k, None, workers) for k in range(workers)]
             with ThreadPoolExecutor(workers) as pool:
-                list(pool.map(lambda s: self._one(goals[s], rows[s], bits[s], self.unreachable),
-                              parts))
+                list(pool.map(run, parts))
         return rows, bits
 
     # ---- bounded searches: one goal's observation window ---------------------------------------
