@@ -193,8 +193,35 @@ class DistanceTable:
         if missing:
             self._store(missing)
 
+    def prepare_static(self, goals, statics, pad: int) -> None:
+        """`prepare`, and each goal's padded static bytes (`search_kernel.fill_static`'s) into
+        `statics` (one uint8 array of (H + 2 pad) * (W + 2 pad) per distinct goal): unguided,
+        the search writes them itself (no bits array to touch, then copy: the observations'
+        pool, `grid.observation.GoalObserver`)."""
+        from .search_kernel import fill_static
+
+        goals = [int(g) for g in goals]
+        if len(set(goals)) < len(goals):
+            raise ValueError("prepare_static: a goal twice (one padded map each: distinct goals)")
+        with self._lock:
+            fresh = [] if self.guided else [k for k, g in enumerate(goals) if g not in self._rows]
+        if fresh:
+            rows, _ = self._searcher.search([goals[k] for k in fresh],
+                                            [statics[k] for k in fresh], pad)
+            self.searches += len(fresh)
+            self._remember([goals[k] for k in fresh], rows, [None] * len(fresh))
+        blocked = self.blocked.reshape(-1).view(np.uint8)
+        done = set(fresh)
+        for k, g in enumerate(goals):
+            if k not in done:
+                fill_static(blocked, self.bits_row(g), statics[k], *self.shape, pad)
+
     def _store(self, goals: list[int]) -> list[np.ndarray]:
         rows, bits = self._search(goals)
+        self._remember(goals, rows, bits)
+        return rows
+
+    def _remember(self, goals: list[int], rows, bits) -> None:
         with self._lock:
             self.keep = max(self.keep, len(goals))
             for goal, row, bit in zip(goals, rows, bits):
@@ -204,7 +231,6 @@ class DistanceTable:
                 if bit is not None:
                     bit.setflags(write=False)
                     self._keep(self._bits, goal, bit, max(self._recent_bits, len(goals)))
-        return rows
 
     def reserve(self, goals: int) -> None:
         """Keep at least `goals` goals' distances (a fleet of N robots asks for N goals every
