@@ -453,7 +453,7 @@ def test_a_cold_start_in_windows_runs_the_same_lifelong_episode(rule, monkeypatc
             result, _ = run.step(Decisions.complete(run.tick, prefs[0]))
             policy.executed(result.actions[None])
             cells.append(run.positions.copy())
-            windowed = max(windowed, heuristic.distance_table(inst.grid).window_cells)
+            windowed = max(windowed, heuristic.distance_table(inst.grid).windows.cells)
         return np.stack(cells), windowed, run.goals_reached
 
     whole, none, reached = episode(1 << 62)

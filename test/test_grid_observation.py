@@ -119,7 +119,7 @@ def test_windows_hold_walking_agents_until_their_goals_are_searched_whole(observ
         observer = GoalObserver(grid, 4, observation, window_from=0)
         positions = free[rng.choice(len(free), n, replace=False)]
         goals = free[rng.integers(0, len(free), n)]
-        before = distance_table(grid).window_cells
+        before = distance_table(grid).windows.cells
         oracle = DistanceTable(grid)  # its own: the shared table's whole searches end windows
         bits = oracle.bits_of(goals[:, 0] * side + goals[:, 1])
         dist = oracle.many(goals) if observation == "cost_to_go" else None
@@ -136,7 +136,7 @@ def test_windows_hold_walking_agents_until_their_goals_are_searched_whole(observ
             ok[ok] &= ~grid[nxt[ok, 0], nxt[ok, 1]]
             positions = np.where(ok[:, None], nxt, positions)  # overlaps do not matter here
         assert not observer._window_of, "every window searched whole within the margin"
-        settled = distance_table(grid).window_cells - before
+        settled = distance_table(grid).windows.cells - before
         assert 0 < settled < observer.windowed * (~grid).sum()
 
 

@@ -152,21 +152,21 @@ def test_a_windowed_goal_reads_as_its_whole_row_and_is_searched_whole_outside_it
     whole = DistanceTable(grid)
     table = DistanceTable(grid)
     table.open_windows(goals, centres, 5)
-    assert table.searches == 0 and table.window_cells > 0
+    assert table.searches == 0 and table.windows.cells > 0
     for g, (r, c) in zip(goals.tolist(), centres.tolist()):
         row, want = table.row(g), whole.row(g)
         inside = [(r + dr) * 50 + c + dc for dr in range(-5, 6) for dc in range(-5, 6)
                   if 0 <= r + dr < 40 and 0 <= c + dc < 50]
         assert [row[k] for k in inside] == [want[k] for k in inside]
-        assert table.searches == 0 and table.window(g) is not None
+        assert table.searches == 0 and table.windows.get(g) is not None
     g = int(goals[0])
     r, c = centres[0]
     outside = ((r + 20) % 40) * 50 + (c + 25) % 50
     assert table.row(g)[outside] == whole.row(g)[outside]
-    assert table.searches == 1 and table.window(g) is None
+    assert table.searches == 1 and table.windows.get(g) is None
     np.testing.assert_array_equal(np.asarray(table.row(int(goals[1]))),
                                   np.asarray(whole.row(int(goals[1]))))
-    assert table.window(int(goals[1])) is None
+    assert table.windows.get(int(goals[1])) is None
 
 
 def test_a_search_writing_padded_maps_writes_fill_statics_bytes():

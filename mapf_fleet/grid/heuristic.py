@@ -24,7 +24,6 @@ from __future__ import annotations
 import threading
 from array import array
 from collections import OrderedDict
-from typing import NamedTuple
 
 import numpy as np
 from scipy.sparse import csr_matrix
@@ -32,6 +31,7 @@ from scipy.sparse.csgraph import dijkstra
 
 from .actions import move_targets
 from .search_kernel import Searcher
+from .windows import Windows, WindowRow
 
 UNREACHABLE = -1
 NUM_HEURISTIC_CHANNELS = 4
@@ -70,48 +70,6 @@ def _adjacency(blocked: np.ndarray) -> csr_matrix:
     graph = csr_matrix((np.ones(2 * rows.size), both), shape=(h * w, h * w))
     graph.sum_duplicates()
     return graph
-
-
-class Window(NamedTuple):
-    """A goal's distances around one cell (`DistanceTable.open_windows`): the side x side cells
-    from (row0, col0) (off the map included), flat: `static` the observation's bytes (obstacle
-    bit, heuristic bits; `search_kernel.fill_static`'s), `dist` the distances (-1 where none),
-    `values` the same with `row`'s convention (unreachable above any path)."""
-    row0: int
-    col0: int
-    side: int
-    static: np.ndarray
-    dist: np.ndarray
-    values: memoryview
-
-
-class WindowRow:
-    """`DistanceTable.row` of a goal searched only in a window so far: indexed by flat cell as
-    the whole row is; a cell outside the window searches the goal whole first (the conflict
-    rules read the cells around an agent, which its window holds). `numpy.asarray` gives the
-    whole row."""
-
-    __slots__ = ("table", "goal", "row0", "col0", "side", "values", "width")
-
-    def __init__(self, table: "DistanceTable", goal: int, window: Window):
-        self.table, self.goal = table, goal
-        self.row0, self.col0, self.side, self.values = (window.row0, window.col0, window.side,
-                                                        window.values)
-        self.width = table.shape[1]
-
-    def __getitem__(self, cell: int):
-        r, c = divmod(cell, self.width)
-        r, c = r - self.row0, c - self.col0
-        if 0 <= r < self.side and 0 <= c < self.side:
-            return self.values[r * self.side + c]
-        return self.table._row(self.goal)[cell]
-
-    def __len__(self) -> int:
-        return self.table.size
-
-    def __array__(self, dtype=None, copy=None):
-        row = self.table._row(self.goal)
-        return row if dtype is None else row.astype(dtype)
 
 
 class DistanceTable:
@@ -154,10 +112,10 @@ class DistanceTable:
         # tick after tick as rows are: the last batch's and `RECENT_BYTES`' worth are kept
         self._recent_arrays = self.keep
         self._recent_bits = max(16, RECENT_BYTES // self.size)
-        self._windows: dict[int, Window] = {}  # goals searched only around one cell so far
+        # goals searched only around one cell so far (unguided: bounded searches)
+        self.windows = None if self.guided else Windows(self._searcher)
         self._lock = threading.Lock()
         self.searches = 0  # whole searches
-        self.window_cells = 0  # cells settled by bounded searches (`windows`)
 
     def move_targets(self) -> np.ndarray:
         """(H*W, 5) the flat cell each action leads to (`grid.actions.move_targets`), -1 also
@@ -225,7 +183,8 @@ class DistanceTable:
         with self._lock:
             self.keep = max(self.keep, len(goals))
             for goal, row, bit in zip(goals, rows, bits):
-                self._windows.pop(goal, None)  # the whole row supersedes it
+                if self.windows is not None:
+                    self.windows.close([goal])  # the whole row supersedes it
                 row.setflags(write=False)
                 self._keep(self._rows, goal, row, self.keep)
                 if bit is not None:
@@ -246,15 +205,28 @@ class DistanceTable:
                 return found
         return self._store([goal])[0]
 
+    def open_windows(self, goals, centres, half: int) -> None:
+        """`Windows.open` for those of `goals` not searched whole (unguided tables only)."""
+        if self.windows is None:
+            raise ValueError("open_windows: bounded searches are for unguided tables (BFS steps)")
+        with self._lock:
+            whole = set(self._rows)
+        self.windows.open(goals, centres, half, skip=whole)
+
+    def whole(self, goal: int) -> np.ndarray:
+        """Flat cell `goal`'s whole distance row (searched now if need be; `row`'s values)."""
+        return self._row(int(goal))
+
     def row(self, goal: int):
         """Distances to flat cell `goal` as a flat read-only memoryview (Python ints for steps,
         floats for guided costs: what the search loops index cell by cell), unreachable cells
         and obstacles at `unreachable` (above any path). A goal only searched in a window so far
-        (`open_windows`) gives a `WindowRow`: the same values, read from the window, and from a
+        (`windows`) gives a `WindowRow`: the same values, read from the window, and from a
         whole search once a read falls outside it."""
         goal = int(goal)
         with self._lock:
-            window = None if goal in self._rows else self._windows.get(goal)
+            window = None if goal in self._rows or self.windows is None \
+                else self.windows.get(goal)
         if window is not None:
             return WindowRow(self, goal, window)
         return memoryview(self._row(goal))
@@ -313,42 +285,6 @@ class DistanceTable:
         for k, goal in enumerate(flat):
             out[k] = self.bits_row(goal).reshape(h, w)
         return out
-
-    def open_windows(self, goals, centres, half: int) -> None:
-        """A first look at many new goals (unguided tables only): for each flat goal cell of
-        `goals` not searched whole, its distances and heuristic bits in the (2 half + 1)^2 cells
-        around the cell (row, col) of `centres` only, from a search bounded to them
-        (`search_kernel.Searcher.windows`: exact, as the whole search is there). Until the goal
-        is searched whole (`prepare`, or a read outside the window), `row` serves the window
-        (`WindowRow`) and `window` gives it to the observations."""
-        if self.guided:
-            raise ValueError("open_windows: bounded searches are for unguided tables (BFS steps)")
-        with self._lock:
-            goals = [int(g) for g in goals]
-            keep = [k for k, g in enumerate(goals) if g not in self._rows]
-        if not keep:
-            return
-        goals = [goals[k] for k in keep]
-        centres = np.asarray(centres, dtype=np.int64).reshape(-1, 2)[keep]
-        static, dist, settled = self._searcher.windows(goals, centres, half)
-        side = 2 * int(half) + 1
-        values = np.where(dist < 0, self.unreachable, dist)  # `row`'s convention
-        with self._lock:
-            self.window_cells += settled
-            for k, (g, (r, c)) in enumerate(zip(goals, centres.tolist())):
-                self._windows[g] = Window(r - half, c - half, side, static[k], dist[k],
-                                          memoryview(values[k]))
-
-    def window(self, goal: int) -> "Window | None":
-        """The window `open_windows` searched for flat cell `goal`, None once it is searched
-        whole (or never was windowed)."""
-        return self._windows.get(int(goal))
-
-    def close_windows(self, goals) -> None:
-        """Forget the windows of `goals` (nobody heads there any more)."""
-        with self._lock:
-            for g in goals:
-                self._windows.pop(int(g), None)
 
     def bits(self, dist: np.ndarray) -> np.ndarray:
         """Packed heuristic bits (N, H, W) uint8 from `many`'s distances: bit k where the move

@@ -236,9 +236,10 @@ class GoalObserver:
 
     A first tick's many new goals (whole searches writing `window_from` bytes or more, unguided)
     are first searched only in a window around the agent holding each (`WINDOW_MARGIN` cells
-    beyond its field of view; `DistanceTable.windows`, exact): a goal is then searched whole
+    beyond its field of view; `DistanceTable.open_windows`, exact): a goal is then searched whole
     before its agent's field of view leaves the window, the windows whose agents moved farthest
-    first, enough each observation that all are whole within `WINDOW_MARGIN` observations.
+    first, enough each observation that all are whole within `WINDOW_MARGIN` observations
+    (`grid.windows`).
     Observations are the same either way (a test).
     """
 
@@ -355,7 +356,7 @@ class GoalObserver:
         if self._static.shape[0] < room:
             self._grow(room)
         self.table.open_windows(goals, centres, self.half)
-        opened = [g for g in goals if self.table.window(g) is not None]  # not whole already
+        opened = [g for g in goals if self.table.windows.get(g) is not None]  # not whole already
         self._window_of.update(opened)
         self.windowed += len(opened)
 
@@ -367,10 +368,10 @@ class GoalObserver:
         window_of = self._window_of
         if window_of:
             gone = window_of.difference(unique)  # nobody heads there any more
-            self.table.close_windows(gone)
+            self.table.windows.close(gone)
             window_of.difference_update(gone)
             # a conflict rule that read outside a window had the goal searched whole
-            window_of.difference_update([g for g in window_of if self.table.window(g) is None])
+            window_of.difference_update([g for g in window_of if self.table.windows.get(g) is None])
         new = [k for k, g in enumerate(unique) if g not in self._slot_of and g not in window_of]
         whole = [unique[k] for k in new]
         if whole and not self.table.guided \
@@ -387,7 +388,7 @@ class GoalObserver:
             goals = flat[held]
             half = self.half
             centres = np.array([(w.row0 + half, w.col0 + half) for w in
-                                map(self.table.window, goals.tolist())], np.int64)
+                                map(self.table.windows.get, goals.tolist())], np.int64)
             moved = np.abs(own[held] - centres).max(axis=1)
             farthest: dict[int, int] = {}
             for g, m in zip(goals.tolist(), moved.tolist()):
@@ -434,7 +435,7 @@ class GoalObserver:
                 if cost_to_go:
                     dist[pooled] = self._distances[slots, windows[pooled]]
             held = ~pooled
-            seen = [self.table.window(g) for g in flat[held].tolist()]
+            seen = [self.table.windows.get(g) for g in flat[held].tolist()]
             corner = np.array([(w.row0, w.col0) for w in seen], np.int64)
             offset = own[held] - corner - self.radius  # the FOV's corner in the window
             inside = (offset[:, 0] * self.wside + offset[:, 1])[:, None] + self.in_window
