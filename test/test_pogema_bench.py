@@ -269,3 +269,21 @@ def test_the_checkpoint_option_writes_its_rows(pogema, tmp_path):
         ("heuristic", "distance"), ("tiny", Rule.parse("pibt_anchor_swap").default_ranking)]
     assert all(r["rule_mismatches"] == r["pogema_mismatches"] == 0 for r in rows)
     assert all(r["cpu_ms_per_tick"] > 0 and r["ms_per_tick"] > 0 for r in rows)
+
+
+def test_the_default_guidance_is_what_evaluate_and_up_run():
+    """No --guidance: each (checkpoint, rule) runs under `PolicySpec.default_guidance`, the
+    fleet's guidance for plain PIBT and `default.pt` under the fleet's rule (what `up` runs);
+    --guidance replaces it for every row."""
+    from mapf_fleet.coordination.rules import FLEET_GUIDANCE
+    from mapf_fleet.evaluation.pogema_bench import guidance_sources, policy_spec
+
+    rule = Rule.parse("pibt_anchor_swap")
+    specs = {(c, str(rule)): policy_spec(c, rule, "cpu")
+             for c in ("heuristic", str(REPO / "models" / "default.pt"))}
+    default = guidance_sources(None, specs)
+    assert {key: [s.label for s in v] for key, v in default.items()} \
+        == {key: [spec.default_guidance] for key, spec in specs.items()}
+    assert [s.label for s in default[("heuristic", str(rule))]] == [FLEET_GUIDANCE]
+    asked = guidance_sources(["none", "highways"], specs)
+    assert all([s.label for s in v] == ["none", "highways"] for v in asked.values())

@@ -347,9 +347,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "recorded ranking for the rule, as `evaluate`)")
     p.add_argument("--device", default="auto", type=device_arg,
                    help=f"torch device of checkpoints: {DEVICE_HELP}")
-    p.add_argument("--guidance", nargs="+", default=["none"],
+    p.add_argument("--guidance", nargs="+", default=None,
                    help="none | highways | congestion (online) | MODEL.costmodel.json | "
-                        "MODEL.online.json (online) (a guidance file fits one map only)")
+                        "MODEL.online.json (online) (a guidance file fits one map only); "
+                        "default: what `evaluate` runs for the checkpoint and rule (its recorded "
+                        "guidance, else the fleet's: what `mapf-fleet up` runs)")
     p.add_argument("--planning-budget", type=float, default=None,
                    help="seconds per re-plan of the lacam rule")
     p.add_argument("--out", type=Path, help="write the rows as JSON here")
@@ -367,10 +369,10 @@ def main(argv: list[str] | None = None) -> int:
         for r in rules:
             if not r.coordinated:
                 raise ValueError(f"--conflict-rule {r}: has no shield to make the moves")
-        sources = [GuidanceSource.parse(g) for g in args.guidance]
         # (checkpoint, rule) -> its spec under the rule; read here, refused before anything runs
         specs = {(c, str(r)): policy_spec(c, r, args.device)
                  for c in dict.fromkeys(args.checkpoint) for r in rules}
+        sources_of = guidance_sources(args.guidance, specs)
         pogema = import_pogema()
     except (ValueError, FileNotFoundError, PogemaMissing) as err:
         print(f"{prog}: error: {err}", file=sys.stderr)
@@ -385,7 +387,7 @@ def main(argv: list[str] | None = None) -> int:
                 for (checkpoint, rule_name), spec in specs.items():
                     rule = Rule.parse(rule_name)
                     policy = policy_of(spec)
-                    for source in sources:
+                    for source in sources_of[(checkpoint, rule_name)]:
                         row = Row(family, mode, agents, str(rule), source.label, instances,
                                   policy=spec.kind if policy is None else Path(checkpoint).stem,
                                   ranking=spec.resolved_ranking)
@@ -414,6 +416,15 @@ def main(argv: list[str] | None = None) -> int:
                                                               time.gmtime()),
                                         "rows": [r.summary() for r in rows]}, indent=1))
     return 0
+
+
+def guidance_sources(asked: list[str] | None, specs: dict) -> dict:
+    """(checkpoint, rule) -> the `GuidanceSource`s its rows run under: `asked` (`--guidance`),
+    else the one `evaluate` gives the spec by default (`PolicySpec.default_guidance`: its
+    recorded guidance, else what `mapf-fleet up` runs): one default everywhere."""
+    given = None if asked is None else [GuidanceSource.parse(g) for g in asked]
+    return {key: given or [GuidanceSource.parse(spec.default_guidance)]
+            for key, spec in specs.items()}
 
 
 def policy_spec(checkpoint: str, rule: Rule, device: str):
