@@ -55,8 +55,9 @@ class WindowRow:
         return self.table.size
 
     def __array__(self, dtype=None, copy=None):
-        row = self.table.whole(self.goal)
-        return row if dtype is None else row.astype(dtype)
+        row = self.table.whole(self.goal)  # read-only: `numpy.array` asks for a copy
+        return row.astype(row.dtype if dtype is None else dtype) if copy or dtype is not None \
+            else row
 
 
 class Windows:
