@@ -4,6 +4,8 @@ boundary; `device` and `guidance` are two such parameters (ROS-free, no checkpoi
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import dataclasses
 
 import pytest
@@ -30,7 +32,7 @@ def test_every_option_of_the_tables_is_an_up_option_with_its_default():
         assert action.default is None  # not given: the table, a params file or -p decide
         if entry.param.type in (int, float) and "default" not in (entry.option.help or ""):
             assert f"(default: {entry.param.default})" in " ".join(action.help.split())
-    assert "--device {auto,cpu,cuda}" in shown and "--guidance none|highways|FILE" in shown
+    assert "--device {auto,cpu,cuda}" in shown and "--guidance none|highways|congestion|FILE" in shown
 
 
 def test_adding_a_parameter_is_one_entry_in_the_table(monkeypatch):
@@ -99,10 +101,15 @@ def test_guidance_is_the_fleets_by_default_none_or_an_existing_file_and_one_valu
     assert plan.guidance is None and {plan.values[n]["guidance"] for n in plan.values} == {"none"}
     with pytest.raises(U.UpError) as caught:
         _plan(["--guidance", str(tmp_path / "missing.yaml")])
-    assert str(caught.value) == (f"--guidance must be none, highways, an existing "
-                                 f"*.guidance.npz or *.costmodel.json (online guidance, "
-                                 f"congestion or *.online.json: evaluate --lifelong only), got "
-                                 f"'{tmp_path / 'missing.yaml'}'")
+    assert str(caught.value) == (f"--guidance must be none, highways, congestion, or an "
+                                 f"existing *.guidance.npz, *.costmodel.json or *.online.json, "
+                                 f"got '{tmp_path / 'missing.yaml'}'")
+    # online guidance: the policy processes follow the graph from the fleet's states
+    online = str(Path(__file__).resolve().parents[1] / "models" / "guidance"
+                 / "online_warehouse_33x33_128.online.json")
+    for value in ("congestion", online):
+        _, plan = _plan(["--guidance", value])
+        assert {plan.values[n]["guidance"] for n in plan.values} == {value}
     _, plan = _plan(["--guidance", "highways"])
     assert plan.guidance == "highways"
     path = tmp_path / "lanes.yaml"

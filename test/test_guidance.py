@@ -204,11 +204,12 @@ def test_a_lifelong_run_with_congestion_guidance_updates_its_graph_and_stays_saf
     assert runs[0].recorder.collisions == 0 and runs[0].goals_reached > 0
 
 
-def test_the_fleet_over_ros_refuses_online_guidance():
+def test_the_fleet_over_ros_takes_online_guidance_and_refuses_what_is_no_guidance():
     from mapf_fleet.fleet import parameters
 
     check = parameters.GUIDANCE.check
-    assert check("highways") and check("none") and not check("congestion")
+    assert check("highways") and check("none") and check("congestion")
+    assert not check("lanes") and not check("nowhere.online.json")
 
 
 def test_evaluate_lifelong_runs_with_and_without_guidance(tmp_path):

@@ -93,11 +93,42 @@ def test_an_online_model_round_trips_and_is_parsed_as_online(tmp_path):
     assert np.array_equal(source.for_map(grid).costs[free], model.guidance(grid).costs[free])
 
 
-def test_the_fleet_over_ros_refuses_an_online_model(tmp_path):
+@pytest.mark.parametrize("online", ["congestion", "model"])
+def test_a_policy_process_follows_the_runs_online_graph_from_its_states(tmp_path, online):
+    """The fleet over ROS takes online guidance: a policy process follows the graph from the
+    fleet's states (`FlowFollower`), the one the run steps (`FleetRun.advance`), tick for tick;
+    a missed state or a late join leaves it broken (and it says why)."""
     from mapf_fleet.fleet import parameters
+    from mapf_fleet.fleet.record import Decisions
+    from mapf_fleet.fleet.run import FleetRun
+    from mapf_fleet.fleet.tasks import LifelongTasks
+    from mapf_fleet.grid.guidance_made import FlowFollower, GuidanceSource
 
-    path = _random_model().save(tmp_path / "w.online.json")
-    assert not parameters.GUIDANCE.check(str(path))
+    value = "congestion" if online == "congestion" else \
+        str(_random_model(4, scale=2.0).save(tmp_path / "w.online.json"))
+    assert parameters.GUIDANCE.check(value)
+    source = GuidanceSource.parse(value)
+    inst = generate_instance(12, 10, 0.2, 3)
+    run = FleetRun(inst.grid, inst.starts, LifelongTasks(grid=inst.grid, seed=3), inst.goals,
+                   rule="pibt_anchor_swap", max_steps=40, guidance=source.for_map(inst.grid),
+                   flow=source.flow(inst.grid))
+    follower, late = FlowFollower(source, inst.grid), FlowFollower(source, inst.grid)
+    rng = np.random.default_rng(0)
+    updates = 0
+    while not run.finished():
+        follower.follow(7, run.tick, run.positions)
+        if run.tick >= 5:
+            late.follow(7, run.tick, run.positions)
+        graph = follower.at(run.tick)
+        assert graph is run.guidance or (graph is not None and run.guidance is not None
+                                         and np.array_equal(graph.costs, run.guidance.costs))
+        updates += graph is not follower.at(max(run.tick - 1, 0))
+        prefs = np.argsort(rng.random((run.num_robots, 5)), axis=1)
+        run.step(Decisions.complete(run.tick, prefs))
+    assert updates >= 3 and not follower.broken
+    assert "joined at tick 5" in late.broken
+    follower.follow(7, run.tick + 2, run.positions)  # a state missed
+    assert "missed" in follower.broken
 
 
 # --- costs -------------------------------------------------------------------------------------

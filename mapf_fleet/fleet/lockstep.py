@@ -59,12 +59,13 @@ def fleet_run(params: dict, grid, starts, goals, episode: int, series, geometry=
                              cell_of=cell_of, starts=starts)
     from mapf_fleet.grid.guidance_made import GuidanceSource
 
-    guidance = GuidanceSource.parse(params.get("guidance", "none")).for_map(grid)
+    source = GuidanceSource.parse(params.get("guidance", "none"))
+    # online guidance: the run steps the flow; the policy processes follow it from the states
     return FleetRun(grid, starts, tasks, goals, rule=str(params["conflict_rule"]),
                     max_steps=int(params["max_steps"]), episode=episode, series=series,
                     start_tick=start_tick,
                     planning_budget=float(params.get("planning_budget", 1.0)),
-                    guidance=guidance)
+                    guidance=source.for_map(grid), flow=source.flow(grid))
 
 
 def _batch_problem(n: int, prefs, received, counts, requested, missing_counts,

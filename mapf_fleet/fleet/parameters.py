@@ -57,10 +57,8 @@ def _guidance_ok(value: str) -> bool:
     from mapf_fleet.grid.guidance_made import GuidanceSource
 
     try:
-        # online guidance (congestion, *.online.json) changes as the run goes: the policy
-        # processes would need its costs every period, so the fleet over ROS takes static
-        # graphs only
-        return not GuidanceSource.parse(value).online
+        GuidanceSource.parse(value)
+        return True
     except ValueError:
         return False
 
@@ -70,12 +68,13 @@ def _guidance_ok(value: str) -> bool:
 GUIDANCE = Param(FLEET_GUIDANCE, "guidance graph read by every distance to a goal (the rule's "
                                  "order, the robots' heuristic channels): none (BFS steps), "
                                  "highways (hand-made crisscross lanes), a guidance file "
-                                 "(*.guidance.npz) or a cost model (*.costmodel.json); every "
-                                 "node of the fleet gets the same",
-                 _guidance_ok, "none, highways, an existing *.guidance.npz or *.costmodel.json "
-                               "(online guidance, congestion or *.online.json: evaluate "
-                               "--lifelong only)",
-                 option=Option("--guidance", metavar="none|highways|FILE"))
+                                 "(*.guidance.npz), a cost model (*.costmodel.json), or online "
+                                 "guidance updated from the robots' moves: congestion or an "
+                                 "online model (*.online.json); every node of the fleet gets "
+                                 "the same",
+                 _guidance_ok, "none, highways, congestion, or an existing *.guidance.npz, "
+                               "*.costmodel.json or *.online.json",
+                 option=Option("--guidance", metavar="none|highways|congestion|FILE"))
 
 
 # both lockstep nodes (simulator, aggregator) take their instance and their tick from these

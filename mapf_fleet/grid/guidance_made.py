@@ -295,5 +295,67 @@ class CongestionFlow:
                                    {"kind": CONGESTION}, source="congestion")
 
 
+class FlowFollower:
+    """Online guidance (`GuidanceSource.online`) followed from a fleet's states as the run that
+    steps it has it (`fleet.run.FleetRun.advance`: the flow observes each tick's moves, and a
+    decision at tick t reads the graph of the moves before t). A fleet's policy processes see
+    every state (every robot's cell at every tick, in order) but not the simulator's graph: each
+    follows the same flow over the same cells, so every process and the rule read one graph
+    (`models.exchange.PolicyExchange`).
+
+    `follow(episode, tick, cells)` for each state, in order; `at(tick)` the graph of a decision
+    at `tick` (None: BFS steps). It can follow a run only from its first tick: a state missed
+    (a tick skipped) or a first state after tick 0 (a process that joined late) leaves it
+    `broken` (why, in words), and its graph stays what it was (the robots' observations then
+    differ from the rule's graph; every move is still the rule's)."""
+
+    KEEP = 8  # graphs of the last ticks (a decision runs a tick or two behind the newest state)
+
+    def __init__(self, source: GuidanceSource, grid):
+        import threading
+
+        self.source, self.grid = source, np.asarray(grid) != 0
+        self._lock = threading.Lock()
+        self.episode = None
+        self._reset(None)
+
+    def _reset(self, episode) -> None:
+        self.episode = episode
+        self.flow = self.source.flow(self.grid)
+        self.graph = self.source.for_map(self.grid)
+        self.tick = None
+        self.cells = None
+        self.broken = ""
+        self._graphs: dict[int, Guidance | None] = {}
+
+    def follow(self, episode, tick: int, cells) -> None:
+        cells = np.asarray(cells, dtype=np.int64).reshape(-1, 2)
+        tick = int(tick)
+        with self._lock:
+            if episode != self.episode:
+                self._reset(episode)
+            if self.tick is None:
+                if tick != 0:
+                    self.broken = f"joined at tick {tick}: the moves before it are unknown"
+            elif tick <= self.tick:
+                return  # the same state again
+            elif tick != self.tick + 1:
+                if not self.broken:
+                    self.broken = f"states of ticks {self.tick + 1}..{tick - 1} were missed"
+            elif not self.broken:
+                graph = self.flow.step(self.cells, cells)
+                if graph is not None:
+                    self.graph = graph
+            self.tick, self.cells = tick, cells
+            self._graphs[tick] = self.graph
+            for old in [t for t in self._graphs if t <= tick - self.KEEP]:
+                del self._graphs[old]
+
+    def at(self, tick: int) -> "Guidance | None":
+        """The graph a decision at `tick` reads (the newest one followed if `tick` was not)."""
+        with self._lock:
+            return self._graphs.get(int(tick), self.graph)
+
+
 __all__ = ["highways", "features", "CostModel", "GuidanceSource", "CongestionFlow", "FEATURES",
-           "HIGHWAYS", "CONGESTION", "MODEL_SUFFIX", "HIGHWAY_AGAINST"]
+           "HIGHWAYS", "CONGESTION", "MODEL_SUFFIX", "HIGHWAY_AGAINST", "FlowFollower"]

@@ -67,6 +67,8 @@ class PolicyExchange:
         from mapf_fleet.grid.guidance_made import GuidanceSource
 
         self.guidance = GuidanceSource.parse(guidance)
+        # online guidance: the graph followed from the fleet's states (`follow`), per map
+        self._follower = None
         self.algo = model.config.algo
         self.radius = int(model.config.obs_radius)
         self.ids = np.array(ids, dtype=np.int64)
@@ -113,6 +115,31 @@ class PolicyExchange:
                    if int(r) in self.index_of)
 
     # ---- one tick ----
+    def follow(self, episode: int, tick: int, grid, positions) -> str:
+        """Every fleet state, in order, as it arrives (online guidance: the graph follows the
+        robots' moves, `grid.guidance_made.FlowFollower`); why the graph can no longer follow
+        the fleet's ("" while it can, and for static guidance)."""
+        if not self.guidance.online or grid is None:
+            return ""
+        follower = self._follower
+        if follower is None or follower.grid.shape != grid.shape \
+                or not np.array_equal(follower.grid, grid != 0):
+            from mapf_fleet.grid.guidance_made import FlowFollower
+
+            follower = self._follower = FlowFollower(self.guidance, grid)
+        follower.follow(episode, tick, positions)
+        return follower.broken
+
+    def _graph(self, grid, tick: int):
+        """The guidance graph the robots' observations read at `tick` on `grid`."""
+        if not self.guidance.online:
+            return self.guidance.for_map(grid)
+        if self._follower is None:  # no state followed yet: the run's first graph
+            from mapf_fleet.grid.guidance_made import FlowFollower
+
+            self._follower = FlowFollower(self.guidance, grid)
+        return self._follower.at(tick)
+
     def enter(self, episode: int, tick: int) -> None:
         """The fleet is at `tick` of `episode`: older messages go; a new run, or a tick
         skipped (joined mid-run, restarted), starts the robots with a fresh recurrent state."""
@@ -132,9 +159,13 @@ class PolicyExchange:
         local_goals = goals[self.ids]
         observation = self.model.config.observation
         key = (grid.shape, grid.tobytes(), observation)
-        if self._observer is None or self._observer_key != key:  # goals: searched when new
+        graph = self._graph(grid, self._tick) if self.guidance.online else None
+        if self._observer is None or self._observer_key != key or (
+                self.guidance.online and self._observer.guidance is not graph):
+            # goals: searched when new; online guidance: a new graph every period
             self._observer = GoalObserver(grid, self.radius, observation,
-                                          guidance=self.guidance.for_map(grid))
+                                          guidance=graph if self.guidance.online
+                                          else self.guidance.for_map(grid))
             self._observer_key = key
         obs = self._observer.observe(positions, local_goals, self.ids)
         self.timing.begin(started, arrived, stamp)

@@ -132,6 +132,7 @@ class PolicyHub:
         # the run this hub serves: never a foreign simulator's (lockstep.EpisodeBinding)
         self.binding = EpisodeBinding(first.episode_timeout)
         self._ignored_episodes: set[int] = set()
+        self._guidance_warned = False
         self.watch = StateWatch(getattr(first, "episode_timeout", 30.0))
         self._stop = threading.Event()
         self._hosts: dict[int, str] = {}  # robot id -> host, from heartbeats
@@ -216,6 +217,16 @@ class PolicyHub:
                         f"{self.ids.tolist()} serve episode {bound} (another simulator in "
                         f"this namespace? give each fleet its own: up --namespace /NAME)")
                 return
+            # online guidance follows every state in order (before the decision reads it)
+            broken = self.exchange.follow(
+                msg.episode, int(msg.tick), self.grid,
+                np.stack([np.asarray(msg.rows), np.asarray(msg.cols)], 1))
+            if broken and not self._guidance_warned:
+                self._guidance_warned = True
+                self.node.get_logger().error(
+                    f"robots {self.ids.tolist()}: online guidance {self.exchange.guidance} no "
+                    f"longer follows the fleet's ({broken}); the rule's moves stay safe, the "
+                    f"robots' heuristic channels read the last graph followed")
             self._latest_state = msg  # a slow or restarted hub skips to the newest tick
             self._state_at = (time.perf_counter(), time.time())
             back = self.watch.note(msg.tick, msg.done)

@@ -11,6 +11,7 @@ import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -44,25 +45,31 @@ def _lifelong_rollout(checkpoint, instance, steps, seed, guidance):
     from mapf_fleet.grid.guidance_made import GuidanceSource
 
     torch.set_num_threads(1)
+    source = GuidanceSource.parse(guidance)
     run = FleetRun(instance.grid, instance.starts, LifelongTasks(grid=instance.grid, seed=seed),
                    instance.goals, rule=RULE, max_steps=steps,
-                   guidance=GuidanceSource.parse(guidance).for_map(instance.grid))
+                   guidance=source.for_map(instance.grid), flow=source.flow(instance.grid))
     rollout(CheckpointBatchPolicy(checkpoint, ranking="q"), [run], shielded=True)
     return run
 
 
 @pytest.mark.ros
 @pytest.mark.slow
-@pytest.mark.parametrize("algo,guidance", [("dhc", "none"), ("dcc_sensitive", None)])
+@pytest.mark.parametrize("algo,guidance", [
+    ("dhc", "none"), ("dcc_sensitive", None), ("dcc_sensitive", "congestion"),
+    ("dcc_sensitive", "models/guidance/online_epibt_warehouse_33x33_128.online.json")])
 def test_lifelong_fleet_equals_the_evaluators_lifelong_rollout(tmp_path, ros_env, checkpoints,
                                                                algo, guidance):
     """16 robots, 200 ticks, two policy processes of 8: every cell of every tick and every goal
     change equal `evaluate --lifelong`'s rollout (`evaluation.lifelong.rollout` over the same
     `FleetRun`), goal stream seeded alike; unguided (`--guidance none`) and under `up`'s default
     guidance (None: no --guidance, the fleet's `FLEET_GUIDANCE`: every node's distances, the
-    robots' heuristic channels and the rule read the same graph as the rollout's)."""
+    robots' heuristic channels and the rule read the same graph as the rollout's), and under
+    online guidance (congestion: the policy processes follow the graph from the states)."""
     from mapf_fleet.coordination.rules import FLEET_GUIDANCE
 
+    if guidance and guidance.endswith(".json"):  # a shipped model, wherever pytest runs
+        guidance = str(Path(__file__).resolve().parents[2] / guidance)
     seed, steps = 5, 200
     instance = InstanceSource(num_robots=16, size=16, density=0.2, seed=seed).load()
     expected = _lifelong_rollout(checkpoints[algo], instance, steps, seed,
