@@ -307,8 +307,9 @@ def test_highways_are_a_valid_graph_on_every_map_the_fleet_accepts():
 
 def test_up_runs_a_checkpoint_under_the_guidance_it_records(tmp_path):
     """`up` without --guidance takes the guidance the checkpoint records, as `evaluate` does (one
-    default everywhere), the fleet's where it records none; --guidance overrides it; a recorded
-    value `up` cannot run (online congestion) is refused in one line naming the file."""
+    default everywhere), the fleet's where it records none; --guidance overrides it; online
+    guidance recorded is run too; a recorded value `up` cannot run (a model file gone) is
+    refused in one line naming the file."""
     pytest.importorskip("rclpy")
     pytest.importorskip("torch")
     from mapf_fleet.coordination.rules import FLEET_GUIDANCE
@@ -329,6 +330,8 @@ def test_up_runs_a_checkpoint_under_the_guidance_it_records(tmp_path):
     assert guidance("--checkpoint", unguided) == ["none", "none"]
     assert guidance("--checkpoint", unrecorded) == [FLEET_GUIDANCE, FLEET_GUIDANCE]
     assert guidance("--checkpoint", unguided, "--guidance", "highways") == ["highways"] * 2
-    online = saved("c.pt", guidance="congestion")
-    with pytest.raises(launcher.UpError, match=r"c\.pt: its metadata field guidance: must be "):
-        guidance("--checkpoint", online)
+    online = saved("c.pt", guidance="congestion")  # online: the fleet follows it too
+    assert guidance("--checkpoint", online) == ["congestion", "congestion"]
+    gone = saved("g.pt", guidance=str(tmp_path / "gone.online.json"))
+    with pytest.raises(launcher.UpError, match=r"g\.pt: its metadata field guidance: must be "):
+        guidance("--checkpoint", gone)
