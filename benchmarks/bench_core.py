@@ -80,8 +80,12 @@ def run_case(case: str, policy_name: str, args) -> dict:
     inst = generate_instance(side, agents, args.density, args.seed)
     tasks = LifelongTasks(grid=inst.grid, seed=args.seed) if lifelong else InstanceTasks()
     rule = args.rule or ("pibt" if policy_name == "heuristic" else DEFAULT_CONFLICT_RULE)
+    from mapf_fleet.grid.guidance_made import GuidanceSource
+
+    source = GuidanceSource.parse(args.guidance)
     run = FleetRun(inst.grid, inst.starts, tasks, inst.goals, rule=rule,
-                   max_steps=args.warmup + args.steps + 1)
+                   max_steps=args.warmup + args.steps + 1,
+                   guidance=source.for_map(inst.grid), flow=source.flow(inst.grid))
     policy = make_policy(policy_name, args.checkpoint)
     policy.reset(1, agents)
     observation = getattr(policy, "observation", "paper")
@@ -112,6 +116,7 @@ def run_case(case: str, policy_name: str, args) -> dict:
                                  parts["conflict_rule"])]
     row = {"case": case, "policy": policy_name, "side": side, "agents": agents,
            "density": args.density, "lifelong": lifelong, "rule": rule,
+           "guidance": source.label,
            "steps": args.steps, "threads": args.threads,
            "first_step_s": round(sum(first.values()), 4),
            "first_step_split_s": {k: round(v, 3) for k, v in first.items()},
@@ -140,6 +145,10 @@ def main(argv=None) -> int:
     p.add_argument("--rule", help="conflict rule (default: the fleet's default for dcc, pibt for "
                                   "heuristic, i.e. plain PIBT)")
     p.add_argument("--density", type=float, default=0.3)
+    p.add_argument("--guidance", default="none",
+                   help="guidance graph of the run (GuidanceSource spelling: none, highways, "
+                        "congestion, a file or model); none: BFS steps, this benchmark's "
+                        "figures so far")
     p.add_argument("--steps", type=int, default=10)
     p.add_argument("--warmup", type=int, default=5,
                    help="steps before the timed ones (the first searches every goal; the "
@@ -167,7 +176,7 @@ def main(argv=None) -> int:
                   f"{1e3 * row['step_cpu_median_s']:7.1f} "
                   f"{row['first_step_s']:8.2f} {row['goal_changes_per_step']:9.1f} "
                   f"{before:>9s} {row['max_rss_mb']:7d}", flush=True)
-            print(f"{'':15s} first step: " + ", ".join(
+            print(f"{'':15s} guidance {row['guidance']}; first step: " + ", ".join(
                 f"{k} {v:.2f} s" for k, v in row["first_step_split_s"].items()), flush=True)
             print(f"{'':15s} every step, s: " + " ".join(f"{v:.2f}" for v in row["every_step_s"]),
                   flush=True)
