@@ -27,9 +27,9 @@ from collections import OrderedDict
 
 import numpy as np
 from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import dijkstra
 
 from .actions import move_targets
+from .guided_kernel import GuidedSearcher
 from .search_kernel import Searcher
 from .windows import Windows, WindowRow
 
@@ -98,7 +98,7 @@ class DistanceTable:
         self.guidance = guidance
         self.guided = guidance is not None
         self.step_costs = None if guidance is None else guidance.step_costs()
-        # unguided: the compiled BFS (rows and bits in one pass); guided: scipy's Dijkstra
+        # unguided: the compiled BFS (rows and bits in one pass); guided: `guided_kernel`
         self._searcher = None if self.guided else Searcher(blocked)
         self.unreachable = float("inf") if self.guided else self._searcher.unreachable
         self.graph = guidance.reverse_graph() if self.guided else None
@@ -126,17 +126,13 @@ class DistanceTable:
         return targets
 
     def _search(self, goals: list[int]) -> tuple[list[np.ndarray], list[np.ndarray | None]]:
-        """Rows (unreachable at `unreachable`) and, unguided, bits of `goals`, searched now."""
+        """Rows (unreachable at `unreachable`) and bits of `goals`, searched now."""
         self.searches += len(goals)
         if not self.guided:
             return self._searcher.search(goals)
-        rows = []
-        for goal in goals:
-            if self.blocked.flat[goal]:  # a goal on an obstacle: nothing reaches it
-                rows.append(np.full(self.size, np.inf))
-            else:
-                rows.append(dijkstra(self.graph, directed=True, indices=goal))
-        return rows, [None] * len(goals)
+        if getattr(self, "_guided_searcher", None) is None:  # compiled: rows and bits at once
+            self._guided_searcher = GuidedSearcher(self.blocked, self.step_costs)
+        return self._guided_searcher.search(goals)
 
     def _keep(self, cache: OrderedDict, goal: int, value, keep: int) -> None:
         cache[goal] = value
