@@ -32,6 +32,7 @@ one-way move): distances are TO the goal, so the search runs from the goal over 
 from __future__ import annotations
 
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -44,12 +45,37 @@ RTOL, ATOL = 1e-5, 1e-8
 
 
 @njit(cache=True, nogil=True)
+def _row_and_bits(steps, dist, W, h, w, row, bits):  # pragma: no cover (compiled)
+    """The row unpadded from `dist`, and the bits: numpy.isclose(step + there, here) where here
+    is > 0 and finite. Written over one map row's slices at a time, which the compiler
+    vectorises (element by element over the padded map it does not)."""
+    for r in range(h):
+        base = (r + 1) * W + 1
+        here_ = dist[base:base + w]
+        above, below = dist[base - W:base - W + w], dist[base + W:base + W + w]
+        before, after = dist[base - 1:base - 1 + w], dist[base + 1:base + 1 + w]
+        up, down = steps[0, base:base + w], steps[1, base:base + w]
+        left, right = steps[2, base:base + w], steps[3, base:base + w]
+        out_row, out_bits = row[r * w:(r + 1) * w], bits[r * w:(r + 1) * w]
+        for c in range(w):
+            here = here_[c]
+            limit = ATOL + RTOL * here
+            limit = limit if (here > 0.0) & (here < np.inf) else -1.0
+            b = np.int32(abs(up[c] + above[c] - here) <= limit)
+            b |= np.int32(abs(down[c] + below[c] - here) <= limit) << 1
+            b |= np.int32(abs(left[c] + before[c] - here) <= limit) << 2
+            b |= np.int32(abs(right[c] + after[c] - here) <= limit) << 3
+            out_bits[c] = b
+            out_row[c] = here
+
+
+@njit(cache=True, nogil=True)
 def _search(incoming, steps, W, h, w, goal, inv_width, mask, sizes, stacks, improved, where,
             dist, row, bits):  # pragma: no cover (compiled)
     """One goal's row and bits (module docstring) on the map padded by one cell (`W` = w + 2):
     `incoming` (padded cells, 4), `steps` (4, padded cells) the moves' costs, inf on the pad;
-    `goal` a padded cell. Scratch: `sizes` (buckets), `stacks` (buckets, capacity), `improved`
-    (4 padded cells), `where` and `dist` (padded cells), any contents; `row` and `bits`
+    `goal` a padded cell. Scratch: `sizes` (buckets), `stacks` (buckets, room), `improved`
+    (4 room + 8), `where` and `dist` (padded cells), any contents; `row` and `bits`
     (unpadded) are written whole. Returns -1 where a bucket outgrew `stacks` (nothing written:
     search again with more room), else the number of cells taken from the queue."""
     dist[:] = np.inf
@@ -106,20 +132,7 @@ def _search(incoming, steps, W, h, w, goal, inv_width, mask, sizes, stacks, impr
         queued -= i
         sizes[slot] = 0
         current += 1
-    # the row unpadded, and the bits: numpy.isclose(step + there, here), here > 0 and finite
-    up, down, left, right = steps[0], steps[1], steps[2], steps[3]
-    for r in range(h):
-        base = (r + 1) * W + 1
-        out = r * w
-        for c in range(w):
-            v = base + c
-            here = dist[v]
-            limit = ATOL + RTOL * here if 0.0 < here < np.inf else -1.0
-            bits[out + c] = (np.uint8(abs(up[v] + dist[v - W] - here) <= limit)
-                             | (np.uint8(abs(down[v] + dist[v + W] - here) <= limit) << 1)
-                             | (np.uint8(abs(left[v] + dist[v - 1] - here) <= limit) << 2)
-                             | (np.uint8(abs(right[v] + dist[v + 1] - here) <= limit) << 3))
-            row[out + c] = here
+    _row_and_bits(steps, dist, W, h, w, row, bits)
     return taken
 
 
@@ -177,27 +190,38 @@ class GuidedSearcher:
         # a bucket's room: a wavefront's worth to start with, doubled whenever one outgrows it
         self.room = min(self.incoming.shape[0], 1024 + 8 * (h + w))
         self.threads = max(1, threads or len(os.sched_getaffinity(0)))
+        self._spare: list[tuple] = []
+        self._lock = threading.Lock()
+
+    def _scratch(self) -> tuple:
+        """A free set of the search's scratch arrays (kept between searches: fresh ones cost
+        page faults on every search), or a new one."""
+        with self._lock:
+            if self._spare:
+                return self._spare.pop()
+        size, room = self.incoming.shape[0], self.room
+        return (np.empty(self.buckets, np.int64), np.empty((self.buckets, room), np.int32),
+                np.empty(4 * room + 8, np.int32), np.empty(size, np.int64),
+                np.empty(size, np.float64))
 
     def _one(self, goals, rows, bits) -> None:
-        size = self.incoming.shape[0]
-        room = self.room
-        sizes = np.empty(self.buckets, np.int64)
-        stacks = np.empty((self.buckets, room), np.int32)
-        improved = np.empty(4 * size + 8, np.int32)
-        where = np.empty(size, np.int64)
-        dist = np.empty(size, np.float64)
+        sizes, stacks, improved, where, dist = self._scratch()
         for goal, row, out in zip(goals, rows, bits):
             r, c = divmod(goal, self.w)
             if self.blocked[r, c]:  # a goal on an obstacle: nothing reaches it
                 row[:] = np.inf
                 out[:] = 0
                 continue
+            # a round takes at most a bucket's room of cells: 4 improvements each at most
             while _search(self.incoming, self.steps, self.W, self.h, self.w,
                           (r + 1) * self.W + c + 1, self.inv_width, self.buckets - 1, sizes,
                           stacks, improved, where, dist, row, out) < 0:
-                room *= 2
+                room = 2 * stacks.shape[1]
                 self.room = max(self.room, room)
                 stacks = np.empty((self.buckets, room), np.int32)
+                improved = np.empty(4 * room + 8, np.int32)
+        with self._lock:
+            self._spare.append((sizes, stacks, improved, where, dist))
 
     def search(self, goals) -> tuple[list[np.ndarray], list[np.ndarray]]:
         """(rows, bits): for each flat goal cell of `goals`, a new float64 (H*W,) row and a new
