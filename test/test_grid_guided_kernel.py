@@ -62,12 +62,14 @@ def test_rows_and_bits_equal_scipy_under_one_way_moves_and_cut_off_parts():
                      goals, f"trial {trial}")
 
 
-@pytest.mark.parametrize("low, high", [(1e-3, 1e3), (1e-6, 1.0), (0.1, 0.3), (7.0, 7.0)])
+@pytest.mark.parametrize("low, high", [(1e-3, 1e3), (1e-6, 1.0), (1e-20, 1.0), (0.1, 0.3),
+                                       (7.0, 7.0), (1e305, 1e307)])
 def test_rows_are_exact_whatever_the_costs_span(low, high):
     """Costs spanning more than `MAX_BUCKETS` least costs widen the buckets (cells of a bucket
-    correct each other); costs like 0.1 and 0.3 sum with rounding at the buckets' edges;
-    one cost everywhere is a BFS scaled. All give scipy's values exactly."""
-    rng = np.random.default_rng(int(high * 1000) % 97)
+    correct each other), down to moves too cheap to change a sum; costs like 0.1 and 0.3 sum
+    with rounding at the buckets' edges; one cost everywhere is a BFS scaled; costs whose sums
+    overflow to inf leave far cells out of reach. All give scipy's values exactly."""
+    rng = np.random.default_rng(int(np.log10(low) * 7 + np.log10(high)) % 97)
     blocked = rng.random((36, 44)) < 0.25
     costs = _random_costs(rng, blocked.shape, low, high, forbid=0.0)
     if low == 0.1:

@@ -180,11 +180,13 @@ class GuidedSearcher:
         self.steps = np.ascontiguousarray(np.moveaxis(pad, -1, 0).reshape(4, -1))
         least = float(moves.min()) if moves.size else 1.0
         most = float(moves.max()) if moves.size else 1.0
-        # no path costs more than (free cells) x (dearest move): its bucket must fit an int64
+        # no path costs more than (free cells) x (dearest move): bucket numbers stay below 2^30,
+        # where float rounding cannot move a cost by a whole bucket
         free = int((~self.blocked).sum())
-        width = max(least, most / (MAX_BUCKETS - 4), free * most / 2.0 ** 52)
+        width = max(least, most / (MAX_BUCKETS - 4), free * most / 2.0 ** 30)
         self.inv_width = 1.0 / width if np.isfinite(width) else 0.0
-        # a new cost lies at most floor(most / width) + 2 buckets past the bucket being taken
+        # a new cost lies at most floor(most / width) + 2 buckets past the bucket being taken:
+        # the buckets in use never share a slot of the circular array
         span = int(most * self.inv_width) + 4
         self.buckets = 1 << max(2, (span - 1).bit_length())
         # a bucket's room: a wavefront's worth to start with, doubled whenever one outgrows it
