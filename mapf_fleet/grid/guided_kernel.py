@@ -1,12 +1,15 @@
 """Guided distances to a goal, compiled (numba): a goal's least path costs under a guidance graph
-(`grid.guidance`) and its packed heuristic bits, for many goals at once on the machine's cores.
+(`grid.guidance`) and its packed heuristic bits in one call, for many goals at once on the
+machine's cores (docs/results.md, "What guidance costs").
 
 Why not scipy's Dijkstra: its binary heap orders every cell by cost, which a BFS does not need,
 and its row still needs numpy passes for the bits. Here the priority queue is a bucket queue
 (Dial's, with float keys): bucket b holds the queued cells whose cost lies in [b D, (b + 1) D),
-with D the least move cost of the graph. A cell taken from the lowest bucket cannot be improved
-by another cell of that bucket (every move adds at least D), so the cells of a bucket are taken
-in any order, as a BFS takes a level: no comparisons between costs, a few array writes a cell.
+with D the least move cost of the graph. A cell of the lowest bucket cannot be improved by
+another cell of that bucket (every move adds at least D), so the cells of a bucket are taken in
+any order, as a BFS takes a level: no comparisons between costs. A bucket is taken in rounds:
+its cells relax their neighbours without a branch (every improved neighbour goes on a list),
+then the list is sorted into the buckets by the costs the round ended with.
 
 Exact: the result is scipy's, bit for bit. Whatever order cells are taken in, a cell whose cost
 drops is queued again (the search corrects its labels until nothing improves), so the costs are
@@ -14,16 +17,16 @@ the least, over every path, of the path's float64 sum added up from the goal: wh
 Dijkstra computes (float addition is monotone), whichever ties it breaks. D only decides how
 often a label is corrected: rounding at a bucket's edge may queue a cell in the bucket being
 taken, and where the costs span more than `MAX_BUCKETS` least costs, D grows to keep the
-circular array of buckets small and the cells of a bucket may correct each other (Delta-stepping).
+circular array of buckets small and the cells of a bucket may correct each other
+(Delta-stepping). A cell queued again leaves its old entry behind; an entry counts only where
+the cell's cost still lies in the entry's bucket.
 
-A queued cell sits in exactly one bucket (doubly linked lists through per-cell arrays, moved when
-its cost drops): no heap, no duplicates, no capacity to outgrow.
-
-Layout: flat unpadded cells; `incoming[v, k]` is the cost of the move into v from its neighbour
-in direction k (0 up, 1 down, 2 left, 3 right), that is the neighbour's move in the opposite
-direction (k ^ 1), inf where there is no such move (off the map, an obstacle, a forbidden
-one-way move): distances are TO the goal, so the search runs from the goal over reversed moves
-(`Guidance.reverse_graph`'s orientation). Output per goal:
+Layout: the map padded by one cell (no bounds checks); `incoming[v, k]` is the cost of the move
+into v from its neighbour in direction k (0 up, 1 down, 2 left, 3 right), that is the
+neighbour's move in the opposite direction (k ^ 1), inf where there is no such move (off the
+map, from or into an obstacle, a forbidden one-way move): distances are TO the goal, so the
+search runs from the goal over reversed moves (`Guidance.reverse_graph`'s orientation). Output
+per goal, unpadded flat cells:
 - row: float64 least path cost to the goal, inf on obstacles and where the goal is out of reach;
 - bits: bit k where the move in direction k costs what it saves, `numpy.isclose`'s test exactly
   (the `heuristic._guided_bits` channels: the move lies on a least-cost path).
@@ -70,20 +73,19 @@ def _row_and_bits(steps, dist, W, h, w, row, bits):  # pragma: no cover (compile
 
 
 @njit(cache=True, nogil=True)
-def _search(incoming, steps, W, h, w, goal, inv_width, mask, sizes, stacks, improved, where,
-            dist, row, bits):  # pragma: no cover (compiled)
+def _search(incoming, steps, W, h, w, goal, inv_width, mask, sizes, stacks, improved, dist,
+            row, bits):  # pragma: no cover (compiled)
     """One goal's row and bits (module docstring) on the map padded by one cell (`W` = w + 2):
     `incoming` (padded cells, 4), `steps` (4, padded cells) the moves' costs, inf on the pad;
     `goal` a padded cell. Scratch: `sizes` (buckets), `stacks` (buckets, room), `improved`
-    (4 room + 8), `where` and `dist` (padded cells), any contents; `row` and `bits`
-    (unpadded) are written whole. Returns -1 where a bucket outgrew `stacks` (nothing written:
-    search again with more room), else the number of cells taken from the queue."""
+    (4 room + 8), `dist` (padded cells), any contents; `row` and `bits` (unpadded) are written
+    whole. Returns -1 where a bucket outgrew `stacks` (nothing written: search again with more
+    room), else the number of cells taken from the queue."""
     dist[:] = np.inf
     sizes[:] = 0
     dist[goal] = 0.0
     stacks[0, 0] = goal
     sizes[0] = 1
-    where[goal] = 0  # the bucket a cell was last queued in; -1 once taken
     room = stacks.shape[1]
     queued = 1
     current = 0
@@ -97,11 +99,10 @@ def _search(incoming, steps, W, h, w, goal, inv_width, mask, sizes, stacks, impr
             while i < end:
                 v = stacks[slot, i]
                 i += 1
-                if where[v] != current:  # queued again elsewhere since, or taken already
-                    continue
-                where[v] = -1
-                taken += 1
                 dv = dist[v]
+                if np.int64(dv * inv_width) != current:  # left behind: queued lower since
+                    continue
+                taken += 1
                 # branch-free relaxation: every improved neighbour goes on a list (`m` counts
                 # the real ones), queued below from the cost it ends the round with
                 for k in range(4):
@@ -120,14 +121,12 @@ def _search(incoming, steps, W, h, w, goal, inv_width, mask, sizes, stacks, impr
                     m += du < old
             for j in range(m):
                 u = improved[j]
-                b = np.int64(dist[u] * inv_width)
-                to = b & mask
+                to = np.int64(dist[u] * inv_width) & mask
                 count = sizes[to]
                 if count == room:
                     return -1
                 stacks[to, count] = u
                 sizes[to] = count + 1
-                where[u] = b
             queued += m
         queued -= i
         sizes[slot] = 0
@@ -203,11 +202,10 @@ class GuidedSearcher:
                 return self._spare.pop()
         size, room = self.incoming.shape[0], self.room
         return (np.empty(self.buckets, np.int64), np.empty((self.buckets, room), np.int32),
-                np.empty(4 * room + 8, np.int32), np.empty(size, np.int64),
-                np.empty(size, np.float64))
+                np.empty(4 * room + 8, np.int32), np.empty(size, np.float64))
 
     def _one(self, goals, rows, bits) -> None:
-        sizes, stacks, improved, where, dist = self._scratch()
+        sizes, stacks, improved, dist = self._scratch()
         for goal, row, out in zip(goals, rows, bits):
             r, c = divmod(goal, self.w)
             if self.blocked[r, c]:  # a goal on an obstacle: nothing reaches it
@@ -217,13 +215,13 @@ class GuidedSearcher:
             # a round takes at most a bucket's room of cells: 4 improvements each at most
             while _search(self.incoming, self.steps, self.W, self.h, self.w,
                           (r + 1) * self.W + c + 1, self.inv_width, self.buckets - 1, sizes,
-                          stacks, improved, where, dist, row, out) < 0:
+                          stacks, improved, dist, row, out) < 0:
                 room = 2 * stacks.shape[1]
                 self.room = max(self.room, room)
                 stacks = np.empty((self.buckets, room), np.int32)
                 improved = np.empty(4 * room + 8, np.int32)
         with self._lock:
-            self._spare.append((sizes, stacks, improved, where, dist))
+            self._spare.append((sizes, stacks, improved, dist))
 
     def search(self, goals) -> tuple[list[np.ndarray], list[np.ndarray]]:
         """(rows, bits): for each flat goal cell of `goals`, a new float64 (H*W,) row and a new
