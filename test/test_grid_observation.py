@@ -143,7 +143,7 @@ def test_windows_hold_walking_agents_until_their_goals_are_searched_whole(observ
 def test_bfs_distances_equal_scipy_dijkstra_on_random_maps():
     from scipy.sparse.csgraph import shortest_path
 
-    from mapf_fleet.grid.heuristic import _adjacency
+    from grid_oracle import adjacency as _adjacency
 
     rng = np.random.default_rng(11)
     for trial in range(40):

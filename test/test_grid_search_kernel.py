@@ -7,9 +7,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.sparse.csgraph import shortest_path
 
-from mapf_fleet.grid.heuristic import (
-    UNREACHABLE, DistanceTable, _adjacency, _bits_from_distances,
-)
+from grid_oracle import adjacency as _adjacency
+from mapf_fleet.grid.heuristic import UNREACHABLE, DistanceTable, _bits_from_distances
 from mapf_fleet.grid.search_kernel import Searcher
 
 

@@ -202,6 +202,13 @@ def test_a_lifelong_run_with_congestion_guidance_updates_its_graph_and_stays_saf
             runs, shielded=True)
     assert runs[0].guidance is not None and runs[0].guidance.meta["kind"] == "congestion"
     assert runs[0].recorder.collisions == 0 and runs[0].goals_reached > 0
+    # a new graph every 8 ticks: the map keeps the distance tables of the last two only
+    from mapf_fleet.grid import heuristic
+
+    kept = [t for t in heuristic._TABLES.values() if t.guided
+            and t.guidance.meta.get("kind") == "congestion" and t.shape == runs[0].grid.shape
+            and np.array_equal(t.blocked, runs[0].grid)]
+    assert len(kept) == heuristic.ONLINE_TABLES
 
 
 def test_the_fleet_over_ros_takes_online_guidance_and_refuses_what_is_no_guidance():

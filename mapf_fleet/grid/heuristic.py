@@ -26,7 +26,6 @@ from array import array
 from collections import OrderedDict
 
 import numpy as np
-from scipy.sparse import csr_matrix
 
 from .actions import move_targets
 from .guided_kernel import GuidedSearcher
@@ -53,23 +52,6 @@ def _as_goals(goals, shape) -> np.ndarray:
         i = int(np.flatnonzero(bad)[0])
         raise ValueError(f"goal {tuple(goals[i].tolist())} is outside the {h}x{w} map")
     return goals
-
-
-def _adjacency(blocked: np.ndarray) -> csr_matrix:
-    """Symmetric 4-connected adjacency of the free cells (scipy's graph form: the tests' oracle
-    for the compiled search)."""
-    h, w = blocked.shape
-    free = ~blocked
-    index = np.arange(h * w).reshape(h, w)
-    horizontal = free[:, :-1] & free[:, 1:]
-    vertical = free[:-1, :] & free[1:, :]
-    rows = np.concatenate([index[:, :-1][horizontal], index[:-1, :][vertical]])
-    cols = np.concatenate([index[:, 1:][horizontal], index[1:, :][vertical]])
-    both = (np.concatenate([rows, cols]), np.concatenate([cols, rows]))
-    # float64 and canonical, as scipy's graph searches want it: no conversion copy per search
-    graph = csr_matrix((np.ones(2 * rows.size), both), shape=(h * w, h * w))
-    graph.sum_duplicates()
-    return graph
 
 
 class DistanceTable:
@@ -313,11 +295,30 @@ def distance_table(grid, guidance=None) -> DistanceTable:
             _TABLES.move_to_end(key)
             return table
     table = DistanceTable(blocked, guidance)
+    stream = _online_kind(guidance)
     with _LOCK:
         table = _TABLES.setdefault(key, table)
+        if stream is not None:
+            # online guidance: a new graph every period; a run reads only the newest (and, for
+            # a tick, the one before): older tables of the stream are dead weight (rows of every
+            # goal: 0.1 GB a table at 1,024 robots on 112x112)
+            same = [k for k, t in _TABLES.items()
+                    if k[:2] == key[:2] and _online_kind(t.guidance) == stream]
+            for old in same[:-ONLINE_TABLES]:
+                del _TABLES[old]
         while len(_TABLES) > _MAX_MAPS:
             _TABLES.popitem(last=False)
     return table
+
+
+# tables kept per map of one online guidance stream (congestion, an online model)
+ONLINE_TABLES = 2
+
+
+def _online_kind(guidance) -> str | None:
+    """The stream a graph of online guidance belongs to (its meta kind), None for static ones."""
+    kind = None if guidance is None else guidance.meta.get("kind")
+    return kind if kind in ("congestion", "online") else None
 
 
 def _distances(blocked: np.ndarray, goals: np.ndarray, guidance=None) -> np.ndarray:
