@@ -124,7 +124,7 @@ def hub_split(log_dir: str) -> tuple[dict, float, float]:
 
 def run_fleet(checkpoint, robots, size, per_process, seed, steps, domain,
               task_source="instance", conflict_rule=None, planning_budget=None, timeout=1800,
-              tick_period=0.0):
+              tick_period=0.0, guidance=None):
     """One `up` run: (its record or None when it wrote none, (tick times, ticks/s), the hubs'
     split, seconds from the launch to the first tick or None, peak memory of its processes in
     MB (their RSS summed, sampled every 2 s), the output's tail)."""
@@ -140,6 +140,8 @@ def run_fleet(checkpoint, robots, size, per_process, seed, steps, domain,
         cmd += ["--conflict-rule", conflict_rule]
     if planning_budget is not None:
         cmd += ["--planning-budget", str(planning_budget)]
+    if guidance:  # else `up`'s default (the checkpoint's recorded guidance, else the fleet's)
+        cmd += ["--guidance", guidance]
     cmd += ["--ros-args", "-p", "progress_every:=5"]
     if tick_period:  # a fixed control rate: a tick starts every tick_period s at the earliest
         cmd += ["-p", f"tick_period:={tick_period}"]
@@ -229,6 +231,7 @@ def main():
     parser.add_argument("--tick-period", type=float, default=0.0,
                         help="the simulator's tick_period: a fixed control rate (0: as fast as "
                              "the robots decide)")
+    parser.add_argument("--guidance", help="up --guidance (default: up's own default)")
     parser.add_argument("--run-timeout", type=float, default=1800,
                         help="seconds a run may take before it is stopped (default 1800)")
     args = parser.parse_args()
@@ -250,7 +253,7 @@ def main():
             run, ticks, (split, messages, calls), ready, memory, tail, chosen = run_fleet(
                 checkpoint, robots, size, None if args.default_layout else per_process,
                 args.seed, args.steps, domain, args.task_source, args.conflict_rule,
-                args.planning_budget, args.run_timeout, args.tick_period)
+                args.planning_budget, args.run_timeout, args.tick_period, args.guidance)
             domain += 1
             if args.default_layout:
                 processes, per_process = chosen or (1, 1)  # no line: a process per robot
