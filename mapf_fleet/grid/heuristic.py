@@ -83,7 +83,6 @@ class DistanceTable:
         # unguided: the compiled BFS (rows and bits in one pass); guided: `guided_kernel`
         self._searcher = None if self.guided else Searcher(blocked)
         self.unreachable = float("inf") if self.guided else self._searcher.unreachable
-        self.graph = guidance.reverse_graph() if self.guided else None
         # one distance row per goal (the canonical copy), its packed bits, and a few -1 arrays
         self._rows: OrderedDict[int, np.ndarray] = OrderedDict()
         self._bits: OrderedDict[int, np.ndarray] = OrderedDict()
