@@ -427,21 +427,21 @@ def test_steps_to_a_cell_are_cells_whatever_the_guidance():
 
 @pytest.mark.parametrize("rule", ["pibt_anchor_swap", "pibt_anchor_swap_epibt"])
 def test_a_cold_start_in_windows_runs_the_same_lifelong_episode(rule, monkeypatch):
-    """The first tick's goals searched in windows (`grid.observation.WINDOW_FROM_BYTES` 0: every
+    """The first tick's goals searched in windows (`grid.goal_observer.WINDOW_FROM_BYTES` 0: every
     batch of new goals) and the conflict rule reading them (`DistanceTable.row`'s `WindowRow`)
     give the episode of whole searches, step for step, DCC `default.pt` ranking."""
     from collections import OrderedDict
 
     from mapf_fleet.evaluation.lifelong import observe_runs
     from mapf_fleet.evaluation.policies import CheckpointBatchPolicy
-    from mapf_fleet.grid import heuristic, observation
+    from mapf_fleet.grid import goal_observer, heuristic
 
     checkpoint = Path(__file__).resolve().parents[1] / "models" / "default.pt"
     inst = generate_instance(40, 48, 0.3, 4)
 
     def episode(window_from: int):
         monkeypatch.setattr(heuristic, "_TABLES", OrderedDict())  # nothing searched before
-        monkeypatch.setattr(observation, "WINDOW_FROM_BYTES", window_from)
+        monkeypatch.setattr(goal_observer, "WINDOW_FROM_BYTES", window_from)
         run = FleetRun(inst.grid, inst.starts, LifelongTasks(grid=inst.grid, seed=4),
                        inst.goals, rule=rule, max_steps=30)
         policy = CheckpointBatchPolicy(str(checkpoint))

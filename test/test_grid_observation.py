@@ -70,7 +70,7 @@ def test_the_goal_observer_equals_a_builder_rebuilt_for_every_step(observation, 
     """window_from 0: every batch of new goals is first searched in windows around its agents
     (the agents jump here: most windows are searched whole at once)."""
     from mapf_fleet.grid.heuristic import HeuristicCache
-    from mapf_fleet.grid.observation import GoalObserver
+    from mapf_fleet.grid.goal_observer import GoalObserver
 
     rng = np.random.default_rng(7)
     for trial in range(12):
@@ -101,12 +101,13 @@ def test_windows_hold_walking_agents_until_their_goals_are_searched_whole(observ
                                                                           monkeypatch):
     """A first tick's goals searched in windows (`window_from` 0): agents walking a cell a step
     see what a rebuilt builder shows, every window is searched whole within `WINDOW_MARGIN`
-    observations, and the bounded searches settle fewer cells than whole searches would."""
+    observations (beside the ticks, on a thread of the observer's), and the bounded searches
+    settle fewer cells than whole searches would."""
     from collections import OrderedDict
 
     from mapf_fleet.grid import heuristic
     from mapf_fleet.grid.heuristic import DistanceTable, distance_table
-    from mapf_fleet.grid.observation import WINDOW_MARGIN, GoalObserver
+    from mapf_fleet.grid.goal_observer import WINDOW_MARGIN, GoalObserver
 
     monkeypatch.setattr(heuristic, "_TABLES", OrderedDict())  # no goal searched whole before
 
@@ -120,6 +121,7 @@ def test_windows_hold_walking_agents_until_their_goals_are_searched_whole(observ
         positions = free[rng.choice(len(free), n, replace=False)]
         goals = free[rng.integers(0, len(free), n)]
         before = distance_table(grid).windows.cells
+        beside = 0
         oracle = DistanceTable(grid)  # its own: the shared table's whole searches end windows
         bits = oracle.bits_of(goals[:, 0] * side + goals[:, 1])
         dist = oracle.many(goals) if observation == "cost_to_go" else None
@@ -127,6 +129,7 @@ def test_windows_hold_walking_agents_until_their_goals_are_searched_whole(observ
             expected = ObservationBuilder(grid, bits, 4, distances=dist).observe(positions)
             got = observer.observe(positions, goals)
             np.testing.assert_array_equal(got, expected, err_msg=f"trial {trial} step {step}")
+            beside += observer._pending is not None  # whole searches running beside the tick
             if step == 0:
                 assert observer.windowed == len(np.unique(goals[:, 0] * side + goals[:, 1]))
                 assert observer.searched == 0
@@ -136,6 +139,7 @@ def test_windows_hold_walking_agents_until_their_goals_are_searched_whole(observ
             ok[ok] &= ~grid[nxt[ok, 0], nxt[ok, 1]]
             positions = np.where(ok[:, None], nxt, positions)  # overlaps do not matter here
         assert not observer._window_of, "every window searched whole within the margin"
+        assert beside > 0
         settled = distance_table(grid).windows.cells - before
         assert 0 < settled < observer.windowed * (~grid).sum()
 

@@ -146,7 +146,7 @@ _OBSERVERS: "weakref.WeakKeyDictionary[FleetRun, dict]" = weakref.WeakKeyDiction
 
 
 def _observer(run: FleetRun, observation: str):
-    from mapf_fleet.grid.observation import GoalObserver
+    from mapf_fleet.grid.goal_observer import GoalObserver
 
     mine = _OBSERVERS.setdefault(run, {})
     found = mine.get(observation)

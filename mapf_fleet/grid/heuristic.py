@@ -132,7 +132,7 @@ class DistanceTable:
         """`prepare`, and each goal's padded static bytes (`search_kernel.fill_static`'s) into
         `statics` (one uint8 array of (H + 2 pad) * (W + 2 pad) per distinct goal): unguided,
         the search writes them itself (no bits array to touch, then copy: the observations'
-        pool, `grid.observation.GoalObserver`)."""
+        pool, `grid.goal_observer.GoalObserver`)."""
         from .search_kernel import fill_static
 
         goals = [int(g) for g in goals]

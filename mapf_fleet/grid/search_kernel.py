@@ -21,7 +21,7 @@ window and the ring around it is settled: exact, as the whole search is there. O
 512x512 map a window 340 steps from its goal settles about a sixth of the map, and writes
 nothing beyond the window (a whole search writes 0.8 MB a goal): the first tick at 10,000
 agents searches windows, and the goals are searched whole over the next ticks
-(`grid.observation.GoalObserver`).
+(`grid.goal_observer.GoalObserver`).
 """
 
 from __future__ import annotations
@@ -234,7 +234,7 @@ def _longest_path_bound(searcher: Searcher, blocked: np.ndarray) -> int:
 def fill_static(blocked, bits, out, h, w, pad):  # pragma: no cover (compiled)
     """Write a goal's padded static FOV map into `out` ((h + 2 pad) * (w + 2 pad) uint8): bit 0
     the obstacle (every off-map cell is one), bits 1-4 the heuristic bits
-    (`grid.observation.GoalObserver`'s pool slot)."""
+    (`grid.goal_observer.GoalObserver`'s pool slot)."""
     wp = w + 2 * pad
     out[:] = 1
     for r in range(h):

@@ -4,7 +4,7 @@ tick at 10,000 agents").
 `Windows` (a `DistanceTable`'s, unguided) keeps, per goal not searched whole yet, a window of
 its distances and heuristic bits around the cell of the agent heading there, from a search
 bounded to it (`search_kernel.Searcher.windows`: exact, as the whole search is there). The
-observations gather from it (`grid.observation.GoalObserver`) and the conflict rules read it
+observations gather from it (`grid.goal_observer.GoalObserver`) and the conflict rules read it
 through `DistanceTable.row` (a `WindowRow`); the table forgets a goal's window when it searches
 the goal whole.
 """

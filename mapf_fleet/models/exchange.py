@@ -3,7 +3,7 @@ forward pass of DHC and DCC for the robots one process hosts, with the messages 
 going through a `link` (the ROS hub in `mapf_fleet.ros.hub`; tests and the checks below link
 exchanges in memory).
 
-- `PolicyExchange`: the robots' FOV observations (`grid.observation.GoalObserver`), the
+- `PolicyExchange`: the robots' FOV observations (`grid.goal_observer.GoalObserver`), the
   network's batched pieces with the numbers of the batched `model.step` (same padding and
   masks), the peer messages through the link and into the `Mailbox`, and the robots' ranked
   actions (`coordination.ranking.rank_actions`, ties by `tie_breakers(robot id, tick)`).
@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from mapf_fleet.coordination.ranking import rank_actions, tie_breakers
-from mapf_fleet.grid.observation import GoalObserver
+from mapf_fleet.grid.goal_observer import GoalObserver
 
 from .comm import dhc_partners
 from .mailbox import Mailbox, TickTiming

@@ -229,7 +229,7 @@ def play_lifelong(instance, steps: int, conflict_rule: str, goal_seed: int,
     from mapf_fleet.fleet.run import FleetRun
     from mapf_fleet.fleet.tasks import LifelongTasks
     from mapf_fleet.grid.heuristic import bfs_distances_many
-    from mapf_fleet.grid.observation import GoalObserver
+    from mapf_fleet.grid.goal_observer import GoalObserver
 
     run = FleetRun(instance.grid, instance.starts, LifelongTasks(grid=instance.grid,
                                                                  seed=int(goal_seed)),
