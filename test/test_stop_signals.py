@@ -60,7 +60,9 @@ def test_a_burst_of_sigint_and_sigterm_never_hangs_the_handler():
             pytest.fail(f"round {round_}: the process hung under a burst of {sent} signals")
         assert proc.returncode == 0, err
         counted = int(out.split()[1])
-        assert 0 < counted <= sent and out.split()[2] == "SIGINT", out
+        # the first one sent is a SIGINT, but a SIGTERM pending with it may run its handler
+        # first (nested at the SIGINT handler's first bytecode, seen once in a loaded suite)
+        assert 0 < counted <= sent and out.split()[2] in ("SIGINT", "SIGTERM"), out
 
 
 def test_a_wait_wakes_at_once_on_a_signal():
