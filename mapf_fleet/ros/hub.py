@@ -218,7 +218,7 @@ class PolicyHub:
                         f"this namespace? give each fleet its own: up --namespace /NAME)")
                 return
             # online guidance follows every state in order (before the decision reads it)
-            broken = self.exchange.follow(
+            broken = self.exchange.guidance.online and self.exchange.follow(
                 msg.episode, int(msg.tick), self.grid,
                 np.stack([np.asarray(msg.rows), np.asarray(msg.cols)], 1))
             if broken and not self._guidance_warned:
