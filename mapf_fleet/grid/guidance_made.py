@@ -316,7 +316,6 @@ class FlowFollower:
 
         self.source, self.grid = source, np.asarray(grid) != 0
         self._lock = threading.Lock()
-        self.episode = None
         self._reset(None)
 
     def _reset(self, episode) -> None:

@@ -36,10 +36,11 @@ from __future__ import annotations
 
 import os
 import threading
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from numba import njit
+
+from .search_kernel import neighbour, on_threads
 
 # the most buckets in the circular array; beyond it the bucket width grows (see above)
 MAX_BUCKETS = 128
@@ -106,14 +107,7 @@ def _search(incoming, steps, W, h, w, goal, inv_width, mask, sizes, stacks, impr
                 # branch-free relaxation: every improved neighbour goes on a list (`m` counts
                 # the real ones), queued below from the cost it ends the round with
                 for k in range(4):
-                    if k == 0:
-                        u = v - W
-                    elif k == 1:
-                        u = v + W
-                    elif k == 2:
-                        u = v - 1
-                    else:
-                        u = v + 1
+                    u = neighbour(v, k, W)
                     du = dv + incoming[v, k]
                     old = dist[u]
                     dist[u] = min(du, old)
@@ -230,11 +224,5 @@ class GuidedSearcher:
         n = self.blocked.size
         rows = [np.empty(n, np.float64) for _ in goals]
         bits = [np.empty(n, np.uint8) for _ in goals]
-        workers = min(self.threads, max(1, len(goals) // 8))
-        if workers == 1:
-            self._one(goals, rows, bits)
-        else:
-            parts = [slice(k, None, workers) for k in range(workers)]
-            with ThreadPoolExecutor(workers) as pool:
-                list(pool.map(lambda s: self._one(goals[s], rows[s], bits[s]), parts))
+        on_threads(lambda s: self._one(goals[s], rows[s], bits[s]), len(goals), self.threads)
         return rows, bits

@@ -29,7 +29,7 @@ import numpy as np
 
 from .actions import move_targets
 from .guided_kernel import GuidedSearcher
-from .search_kernel import Searcher
+from .search_kernel import Searcher, fill_static
 from .windows import Windows, WindowRow
 
 UNREACHABLE = -1
@@ -82,6 +82,7 @@ class DistanceTable:
         self.step_costs = None if guidance is None else guidance.step_costs()
         # unguided: the compiled BFS (rows and bits in one pass); guided: `guided_kernel`
         self._searcher = None if self.guided else Searcher(blocked)
+        self._guided_searcher = None  # built at the first guided search (`_search`)
         self.unreachable = float("inf") if self.guided else self._searcher.unreachable
         # one distance row per goal (the canonical copy), its packed bits, and a few -1 arrays
         self._rows: OrderedDict[int, np.ndarray] = OrderedDict()
@@ -111,7 +112,7 @@ class DistanceTable:
         self.searches += len(goals)
         if not self.guided:
             return self._searcher.search(goals)
-        if getattr(self, "_guided_searcher", None) is None:  # compiled: rows and bits at once
+        if self._guided_searcher is None:  # compiled: rows and bits at once
             self._guided_searcher = GuidedSearcher(self.blocked, self.step_costs)
         return self._guided_searcher.search(goals)
 
@@ -132,12 +133,12 @@ class DistanceTable:
         """`prepare`, and each goal's padded static bytes (`search_kernel.fill_static`'s) into
         `statics` (one uint8 array of (H + 2 pad) * (W + 2 pad) per distinct goal): unguided,
         the search writes them itself (no bits array to touch, then copy: the observations'
-        pool, `grid.goal_observer.GoalObserver`)."""
-        from .search_kernel import fill_static
-
+        pool, `grid.goal_observer.GoalObserver`); guided, one batch, then the bits it kept."""
         goals = [int(g) for g in goals]
         if len(set(goals)) < len(goals):
             raise ValueError("prepare_static: a goal twice (one padded map each: distinct goals)")
+        if self.guided:
+            self.prepare(goals)
         with self._lock:
             fresh = [] if self.guided else [k for k, g in enumerate(goals) if g not in self._rows]
         if fresh:
@@ -245,12 +246,10 @@ class DistanceTable:
             if found is not None:
                 self._bits.move_to_end(goal)
                 return found
-        r, c = divmod(goal, self.shape[1])
-        found = self.bits(self.many(np.array([[r, c]])))[0].reshape(-1)  # guided, or dropped
-        found.setflags(write=False)
-        with self._lock:
-            self._keep(self._bits, goal, found, self._recent_bits)
-        return found
+        # never searched, or its bits dropped: the search gives both again
+        rows, bits = self._search([goal])
+        self._remember([goal], rows, bits)
+        return bits[0]
 
     def bits_of(self, goals) -> np.ndarray:
         """(N, H, W) packed heuristic bits to each flat goal cell of `goals` (`bits`), from the

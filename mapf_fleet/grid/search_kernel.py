@@ -35,6 +35,32 @@ from numba import njit
 BLOCKED, UNSEEN = -2, -1
 
 
+@njit(cache=True, nogil=True, inline="always")
+def neighbour(v, k, W):  # pragma: no cover (compiled)
+    """The padded flat cell next to `v` in direction k (0 up, 1 down, 2 left, 3 right) on a map
+    padded to width `W`: every search's one step."""
+    if k == 0:
+        return v - W
+    if k == 1:
+        return v + W
+    if k == 2:
+        return v - 1
+    return v + 1
+
+
+def on_threads(run, count: int, threads: int) -> None:
+    """`run(part)` for the stripes `part` = slice(k, None, workers) of `count` items, on up to
+    `threads` threads at once (at least 8 items a thread): the searches release the GIL, so a
+    batch of goals runs on every core."""
+    workers = min(threads, max(1, count // 8))
+    parts = [slice(k, None, workers) for k in range(workers)]
+    if workers == 1:
+        run(parts[0])
+    else:
+        with ThreadPoolExecutor(workers) as pool:
+            list(pool.map(run, parts))
+
+
 @njit(cache=True, nogil=True)
 def _search(init, W, goal, scratch, queue, bits, row, out_bits, h, w, unreachable, static,
             pad):  # pragma: no cover (compiled)
@@ -53,14 +79,7 @@ def _search(init, W, goal, scratch, queue, bits, row, out_bits, h, w, unreachabl
         head += 1
         dv = scratch[v] + 1
         for k in range(4):
-            if k == 0:
-                u = v - W
-            elif k == 1:
-                u = v + W
-            elif k == 2:
-                u = v - 1
-            else:
-                u = v + 1
+            u = neighbour(v, k, W)
             du = scratch[u]
             new = du == UNSEEN
             queue[tail] = u  # harmless when not new: the next one overwrites it
@@ -112,6 +131,7 @@ class Searcher:
         padded = np.ones((h + 2, w + 2), dtype=bool)
         padded[1:-1, 1:-1] = blocked
         self.init = np.where(padded, BLOCKED, UNSEEN).astype(np.int32).reshape(-1)
+        self._comp = None  # the pieces of free cells (`_components`)
         self.threads = max(1, threads or len(os.sched_getaffinity(0)))
         if blocked.size + 1 <= INT16_MAX:
             self.dtype, self.unreachable = np.int16, blocked.size + 1
@@ -144,18 +164,12 @@ class Searcher:
         rows = [np.empty(n, self.dtype) for _ in goals]
         bits = None if statics is not None else [np.empty(n, np.uint8) for _ in goals]
         pad = -1 if statics is None else int(pad)
-        workers = min(self.threads, max(1, len(goals) // 8))
-        parts = [slice(k, None, workers) for k in range(workers)]
 
         def run(s):
             self._one(goals[s], rows[s], None if bits is None else bits[s], self.unreachable,
                       None if statics is None else statics[s], pad)
 
-        if workers == 1:
-            run(parts[0])
-        else:
-            with ThreadPoolExecutor(workers) as pool:
-                list(pool.map(run, parts))
+        on_threads(run, len(goals), self.threads)
         return rows, bits
 
     # ---- bounded searches: one goal's observation window ---------------------------------------
@@ -166,14 +180,14 @@ class Searcher:
                 np.empty(size, np.int32))
 
     def _components(self) -> np.ndarray:
-        comp = getattr(self, "_comp", None)
-        if comp is None:
-            from scipy.ndimage import label  # 4-connected pieces of free cells
+        """(padded cells,) int32 the 4-connected piece of free cells each cell is in (0 for
+        blocked ones), labelled on first use."""
+        if self._comp is None:
+            from scipy.ndimage import label
 
             blocked = (self.init == BLOCKED).reshape(self.h + 2, self.w + 2)
-            comp = label(~blocked)[0].astype(np.int32).reshape(-1)
-            self._comp = comp
-        return comp
+            self._comp = label(~blocked)[0].astype(np.int32).reshape(-1)
+        return self._comp
 
     def windows(self, goals, centres, half: int) -> tuple[np.ndarray, np.ndarray, int]:
         """(static, distances, settled): for each flat goal cell of `goals` and unpadded cell
@@ -203,21 +217,16 @@ class Searcher:
                                      touched, out, static[k], dist[k],
                                      self.unreachable)
 
-        workers = min(self.threads, max(1, len(goals) // 8))
-        parts = [slice(k, None, workers) for k in range(workers)]
-        if workers == 1:
-            run(parts[0])
-        else:
-            with ThreadPoolExecutor(workers) as pool:
-                list(pool.map(run, parts))
+        on_threads(run, len(goals), self.threads)
         return static, dist, int(settled.sum())
+
 
 def _longest_path_bound(searcher: Searcher, blocked: np.ndarray) -> int:
     """An upper bound on every shortest path of the map: twice the eccentricity of one cell of
     the largest connected piece (triangle inequality), and below the size of any other piece."""
-    from scipy.ndimage import label  # 4-connected pieces of free cells
-
-    pieces, count = label(~blocked)
+    h, w = blocked.shape
+    pieces = searcher._components().reshape(h + 2, w + 2)[1:-1, 1:-1]
+    count = int(pieces.max())
     if count == 0:
         return 0
     sizes = np.bincount(pieces.reshape(-1))[1:]
@@ -241,7 +250,6 @@ def fill_static(blocked, bits, out, h, w, pad):  # pragma: no cover (compiled)
         base = (r + pad) * wp + pad
         for c in range(w):
             out[base + c] = blocked[r * w + c] | (bits[r * w + c] << 1)
-
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -308,14 +316,8 @@ def _bounded(init, comp, W, goal, r0, c0, rows, cols, g, closed, stacks, sizes,
         if r0 <= vr <= r1 and c0 <= vc <= c1:
             need -= 1
         for k in range(4):
-            if k == 0:
-                u, ur, uc = v - W, vr - 1, vc
-            elif k == 1:
-                u, ur, uc = v + W, vr + 1, vc
-            elif k == 2:
-                u, ur, uc = v - 1, vr, vc - 1
-            else:
-                u, ur, uc = v + 1, vr, vc + 1
+            u = neighbour(v, k, W)
+            ur, uc = vr + (k == 1) - (k == 0), vc + (k == 3) - (k == 2)
             if init[u] == BLOCKED:
                 continue
             gu = g[u]

@@ -121,24 +121,20 @@ class PolicyExchange:
         the fleet's ("" while it can, and for static guidance)."""
         if not self.guidance.online or grid is None:
             return ""
+        follower = self._follower_for(grid)
+        follower.follow(episode, tick, positions)
+        return follower.broken
+
+    def _follower_for(self, grid):
+        """The online guidance's follower of map `grid` (a new one for a new map: before any
+        state it gives the run's first graph)."""
         follower = self._follower
         if follower is None or follower.grid.shape != grid.shape \
                 or not np.array_equal(follower.grid, grid != 0):
             from mapf_fleet.grid.guidance_made import FlowFollower
 
             follower = self._follower = FlowFollower(self.guidance, grid)
-        follower.follow(episode, tick, positions)
-        return follower.broken
-
-    def _graph(self, grid, tick: int):
-        """The guidance graph the robots' observations read at `tick` on `grid`."""
-        if not self.guidance.online:
-            return self.guidance.for_map(grid)
-        if self._follower is None:  # no state followed yet: the run's first graph
-            from mapf_fleet.grid.guidance_made import FlowFollower
-
-            self._follower = FlowFollower(self.guidance, grid)
-        return self._follower.at(tick)
+        return follower
 
     def enter(self, episode: int, tick: int) -> None:
         """The fleet is at `tick` of `episode`: older messages go; a new run, or a tick
@@ -159,7 +155,7 @@ class PolicyExchange:
         local_goals = goals[self.ids]
         observation = self.model.config.observation
         key = (grid.shape, grid.tobytes(), observation)
-        graph = self._graph(grid, self._tick) if self.guidance.online else None
+        graph = self._follower_for(grid).at(self._tick) if self.guidance.online else None
         if self._observer is None or self._observer_key != key or (
                 self.guidance.online and self._observer.guidance is not graph):
             # goals: searched when new; online guidance: a new graph every period
