@@ -6,12 +6,14 @@ resolution), a `pibt.PIBTShield` with the options the rule carries, or for `laca
 `plan.PlanKeeper` with the `plan.ARBITER` options. Every arbiter has the same interface (`step`,
 `set_goals`, `reset`, `advance_priorities`, `goals`, `priorities`, `base_priority`, `tick`) and
 reads its distances from the map's shared table under `guidance`. An `_epibt` rule's arbiter is
-an `epibt.EPIBTShield` (a `PIBTShield` whose rankings EPIBT's operations reorder).
+an `epibt.EPIBTShield` (a `PIBTShield` whose rankings EPIBT's operations reorder), an `_lns`
+rule's an `lns.LNSShield` (one whose rankings a windowed plan reorders).
 """
 
 from __future__ import annotations
 
 from .epibt import EPIBTShield
+from .lns import LNSShield
 from .pibt import PIBTShield
 from .plan import ARBITER, PlanKeeper
 from .rules import Rule
@@ -32,6 +34,9 @@ def make_shield(rule: "Rule | str", grid, goals, planning_budget: float | None =
     if rule.epibt:
         return EPIBTShield(grid, goals, **rule.pibt_options(), anchor_patience=anchor_patience,
                            guidance=guidance, horizon=rule.horizon)
+    if rule.lns:
+        return LNSShield(grid, goals, **rule.pibt_options(), anchor_patience=anchor_patience,
+                         guidance=guidance, window=rule.window)
     return PIBTShield(grid, goals, **rule.pibt_options(), anchor_patience=anchor_patience,
                       guidance=guidance)
 

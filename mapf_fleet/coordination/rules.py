@@ -12,6 +12,10 @@ A conflict rule says what stands between the robots' ranked moves and the moves 
                 the same PIBT rules with EPIBT's longer horizon: each agent's first move is the
                 first of a multi-step operation chosen in priority order (`EPIBT_HORIZON` moves;
                 `epibt.EPIBTShield`; no hindrance: both order the first moves)
+  pibt[_anchor|_patient][_swap]_lns
+                the same PIBT rules under a windowed plan repaired every tick (WPPL's windowed
+                PIBT + LNS): each agent's first move is the first of its path in a plan of
+                `LNS_WINDOW` ticks for all agents (`lns.LNSShield`; no hindrance)
   lacam         the planning arbiter: a kept LaCAM plan, the anchored PIBT step with swap as its
                 fallback (`plan.PlanKeeper`)
 
@@ -39,7 +43,10 @@ COORDINATED_RULES = (*PIBT_RULES, LACAM)
 # The PIBT rules with EPIBT's multi-step operations (suffix "_epibt"; hindrance excluded)
 EPIBT = "epibt"
 EPIBT_RULES = tuple(f"{rule}_{EPIBT}" for rule in PIBT_RULES if "hindrance" not in rule)
-CONFLICT_RULES = (*COORDINATED_RULES, REVERT, *EPIBT_RULES)
+# The PIBT rules under a windowed plan repaired by LNS (suffix "_lns"; hindrance excluded)
+LNS = "lns"
+LNS_RULES = tuple(f"{rule}_{LNS}" for rule in PIBT_RULES if "hindrance" not in rule)
+CONFLICT_RULES = (*COORDINATED_RULES, REVERT, *EPIBT_RULES, *LNS_RULES)
 # The fleet's rule: what `mapf-fleet up` runs and `evaluate` measures by default
 FLEET_RULE = "pibt_anchor_swap"
 # The fleet's guidance graph (a `grid.guidance_made.GuidanceSource` spelling): what `mapf-fleet
@@ -61,6 +68,12 @@ ANCHOR_PATIENCE = 32
 # move multiplies it by about 4) so that a 2,048-agent tick stays within its budget in plain
 # Python (measured: docs/results.md, "A longer horizon per tick (EPIBT)")
 EPIBT_HORIZON = 3
+# The `_lns` rules' plan (`lns.LNSShield`): ticks planned ahead, repairs a tick and robots a
+# repair plans again. Chosen by measurement inside POGEMA (docs/results.md, "A windowed plan
+# repaired every tick (LNS)")
+LNS_WINDOW = 8
+LNS_ITERATIONS = 64
+LNS_NEIGHBOURHOOD = 8
 # The learned rankings a rule picks by default (`Rule.default_ranking`; chosen by measurement,
 # docs/results.md, "Which ranking under which rule")
 ANCHORED_RANKING = "confidence"
@@ -78,6 +91,7 @@ class Rule:
     hindrance: bool = False
     patient: bool = False
     horizon: int = 0  # EPIBT's moves per operation; 0: one-step PIBT (not an `_epibt` rule)
+    window: int = 0  # the `_lns` rules' ticks planned; 0: not an `_lns` rule
 
     @classmethod
     def parse(cls, value: "Rule | str", what: str = "conflict rule") -> "Rule":
@@ -93,16 +107,17 @@ class Rule:
         patient = "patient" in parts
         return cls(value, "pibt", anchor="anchor" in parts or patient, swap="swap" in parts,
                    hindrance="hindrance" in parts, patient=patient,
-                   horizon=EPIBT_HORIZON if EPIBT in parts else 0)
+                   horizon=EPIBT_HORIZON if EPIBT in parts else 0,
+                   window=LNS_WINDOW if LNS in parts else 0)
 
     @classmethod
     def pibt(cls, anchor: bool = False, swap: bool = False, hindrance: bool = False,
-             patient: bool = False, epibt: bool = False) -> "Rule":
+             patient: bool = False, epibt: bool = False, lns: bool = False) -> "Rule":
         """The PIBT rule with these options."""
         flags = {"anchor": anchor and not patient, "swap": swap, "hindrance": hindrance}
         names = [o for o in RULE_OPTIONS if flags[o]]
         return cls.parse("_".join(["pibt", *(["patient"] if patient else []), *names,
-                                   *([EPIBT] if epibt else [])]))
+                                   *([EPIBT] if epibt else []), *([LNS] if lns else [])]))
 
     def __str__(self) -> str:
         return self.name
@@ -120,6 +135,11 @@ class Rule:
     def epibt(self) -> bool:
         """A PIBT rule with EPIBT's multi-step operations (`epibt.EPIBTShield`)."""
         return self.horizon > 0
+
+    @property
+    def lns(self) -> bool:
+        """A PIBT rule under a windowed plan repaired by LNS (`lns.LNSShield`)."""
+        return self.window > 0
 
     @property
     def is_lacam(self) -> bool:
@@ -166,5 +186,6 @@ def parse_rules(values, what: str = "conflict rule") -> list[Rule]:
 
 
 __all__ = ["Rule", "parse_rules", "rule_arg", "CONFLICT_RULES", "COORDINATED_RULES", "PIBT_RULES", "REVERT",
-           "EPIBT_RULES", "EPIBT_HORIZON",
+           "EPIBT_RULES", "EPIBT_HORIZON", "LNS_RULES", "LNS_WINDOW", "LNS_ITERATIONS",
+           "LNS_NEIGHBOURHOOD",
            "LACAM", "FLEET_RULE", "FLEET_GUIDANCE", "ANCHOR_PATIENCE", "RULE_OPTIONS"]

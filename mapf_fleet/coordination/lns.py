@@ -1,0 +1,341 @@
+"""Windowed PIBT-LNS: a plan over the next ticks, repaired every tick (the `_lns` rules).
+
+PIBT and EPIBT decide one tick from the rankings; a planner that looks several ticks ahead for
+all agents together (RHCR, windowed PBS; WPPL, windowed PIBT + LNS, the League of Robot Runners
+2023 winner: Jiang et al., "Scaling Lifelong Multi-Agent Path Finding to More Realistic Settings",
+SoCS 2024) sees a queue or a head-on meeting before it forms and lets one robot wait or step
+aside for another. This rule is WPPL's recipe inside the PIBT rules' shield:
+
+1. **Initial plan.** The rule's own PIBT rolled out `window` ticks on a copy of its state (the
+   first tick with the robots' rankings, the next ones with the distance rankings), and the plan
+   kept from the last tick shifted by one tick (its robots wait at the end) where every robot
+   is where that plan put it: the cheaper of the two.
+2. **Repair (LNS).** `iterations` times: a robot drawn in proportion to its delay (its plan's cost
+   above its distance to its goal), the robots whose planned cells lie on its shortest way
+   (`neighbourhood` robots in all), their paths removed and planned again one by one in a random
+   order, each by a space-time A* against the others' paths (`window_search`: no two robots in
+   one cell, no two trading cells, no move against a one-way lane); the new paths are kept when
+   their cost is lower, else the old ones are put back.
+3. **The tick.** Each robot's planned first move ranked first, its own ranking after it, through
+   `PIBTShield.step`: every guarantee of the PIBT rules (no vertex or swap conflict, obstacles,
+   lanes, fixed robots, reserved cells, the anchor, swap) is the shield's, unchanged. The plan's
+   first moves are conflict-free, so the shield executes them except where the anchor or swap
+   overrule; then next tick's plan starts from the rollout alone.
+
+A path's cost (WPPL's objective): its step costs over the window (1 a move or a wait, or the
+guidance graph's costs; waiting on the goal is free) plus the distance to the goal from where it
+ends. The anchored robot and held robots (fixed, or on a reserved cell) keep the rollout's path.
+Randomness: a generator seeded by the tick, so a run is reproducible.
+"""
+
+from __future__ import annotations
+
+import heapq
+
+import numpy as np
+from numba import njit
+
+from mapf_fleet.grid.actions import NUM_ACTIONS, STAY
+
+from .pibt import PIBTShield, ShieldStep
+from .ranking import tie_breakers, validate_rankings
+from .rules import LNS_ITERATIONS, LNS_NEIGHBOURHOOD, LNS_WINDOW
+
+
+@njit(cache=True, nogil=True)
+def window_search(start, goal, dist, targets, costs, occ, window):  # pragma: no cover (compiled)
+    """(path (window + 1,) flat cells, cost): the cheapest path of `window` moves from `start`
+    that meets no path in `occ` ((window + 1, cells) int32: the agent at each cell at each
+    step, -1 free, -2 reserved), cost = step costs (`costs` (cells, 5); waiting on `goal` is
+    free) + `dist` from its last cell; path[0] = -1 and cost inf when there is none."""
+    cells = targets.shape[0]
+    g = np.full((window + 1) * cells, np.inf)
+    parent = np.full((window + 1) * cells, -1, np.int64)
+    closed = np.zeros((window + 1) * cells, np.bool_)
+    path = np.full(window + 1, -1, np.int64)
+    g[start] = 0.0
+    heap = [(dist[start], 0.0, start)]
+    while heap:
+        _, _, s = heapq.heappop(heap)
+        if closed[s]:
+            continue
+        closed[s] = True
+        t = s // cells
+        u = s - t * cells
+        if t == window:
+            k = s
+            for tt in range(window, -1, -1):
+                path[tt] = k - tt * cells
+                k = parent[k]
+            return path, g[s] + dist[u]
+        for a in range(targets.shape[1]):
+            v = targets[u, a]
+            if v < 0 or occ[t + 1, v] != -1:
+                continue
+            if v != u:
+                j = occ[t + 1, u]
+                if j >= 0 and occ[t, v] == j:
+                    continue  # j comes the other way: a swap
+            ng = g[s] + (0.0 if (v == u and u == goal) else costs[u, a])
+            ns = (t + 1) * cells + v
+            if ng < g[ns]:
+                g[ns] = ng
+                parent[ns] = s
+                heapq.heappush(heap, (ng + dist[v], -float(t + 1), ns))  # deeper first on ties
+    return path, np.inf
+
+
+class LNSShield(PIBTShield):
+    """`PIBTShield` whose rankings are reordered by a windowed plan repaired by LNS (module
+    docstring). Arguments as `PIBTShield` (hindrance refused) plus `window` (ticks planned),
+    `iterations` (repairs a tick) and `neighbourhood` (robots a repair re-plans)."""
+
+    def __init__(self, grid, goals, anchor: bool = False, swap: bool = False,
+                 hindrance: bool = False, patient: bool = False,
+                 anchor_patience: int | None = None, guidance=None, window: int | None = None,
+                 iterations: int | None = None, neighbourhood: int | None = None):
+        # None: the rules' constants (read here, not bound at import: one place to change them)
+        window = LNS_WINDOW if window is None else window
+        iterations = LNS_ITERATIONS if iterations is None else iterations
+        neighbourhood = LNS_NEIGHBOURHOOD if neighbourhood is None else neighbourhood
+        if hindrance:
+            raise ValueError("LNS does not combine with hindrance (both order the first moves)")
+        super().__init__(grid, goals, anchor=anchor, swap=swap, hindrance=False, patient=patient,
+                         anchor_patience=anchor_patience, guidance=guidance)
+        for name, value, least in (("window", window, 1), ("iterations", iterations, 0),
+                                   ("neighbourhood", neighbourhood, 1)):
+            if int(value) < least:
+                raise ValueError(f"the LNS {name} must be >= {least}, got {value!r}")
+        self.window, self.iterations = int(window), int(iterations)
+        self.neighbourhood = int(neighbourhood)
+        self._plan: np.ndarray | None = None  # (N, window + 1) flat cells, kept between ticks
+        self._rows: dict[int, np.ndarray] = {}
+        self._rows_of = None
+        self.improved = 0  # repairs kept in the last tick
+
+    # --- state ----------------------------------------------------------------------------------
+    def set_guidance(self, guidance) -> None:
+        super().set_guidance(guidance)
+        self._plan = None  # its moves may cross a new lane
+
+    def reset(self) -> None:
+        super().reset()
+        self._plan = None
+
+    def snapshot(self) -> dict:
+        state = super().snapshot()
+        state["plan"] = None if self._plan is None else self._plan.copy()
+        return state
+
+    def restore(self, state: dict) -> None:
+        super().restore(state)
+        plan = state.get("plan")
+        self._plan = None if plan is None else np.array(plan, dtype=np.int64)
+
+    # --- the tick -------------------------------------------------------------------------------
+    def step(self, positions, rankings, fixed=None, reserved=()) -> ShieldStep:
+        positions = self.check_positions(positions)
+        n = self.num_agents
+        asked = validate_rankings(rankings, n)
+        fixed = self.check_fixed(fixed)
+        paths, held = self._planned(positions, asked, fixed, reserved)
+        first = self._action_of_delta[paths[:, 1] - paths[:, 0] + self.width]
+        others = asked[asked != first[:, None]].reshape(n, NUM_ACTIONS - 1)
+        result = super().step(positions, np.concatenate([first[:, None], others], axis=1),
+                              fixed=fixed, reserved=reserved)
+        self._plan = paths
+        overridden = (result.actions != asked[:, 0]) & ~held
+        return ShieldStep(result.positions, result.actions, overridden)
+
+    def plan(self, positions, rankings, fixed=None, reserved=()) -> np.ndarray:
+        """(N, window + 1) flat cells: the repaired plan, each agent's cell now first (the state
+        is not advanced; `step` runs this and executes the first moves)."""
+        positions = self.check_positions(positions)
+        asked = validate_rankings(rankings, self.num_agents)
+        return self._planned(positions, asked, self.check_fixed(fixed), reserved)[0]
+
+    def _planned(self, positions, asked, fixed, reserved):
+        rows = self._agent_rows()
+        held = fixed.copy()
+        flat = positions[:, 0] * self.width + positions[:, 1]
+        occupant = {c: i for i, c in enumerate(flat.tolist())}
+        blocked = []
+        for cell in reserved:
+            r, c = int(cell[0]), int(cell[1])
+            if 0 <= r < self.height and 0 <= c < self.width:
+                if r * self.width + c in occupant:
+                    held[occupant[r * self.width + c]] = True
+                else:
+                    blocked.append(r * self.width + c)
+        paths = self._rollout(positions, asked, fixed, reserved, rows)
+        costs = self._costs(paths, rows)
+        kept = self._shifted(flat, held, blocked)
+        if kept is not None:
+            kept_costs = self._costs(kept, rows)
+            if kept_costs.sum() < costs.sum():
+                paths, costs = kept, kept_costs
+        top = self.anchored_agent(fixed)
+        movable = ~held
+        if top >= 0:
+            movable[top] = False
+        self._repair(paths, costs, rows, movable, blocked)
+        return paths, held
+
+    # --- 1. the initial plan --------------------------------------------------------------------
+    def _rollout(self, positions, asked, fixed, reserved, rows) -> np.ndarray:
+        """The rule's PIBT over `window` ticks on a copy of its state."""
+        n, w = self.num_agents, self.width
+        paths = np.empty((n, self.window + 1), dtype=np.int64)
+        paths[:, 0] = positions[:, 0] * w + positions[:, 1]
+        state = self.snapshot()
+        try:
+            pos, ranks = positions, asked
+            for t in range(1, self.window + 1):
+                pos = PIBTShield.step(self, pos, ranks, fixed=fixed, reserved=reserved).positions
+                paths[:, t] = pos[:, 0] * w + pos[:, 1]
+                if t < self.window:
+                    ranks = self._distance_rankings(paths[:, t], rows)
+        finally:
+            self.restore(state)
+        return paths
+
+    def _distance_rankings(self, flat, rows) -> np.ndarray:
+        """(N, 5) plain PIBT's rankings at flat cells (`PIBTShield.anchored_ranking` for all)."""
+        targets = self._targets[flat]
+        key = np.full(targets.shape, np.inf)
+        for i, row in enumerate(rows):
+            ok = targets[i] >= 0
+            key[i, ok] = row[targets[i, ok]]
+        if self._step_costs is not None:
+            key = key + self._step_costs[flat]
+        ties = tie_breakers(np.arange(len(flat)), self.tick)
+        return np.lexsort((ties, key), axis=-1).astype(np.int64)
+
+    def _shifted(self, flat, held, blocked) -> np.ndarray | None:
+        """The last tick's plan one tick on (waiting at its end), or None where a robot is not
+        where it put it, a held robot would move or a reserved cell would be entered."""
+        plan = self._plan
+        if plan is None or plan.shape != (self.num_agents, self.window + 1) \
+                or not np.array_equal(plan[:, 1], flat):
+            return None
+        kept = np.concatenate([plan[:, 1:], plan[:, -1:]], axis=1)
+        if (kept[held] != kept[held, :1]).any() or np.isin(kept[:, 1:], blocked).any():
+            return None
+        return kept
+
+    def _agent_rows(self) -> list[np.ndarray]:
+        """Per agent its goal's distances as float64 (unreachable above any path), cached per
+        goal cell for the table they came from."""
+        if self._rows_of is not self.distances:
+            self._rows, self._rows_of = {}, self.distances
+        rows = []
+        for i, goal in enumerate(self._goal_flat):
+            row = self._rows.get(goal)
+            if row is None:
+                row = self._rows[goal] = np.asarray(self._distance_list(i), dtype=np.float64)
+            rows.append(row)
+        if len(self._rows) > 4 * max(self.num_agents, 1):  # lifelong: drop the old goals
+            keep = set(self._goal_flat)
+            self._rows = {g: r for g, r in self._rows.items() if g in keep}
+        return rows
+
+    def _unit_costs(self) -> np.ndarray:
+        if self._step_costs is not None:
+            return self._step_costs
+        return np.ones((self.height * self.width, NUM_ACTIONS))
+
+    def _costs(self, paths, rows) -> np.ndarray:
+        """(N,) each path's cost (module docstring)."""
+        n, w = len(paths), self.width
+        moves = self._action_of_delta[paths[:, 1:] - paths[:, :-1] + w]
+        steps = self._unit_costs()[paths[:, :-1], moves]
+        goals = np.asarray(self._goal_flat, dtype=np.int64)[:, None]
+        steps = np.where((moves == STAY) & (paths[:, :-1] == goals), 0.0, steps)
+        end = np.array([rows[i][paths[i, -1]] for i in range(n)], dtype=np.float64)
+        return steps.sum(axis=1) + end
+
+    # --- 2. the repair --------------------------------------------------------------------------
+    def _repair(self, paths, costs, rows, movable, blocked) -> None:
+        """LNS over `paths` (N, window + 1), in place; `costs` (N,) follows."""
+        n, h = self.num_agents, self.window
+        self.improved = 0
+        if self.iterations == 0 or not movable.any():
+            return
+        cells = self.height * self.width
+        occ = np.full((h + 1, cells), -1, dtype=np.int32)
+        steps = np.arange(h + 1)
+        for i in range(n):
+            occ[steps, paths[i]] = i
+        if blocked:
+            occ[1:, blocked] = -2
+        unit = self._unit_costs()
+        goal_flat = self._goal_flat
+        starts = paths[:, 0]
+        ideal = np.array([rows[i][starts[i]] for i in range(n)])
+        rng = np.random.default_rng(self.tick)
+        for _ in range(self.iterations):
+            with np.errstate(invalid="ignore"):  # a goal out of reach: inf - inf, no delay
+                delay = np.where(movable & np.isfinite(costs), costs - ideal, 0.0)
+            delay = np.maximum(np.nan_to_num(delay, posinf=0.0), 0.0)
+            total = delay.sum()
+            if total <= 1e-9:
+                return  # every movable robot on its best path
+            seed = int(rng.choice(n, p=delay / total))
+            group = self._group(seed, paths, occ, rows, movable)
+            rng.shuffle(group)
+            old, old_costs = paths[group].copy(), costs[group].copy()
+            for i in group:
+                occ[steps, paths[i]] = -1
+            new_cost, written = 0.0, []
+            for i in group:
+                path, cost = window_search(int(starts[i]), goal_flat[i], rows[i],
+                                           self._targets, unit, occ, h)
+                if path[0] < 0:
+                    break
+                occ[steps, path] = i
+                written.append((i, path, cost))
+                new_cost += cost
+            if len(written) == len(group) and new_cost < old_costs.sum() - 1e-9:
+                for i, path, cost in written:
+                    paths[i], costs[i] = path, cost
+                self.improved += 1
+                continue
+            for _, path, _ in written:  # put the old paths back
+                occ[steps, path] = -1
+            for k, i in enumerate(group):
+                occ[steps, old[k]] = i
+
+    def _group(self, seed, paths, occ, rows, movable) -> list[int]:
+        """`seed` and up to `neighbourhood - 1` movable robots whose planned cells lie on its
+        shortest way (the cells of steepest descent of its distances over the window), the
+        nearest robots after them."""
+        row, cell = rows[seed], int(paths[seed, 0])
+        way = [cell]
+        for _ in range(self.window):
+            nxt = [c for c in self._targets[cell, 1:].tolist() if c >= 0]
+            if not nxt:
+                break
+            cell = min(nxt, key=row.__getitem__)
+            if row[cell] >= row[way[-1]]:
+                break
+            way.append(cell)
+        found = occ[:, way].T.ravel()  # along the way, each cell's occupants in time order
+        group = [seed]
+        for j in found.tolist():
+            if j >= 0 and j not in group and movable[j]:
+                group.append(j)
+                if len(group) == self.neighbourhood:
+                    return group
+        start = paths[:, 0]
+        r, c = np.divmod(start, self.width)
+        r0, c0 = divmod(int(start[seed]), self.width)
+        near = np.argsort(np.abs(r - r0) + np.abs(c - c0), kind="stable").tolist()
+        for j in near:
+            if j not in group and movable[j]:
+                group.append(j)
+                if len(group) == self.neighbourhood:
+                    break
+        return group
+
+
+__all__ = ["LNSShield", "window_search"]
