@@ -42,24 +42,50 @@ from .ranking import tie_breakers, validate_rankings
 from .rules import LNS_ITERATIONS, LNS_NEIGHBOURHOOD, LNS_WINDOW
 
 
-@njit(cache=True, nogil=True)
-def window_search(start, goal, dist, targets, costs, occ, window):  # pragma: no cover (compiled)
+def window_search(start, goal, dist, targets, costs, occ, window, work=None):
     """(path (window + 1,) flat cells, cost): the cheapest path of `window` moves from `start`
     that meets no path in `occ` ((window + 1, cells) int32: the agent at each cell at each
     step, -1 free, -2 reserved), cost = step costs (`costs` (cells, 5); waiting on `goal` is
-    free) + `dist` from its last cell; path[0] = -1 and cost inf when there is none."""
+    free) + `dist` from its last cell; path[0] = -1 and cost inf when there is none.
+    work: a `SearchWork` reused between searches (None: one of its own)."""
+    if work is None:
+        work = SearchWork((window + 1) * targets.shape[0])
+    work.mark += 1
+    if work.mark >= 2**31 - 1:  # the stamps wrap: start them afresh
+        work.seen[:] = 0
+        work.done[:] = 0
+        work.mark = 1
+    return _window_search(int(start), int(goal), dist, targets, costs, occ, int(window), work.g,
+                          work.parent, work.seen, work.done, work.mark)
+
+
+class SearchWork:
+    """A space-time search's arrays, allocated once for (window + 1) x cells states: a state's
+    entries count only where its stamp is the current search's (no clearing between searches:
+    on a 128x128 map clearing them cost more than the search)."""
+
+    def __init__(self, states: int):
+        self.g = np.empty(states, dtype=np.float64)
+        self.parent = np.empty(states, dtype=np.int64)
+        self.seen = np.zeros(states, dtype=np.int32)
+        self.done = np.zeros(states, dtype=np.int32)
+        self.mark = 0
+
+
+@njit(cache=True, nogil=True)
+def _window_search(start, goal, dist, targets, costs, occ, window, g, parent, seen, done,
+                   mark):  # pragma: no cover (compiled)
+    """`window_search`'s loop; g / parent count where seen == mark, closed where done == mark."""
     cells = targets.shape[0]
-    g = np.full((window + 1) * cells, np.inf)
-    parent = np.full((window + 1) * cells, -1, np.int64)
-    closed = np.zeros((window + 1) * cells, np.bool_)
     path = np.full(window + 1, -1, np.int64)
     g[start] = 0.0
+    seen[start] = mark
     heap = [(dist[start], 0.0, start)]
     while heap:
         _, _, s = heapq.heappop(heap)
-        if closed[s]:
+        if done[s] == mark:
             continue
-        closed[s] = True
+        done[s] = mark
         t = s // cells
         u = s - t * cells
         if t == window:
@@ -78,7 +104,8 @@ def window_search(start, goal, dist, targets, costs, occ, window):  # pragma: no
                     continue  # j comes the other way: a swap
             ng = g[s] + (0.0 if (v == u and u == goal) else costs[u, a])
             ns = (t + 1) * cells + v
-            if ng < g[ns]:
+            if seen[ns] != mark or ng < g[ns]:
+                seen[ns] = mark
                 g[ns] = ng
                 parent[ns] = s
                 heapq.heappush(heap, (ng + dist[v], -float(t + 1), ns))  # deeper first on ties
@@ -112,6 +139,7 @@ class LNSShield(PIBTShield):
         self._rows: dict[int, np.ndarray] = {}
         self._rows_of = None
         self.improved = 0  # repairs kept in the last tick
+        self._work: SearchWork | None = None
 
     # --- state ----------------------------------------------------------------------------------
     def set_guidance(self, guidance) -> None:
@@ -270,6 +298,9 @@ class LNSShield(PIBTShield):
             occ[1:, blocked] = -2
         unit = self._unit_costs()
         goal_flat = self._goal_flat
+        if self._work is None or len(self._work.g) != (h + 1) * cells:
+            self._work = SearchWork((h + 1) * cells)
+        work = self._work
         starts = paths[:, 0]
         ideal = np.array([rows[i][starts[i]] for i in range(n)])
         rng = np.random.default_rng(self.tick)
@@ -288,8 +319,8 @@ class LNSShield(PIBTShield):
                 occ[steps, paths[i]] = -1
             new_cost, written = 0.0, []
             for i in group:
-                path, cost = window_search(int(starts[i]), goal_flat[i], rows[i],
-                                           self._targets, unit, occ, h)
+                path, cost = window_search(starts[i], goal_flat[i], rows[i], self._targets,
+                                           unit, occ, h, work)
                 if path[0] < 0:
                     break
                 occ[steps, path] = i
@@ -338,4 +369,4 @@ class LNSShield(PIBTShield):
         return group
 
 
-__all__ = ["LNSShield", "window_search"]
+__all__ = ["LNSShield", "SearchWork", "window_search"]
