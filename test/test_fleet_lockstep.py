@@ -12,6 +12,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from mapf_fleet.coordination.rules import FLEET_RULE
 from mapf_fleet.fleet.run import FleetRun
 from mapf_fleet.fleet.tasks import InstanceTasks
 from mapf_fleet.fleet.lockstep import FleetTicker
@@ -81,7 +82,7 @@ def test_run_records_counts_and_summarises(tmp_path):
     assert outcome["success"] and outcome["steps"] == 1 and outcome["collisions"] == 1
     assert outcome["summary"] == ("success: 2/2 robots on goal after 1 step, 1 collision, "
                                   "1 missed decision (robots [1]), 0 overridden moves "
-                                  "(pibt_anchor_swap), 1 rejected poses")
+                                  f"({FLEET_RULE}), 1 rejected poses")
     run.recorder.write(tmp_path / "run.json")
     record = json.loads((tmp_path / "run.json").read_text())
     assert record["positions"] == [[[0, 0], [2, 2]], [[0, 1], [2, 2]]]

@@ -20,7 +20,7 @@ from mapf_fleet.ros.launcher import UpError
 
 def test_planning_budget_without_lacam_is_refused():
     with pytest.raises(UpError, match=r"^--planning-budget applies to --conflict-rule lacam "
-                                      r"only \(the conflict rule is pibt_anchor_swap\)"):
+                                      r"only \(the conflict rule is pibt_anchor_swap_lns\)"):
         launcher.prepare(["--planning-budget", "0.5"])
     args, plan, _ = launcher.prepare(["--planning-budget", "0.5", "--conflict-rule", "lacam"])
     assert plan.sim["planning_budget"] == 0.5

@@ -57,7 +57,7 @@ import numpy as np
 
 from mapf_fleet.coordination.factory import make_shield
 from mapf_fleet.coordination.plan import distance_rankings
-from mapf_fleet.coordination.rules import Rule
+from mapf_fleet.coordination.rules import FLEET_RULE, Rule
 from mapf_fleet.grid.actions import actions_between
 from mapf_fleet.grid.env import resolve_moves
 from mapf_fleet.grid.guidance_made import GuidanceSource
@@ -339,8 +339,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--instances", type=int, default=8,
                    help="the first N instances of the family (at most 128)")
     p.add_argument("--first", type=int, default=0, help="the first instance index")
-    p.add_argument("--conflict-rule", nargs="+", default=["pibt_anchor_swap"],
-                   help="coordinated rules of coordination.rules (revert has no shield)")
+    p.add_argument("--conflict-rule", nargs="+", default=[FLEET_RULE],
+                   help="coordinated rules of coordination.rules (revert has no shield); "
+                        f"default: the fleet's, {FLEET_RULE}")
     p.add_argument("--checkpoint", nargs="+", default=[HEURISTIC], metavar="C",
                    help="whose rankings the rule arbitrates, one row each: heuristic (plain "
                         "PIBT's distance rankings, the default) or a checkpoint file (its "

@@ -123,14 +123,17 @@ _RUN = {
                            "how the tick's decisions become moves: pibt (PIBT over the robots' "
                            "ranked actions, nothing reverted), pibt_anchor (the same, the "
                            "top-priority robot on its distance order), their _swap / _hindrance "
-                           "variants (coordination.rules.COORDINATED_RULES), lacam (a kept LaCAM "
+                           "variants (coordination.rules.COORDINATED_RULES), _epibt (3-move "
+                           "operations) and _lns (a plan of the next ticks repaired every tick; "
+                           "the default) rules, lacam (a kept LaCAM "
                            "plan over the robots' rankings, re-planned when something leaves it) "
                            "or revert (the paper's rules on the first choices)",
                            choices=CONFLICT_RULES, option=Option("--conflict-rule", help=(
                                "how the arbiter resolves a tick: pibt (PIBT over the robots' "
                                "ranked actions), pibt_anchor (the same, the top-priority robot "
-                               "on its distance order), their _swap / _hindrance variants "
-                               "(docs/coordination.md), lacam (a kept LaCAM plan over the "
+                               "on its distance order), their _swap / _hindrance variants, the "
+                               "_epibt and _lns rules (docs/coordination.md), lacam (a kept "
+                               "LaCAM plan over the "
                                "robots' rankings) or revert (the paper's rules on first "
                                "choices)"))),
     "planning_budget": Param(1.0, "conflict_rule lacam: seconds of planning per re-plan; a tick "

@@ -44,9 +44,11 @@ one process share one hub (one subscription per shared topic, batched inference)
 /robot_<i>/pose and follow /robot_<i>/waypoint. Every process gets
 ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST.
 
-The simulator (or the aggregator) arbitrates each tick with `--conflict-rule`: `pibt_anchor_swap`
+The simulator (or the aggregator) arbitrates each tick with `--conflict-rule`: `pibt_anchor_swap_lns`
 (default: PIBT over the robots' ranked actions with the top-priority robot on its distance order
-and lacam3's swap in corridors; nothing is reverted), `pibt_anchor` (the same without swap),
+and lacam3's swap in corridors, each robot's first move taken from a plan of the next 8 ticks
+repaired every tick; nothing is reverted), `pibt_anchor_swap` (the same, one tick at a time),
+`pibt_anchor` (without swap), `pibt_anchor_swap_epibt` (3-move operations),
 `pibt` (CS-PIBT as published), the other `_swap` / `_hindrance` variants, `lacam` (a kept LaCAM
 plan over the robots' rankings, repaired when something leaves it, `--planning-budget` seconds per
 tick, else the `pibt_anchor_swap` step) or `revert` (the paper's environment: conflicting first choices

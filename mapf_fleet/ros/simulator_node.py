@@ -4,8 +4,8 @@ Tick k: publish the fleet state of k (and poses, markers); wait for every robot'
 move missing after `decision_timeout` counts as "stay" and is reported, and the robot cannot be
 pushed); arbitrate the moves with `conflict_rule` (`arbiter.TickArbiter`: "pibt" = PIBT over the
 robots' ranked actions, "pibt_anchor" = the same with the top-priority robot on its
-distance order, their "_swap" / "_hindrance" variants (coordination.rules.COORDINATED_RULES; the
-default `pibt_anchor_swap`),
+distance order, their "_swap" / "_hindrance" variants and the `_epibt` / `_lns` rules (coordination.rules.CONFLICT_RULES; the
+default `coordination.rules.FLEET_RULE`),
 "revert" = the paper's grid.resolve_moves on their first choices);
 command each robot's waypoint; publish progress; go on with k + 1. The run itself (cells, goals,
 tasks, arbiter, record) is the fleet core's `fleet.run.FleetRun` (`task_source`: the one-shot
