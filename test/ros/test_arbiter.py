@@ -230,7 +230,7 @@ def test_real_robots_with_random_delays_never_share_a_cell(rule):
     assert moved > 50 and late_seen > 0
 
 
-def test_fleet_up_defaults_to_the_anchored_pibt_arbiter_with_swap():
+def test_fleet_up_defaults_to_the_fleet_rule_the_windowed_plan_over_anchor_and_swap():
     from mapf_fleet.fleet import parameters
     from mapf_fleet.ros.launcher import build_parser
 
@@ -240,6 +240,6 @@ def test_fleet_up_defaults_to_the_anchored_pibt_arbiter_with_swap():
     with pytest.raises(SystemExit):
         build_parser().parse_args(["--conflict-rule", "swap"])
     for table in (parameters.SIMULATOR, parameters.AGGREGATOR, parameters.POLICY):
-        assert table["conflict_rule"].default == "pibt_anchor_swap"
-    for rule in COORDINATED_RULES:  # every PIBT variant reaches the simulator / aggregator
+        assert table["conflict_rule"].default == "pibt_anchor_swap_lns"
+    for rule in CONFLICT_RULES:  # every rule reaches the simulator / aggregator
         assert build_parser().parse_args(["--conflict-rule", rule]).conflict_rule == rule

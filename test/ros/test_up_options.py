@@ -154,12 +154,14 @@ def test_default_ranking_is_the_checkpoints_recorded_ranking(tmp_path, ros_env):
     from mapf_fleet.models.config import ModelConfig
 
     torch.manual_seed(7)
+    from mapf_fleet.coordination.rules import FLEET_RULE
+
     recorded = "q_then_distance"
-    assert recorded != default_ranking("pibt_anchor_swap")  # the checkpoint's, not the rule's
+    assert recorded != default_ranking(FLEET_RULE)  # the checkpoint's, not the rule's
     checkpoint = str(save_checkpoint(tmp_path / "round.pt",
                                      build_model(ModelConfig.preset("dhc", "small")), {
         "alpha": 0.0, "curriculum": {}, "learner_steps": 0, "training_config": {},
-        "rankings": {"pibt_anchor_swap": recorded}}))
+        "rankings": {FLEET_RULE: recorded}}))
     params = tmp_path / "p.yaml"
     params.write_text("/**:\n  ros__parameters:\n    ranking: q_demote_stay\n")
     cases = [([], recorded), (["--conflict-rule", "pibt"], default_ranking("pibt")),
