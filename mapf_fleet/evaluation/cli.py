@@ -74,7 +74,8 @@ def build_parser() -> argparse.ArgumentParser:
                         f"it records for the rule (metadata rankings, e.g. a DAgger round's), "
                         f"else the rule's: "
                         + ", ".join(f"{m} under {r}" for r, m in DEFAULT_RANKING_BY_RULE.items())
-                        + "; distance for the heuristic; deprecated: --preferences)")
+                        + "; an _epibt or _lns rule its base rule's; distance for the "
+                          "heuristic; deprecated: --preferences)")
     p.add_argument("--guidance", nargs="+", default=None, metavar="G",
                    help="guidance graph(s) the observations and the conflict rule read, one row "
                         "each: none, highways (hand-made crisscross lanes), a guidance file "

@@ -265,7 +265,8 @@ POLICY = {
                          "records for the conflict rule (metadata rankings, e.g. a DAgger "
                          "round's), else the rule's default ("
                      + ", ".join(f"{m} under {r}" for r, m in DEFAULT_RANKING_BY_RULE.items())
-                     + f", {default_ranking('revert')} otherwise)", choices=("",) + RANKINGS,
+                     + "; an _epibt or _lns rule its base rule's"
+                     + f"; {default_ranking('revert')} otherwise)", choices=("",) + RANKINGS,
                      option=Option("--ranking", help=(
                          "how policy nodes rank their actions from Q-values (default: the "
                          "policy nodes' ranking if a params file sets it, else the ranking the "
