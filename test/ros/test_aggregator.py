@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from mapf_fleet.coordination.rules import FLEET_RULE
 from mapf_fleet.grid.actions import ACTION_DELTAS
 from mapf_fleet.fleet.arbiter import unsafe_commands
 
@@ -52,7 +53,7 @@ def test_aggregator_follows_stand_in_robots_and_rejects_off_grid(tmp_path, ros_e
     assert record.exists(), log
     run = json.loads(record.read_text())
     assert run["steps"] == steps and run["missed_decisions"] == 0, log
-    assert run["conflict_rule"] == "pibt_anchor_swap" and run["pose_conflicts"] == 0, log
+    assert run["conflict_rule"] == FLEET_RULE and run["pose_conflicts"] == 0, log
     positions = np.asarray(run["positions"])
     executed = np.asarray(run["executed"])
     waypoints = np.asarray(run["waypoints"])

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from mapf_fleet.coordination.rules import FLEET_RULE
 from mapf_fleet.fleet.instances import InstanceSource
 
 UP = [sys.executable, "-m", "mapf_fleet.cli", "up", "--quiet"]
@@ -23,7 +24,7 @@ UP = [sys.executable, "-m", "mapf_fleet.cli", "up", "--quiet"]
 # ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, so nothing leaves loopback
 
 
-RULE = "pibt_anchor_swap"  # the fleet's default conflict rule, named on both sides
+RULE = FLEET_RULE  # the fleet's default conflict rule, named on both sides
 
 
 def _first_difference(got, want):
