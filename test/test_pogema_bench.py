@@ -123,6 +123,23 @@ def test_our_moves_inside_pogema_match_our_rules_and_pogema(pogema, mode, family
         assert result.figure in (0.0, 1.0) and result.steps <= 128
 
 
+def test_the_free_flow_bound_caps_every_episode_and_is_met_when_alone(pogema):
+    """`free_flow_bound`: POGEMA's own goal sequences walked alone on shortest paths. A lifelong
+    episode under the fleet's rule stays at or below it, and with two agents (they rarely
+    meet) comes within a few goals of it."""
+    from mapf_fleet.coordination.rules import FLEET_RULE
+
+    for family, agents in (("warehouse", 32), ("random", 16), ("random", 2)):
+        name, text, seed = _instance(family)
+        bound = pb.free_flow_bound(pogema, family, name, text, seed, agents)
+        result = pb.run_episode(pogema, "lifelong", family, name, text, seed, agents,
+                                Rule.parse(FLEET_RULE), GuidanceSource.parse("none"))
+        assert 0 < result.figure <= bound + 1e-9, (family, agents, result.figure, bound)
+        if agents == 2:
+            steps = pb.FAMILIES[family].lifelong_steps
+            assert (bound - result.figure) * steps <= 2, (result.figure, bound)
+
+
 class _Uncoordinated:
     """A broken arbiter: every agent takes its first-ranked move whatever the others do."""
 

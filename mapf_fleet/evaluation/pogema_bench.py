@@ -270,6 +270,31 @@ def run_episode(pogema, mode: str, family: str, map_name: str, map_text: str, se
     return result
 
 
+def free_flow_bound(pogema, family: str, map_name: str, map_text: str, seed: int,
+                    agents: int) -> float:
+    """Lifelong goals per step if every agent walked its goal sequence alone on shortest paths
+    (POGEMA's own sequences, `get_lifelong_targets_xy`): no method exceeds it on the episode."""
+    from mapf_fleet.grid.heuristic import distance_table
+
+    steps = FAMILIES[family].lifelong_steps
+    env = make_env(pogema, "lifelong", family, map_text, map_name, seed, agents)
+    env.reset(seed=seed)
+    inner = env.unwrapped
+    grid = inner.grid.get_obstacles(ignore_borders=True) != 0
+    starts = inner.grid.get_agents_xy(ignore_borders=True)
+    inner.grid_config.max_episode_steps = 4 * steps  # sequences beyond any walk of `steps`
+    sequences = inner.get_lifelong_targets_xy(ignore_borders=True)
+    table, w, reached = distance_table(grid), grid.shape[1], 0
+    for start, sequence in zip(starts, sequences):
+        cell, walked = start[0] * w + start[1], 0
+        for r, c in sequence:
+            walked += table.row(r * w + c)[cell]
+            if walked > steps:
+                break
+            reached, cell = reached + 1, r * w + c
+    return reached / steps
+
+
 @dataclass
 class Row:
     family: str
@@ -356,6 +381,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--planning-budget", type=float, default=None,
                    help="seconds per re-plan of the lacam rule")
     p.add_argument("--out", type=Path, help="write the rows as JSON here")
+    p.add_argument("--free-flow", action="store_true",
+                   help="instead: each family's lifelong free-flow bound (`free_flow_bound`) "
+                        "beside the published figures")
     return p
 
 
@@ -380,6 +408,19 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     published = load_published()
     instances = list(range(args.first, args.first + args.instances))
+    if args.free_flow:
+        for family in args.family:
+            maps = load_maps(family)
+            for agents in args.agents:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")  # pogema's own notices
+                    bound = np.mean([free_flow_bound(pogema, family, *FAMILIES[family].instance(
+                        maps, k), agents) for k in instances])
+                pubs = {m: published_mean(published, "lifelong", family, m, agents,
+                                          instances)[0] for m in PUBLISHED_METHODS["lifelong"]}
+                print(f"{family} {agents}: free-flow bound {bound:.3f} goals per step; "
+                      + ", ".join(f"{m} {v:.3f}" for m, v in pubs.items() if v is not None))
+        return 0
     rows = []
     for family in args.family:
         maps = load_maps(family)
