@@ -210,4 +210,27 @@ for item in package.xml config models launch; do
   ln -sfn "$REPO/$item" "$SHARE/$item"
 done
 
+# ---- 7. the compiled kernels ------------------------------------------------------------------
+# numba compiles a kernel on its first call and caches it beside its source: compiled here once,
+# so the first tick of the first run does not wait for it (the windowed plan's search alone took
+# about 6 s on a fresh clone).
+KERNEL_HASH="$(inputs_hash "$VENV" "$REPO"/mapf_fleet/coordination/lns.py "$REPO"/mapf_fleet/grid/search_kernel.py "$REPO"/mapf_fleet/grid/guided_kernel.py)"
+if stamp_matches kernels "$KERNEL_HASH"; then
+  say "compiled kernels cached"
+else
+  say "compiling the kernels (numba, cached beside their sources)"
+  (cd "$REPO" && "$PY" - <<'PYEOF'
+import numpy as np
+from mapf_fleet.coordination.factory import make_shield
+from mapf_fleet.grid.guidance_made import highways
+
+grid = np.zeros((6, 6), dtype=np.uint8)
+for guidance in (None, highways(grid)):
+    shield = make_shield("pibt_anchor_swap_lns", grid, [[5, 5], [0, 0]], guidance=guidance)
+    shield.step(np.array([[0, 0], [5, 5]]), np.tile(np.arange(5), (2, 1)))
+PYEOF
+  ) || die "compiling the kernels failed"
+  write_stamp kernels "$KERNEL_HASH"
+fi
+
 say "done: source scripts/env.sh to use $VENV"
