@@ -24,7 +24,8 @@ aside for another. This rule is WPPL's recipe inside the PIBT rules' shield:
 
 A path's cost (WPPL's objective): its step costs over the window (1 a move or a wait, or the
 guidance graph's costs; waiting on the goal is free) plus the distance to the goal from where it
-ends. The anchored robot and held robots (fixed, or on a reserved cell) keep the rollout's path.
+ends. The anchored robot and held robots (fixed, or on a reserved cell) keep the initial plan's
+path (the repairs plan the others around them).
 Randomness: a generator seeded by the tick, so a run is reproducible.
 """
 
