@@ -107,17 +107,11 @@ class EPIBTShield(PIBTShield):
     # --- the tick -------------------------------------------------------------------------------
     def step(self, positions, rankings, fixed=None, reserved=()) -> ShieldStep:
         positions = self.check_positions(positions)
-        n = self.num_agents
-        asked = validate_rankings(rankings, n)
+        asked = validate_rankings(rankings, self.num_agents)
         fixed = self.check_fixed(fixed)
         first, held = self._first_moves(positions, asked, fixed, reserved)
         # the EPIBT move first, then the agent's own ranking without it
-        others = asked[asked != first[:, None]].reshape(n, NUM_ACTIONS - 1)
-        prefs = np.concatenate([first[:, None], others], axis=1)
-        result = super().step(positions, prefs, fixed=fixed, reserved=reserved)
-        # overridden: measured against the agent's own first choice, as every rule reports it
-        overridden = (result.actions != asked[:, 0]) & ~held
-        return ShieldStep(result.positions, result.actions, overridden)
+        return self.step_first(positions, asked, first, fixed, reserved, held)
 
     def plan(self, positions, rankings, fixed=None, reserved=()) -> np.ndarray:
         """(N, horizon + 1) flat cells: each agent's chosen operation, its cell now first (the

@@ -372,6 +372,16 @@ class PIBTShield:
         self.tick += 1
         return ShieldStep(new_positions, actions, overridden)
 
+    def step_first(self, positions, asked, first, fixed, reserved, held) -> ShieldStep:
+        """`step` with each agent's `first` action ranked first and its own ranking `asked` after
+        it (the multi-step rules' tick: EPIBT's operations, the LNS plan); `overridden` against
+        the agent's own first choice, as every rule reports it, never for `held` agents."""
+        others = asked[asked != first[:, None]].reshape(len(asked), NUM_ACTIONS - 1)
+        result = PIBTShield.step(self, positions, np.concatenate([first[:, None], others], axis=1),
+                                 fixed=fixed, reserved=reserved)
+        overridden = (result.actions != asked[:, 0]) & ~held
+        return ShieldStep(result.positions, result.actions, overridden)
+
     def peek(self, positions, rankings, fixed=None, reserved=()) -> ShieldStep:
         """What `step` would command, the rule's state (priorities, tick, the patient anchor's
         clocks) left as it was: the one way to ask the rule without taking the tick."""
