@@ -79,7 +79,9 @@ def default_topic_re(namespace: str = "") -> re.Pattern:
 
 DEFAULT_TOPIC_RE = default_topic_re()
 READY_PREFIX = "mapf-fleet record: recording to"
-OUTCOME_PREFIX = "mapf-fleet record: outcome recorded"  # printed once, on the first outcome
+# printed once, when the outcome and the run's final state (`done`) are both written: the
+# outcome is published right after that state but on another topic, so it may arrive first
+OUTCOME_PREFIX = "mapf-fleet record: outcome recorded"
 RECORDER_NODE = "mapf_fleet_recorder"  # the simulator waits for its state subscription
 DISCOVERY_PERIOD_S = 0.25
 HOLD_CHECK_PERIOD_S = 0.05  # with `expect`: how often the matches are checked before tick 0
@@ -192,10 +194,15 @@ class BagRecorder:
         self._subscriptions = {}  # topic -> (connection, subscription)
         self._skipped: set[str] = set()
         self.counts: dict[str, int] = {}
+        self._state_topic = self._flush_on[0]
+        self._last_state = None  # the CDR bytes of the last fleet state written
+        self._outcome_written = False
+        self.complete = False  # the outcome and the final state are written (`ended`)
         fleet = {common.in_namespace(name, namespace): type_name
                  for name, type_name in FLEET_TOPICS.items()}
         wanted = fleet if self.topics is None else {
             name: fleet[name] for name in self.topics if name in fleet}
+        self._records_state = state in wanted
         # topic -> type, subscribed once every expected publisher is matched
         self._held = {state: wanted[state]} if self.expect and state in wanted else {}
         for name, type_name in wanted.items():
@@ -304,6 +311,8 @@ class BagRecorder:
             connection = self.writer.add_connection(topic, type_name, typestore=self.typestore,
                                                      offered_qos_profiles=offered)
             self.counts[topic] = 0
+        if topic == self._state_topic:
+            self._state_class = msg_class
         subscription = self.node.create_subscription(
             msg_class, topic, lambda data, c=connection: self._write(c, data), qos, raw=True)
         self._subscriptions[topic] = (connection, subscription)
@@ -315,13 +324,30 @@ class BagRecorder:
                 return
             self.writer.write(connection, stamp, data)
             self.counts[connection.topic] += 1
-            first_outcome = (connection.topic.endswith(common.OUTCOME_TOPIC)
-                             and self.counts[connection.topic] == 1)
+            if connection.topic == self._state_topic:
+                self._last_state = data
+            elif connection.topic.endswith(common.OUTCOME_TOPIC):
+                self._outcome_written = True
             if connection.topic in self._flush_on \
                     or time.monotonic() - self._flushed >= FLUSH_PERIOD_S:
                 self._flush()  # a tick's state ends the tick: its messages reach the file
-        if first_outcome and self.announce:
+            ended = not self.complete and self._ended()
+            self.complete = self.complete or ended
+        if ended and self.announce:
             _say(f"{OUTCOME_PREFIX} on {connection.topic}")
+
+    def _ended(self) -> bool:
+        """The outcome is written and so is the run's final state (`done`), unless the fleet
+        state is not recorded at all (the lock held)."""
+        if not self._outcome_written:
+            return False
+        if not self._records_state:
+            return True
+        if self._last_state is None:
+            return False
+        from rclpy.serialization import deserialize_message
+
+        return bool(deserialize_message(self._last_state, self._state_class).done)
 
     @property
     def message_count(self) -> int:
@@ -353,9 +379,8 @@ def _parent_dies(within: float = 1.0) -> bool:
 
 
 def _wait_for_outcome(recorder: BagRecorder, timeout: float) -> None:
-    outcome = [t for t in recorder.counts if t.endswith(common.OUTCOME_TOPIC)]
     deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline and not any(recorder.counts[t] for t in outcome):
+    while time.monotonic() < deadline and not recorder.complete:
         time.sleep(0.1)
 
 

@@ -393,8 +393,8 @@ def bag_recording(args, env, signals, expect: dict[str, int] | None = None,
     try:
         yield recorder
     finally:
-        # the outcome is the fleet's last message: once the recorder wrote it, the rest is in
-        # (a loaded machine may take seconds to deliver a short run's ticks)
+        # the recorder announces the outcome once it and the final state (`done`) are written:
+        # then every tick is in (a loaded machine may take seconds to deliver a short run's)
         if getattr(recorder, "fleet_ended", False):
             outcome.wait(OUTCOME_WAIT_S)
         code = stop_recorder(recorder.proc)

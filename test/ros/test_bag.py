@@ -156,3 +156,52 @@ def test_default_topics_are_the_fleets_in_its_namespace():
         assert not plain.fullmatch(topic) and not named.fullmatch(topic), topic
     command = recorder_command("b", namespace="/fleet_a")
     assert command[-3:] == ["b", "--namespace", "/fleet_a"]
+
+
+def _line_within(proc, seconds: float) -> str:
+    """The recorder's next stdout line, or "" when none comes within `seconds`."""
+    import select
+
+    ready, _, _ = select.select([proc.stdout], [], [], seconds)
+    return proc.stdout.readline() if ready else ""
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize("repeat", range(2))
+def test_the_outcome_is_announced_once_the_final_state_is_written_too(tmp_path, ros_env,
+                                                                     rclpy_context, repeat):
+    """The outcome follows the final state (`done`) on another topic and can arrive first (CI:
+    `up --bag` stopped the recorder on the outcome, and the bag lacked the last 3 ticks). The
+    recorder announces the outcome (what `up` waits for before it stops it) only once the final
+    state is written too: here the outcome comes first, then a state that is not the last, then
+    the last one."""
+    from mapf_fleet.ros import common
+    from mapf_fleet.ros.bag import OUTCOME_PREFIX
+    from mapf_fleet_interfaces.msg import FleetOutcome, FleetState
+
+    rclpy = rclpy_context
+    bag = tmp_path / "bag"
+    proc = start_recorder(bag, ros_env, topics=["/fleet/state", "/fleet/outcome"])
+    node = rclpy.create_node("fleet_stand_in")
+    try:
+        state = node.create_publisher(FleetState, "/fleet/state", common.reliable_qos(10))
+        outcome = node.create_publisher(FleetOutcome, "/fleet/outcome", common.latched_qos(1))
+        deadline = time.monotonic() + 60
+        while state.get_subscription_count() < 1 or outcome.get_subscription_count() < 1:
+            assert time.monotonic() < deadline, "the recorder never matched the publishers"
+            rclpy.spin_once(node, timeout_sec=0.1)
+        outcome.publish(FleetOutcome(episode=7, steps=1, summary="stand-in"))
+        assert _line_within(proc, 1.5) == ""  # the outcome alone: not announced
+        state.publish(FleetState(episode=7, tick=0, done=False))
+        assert _line_within(proc, 1.5) == ""  # a state that is not the last: still not
+        state.publish(FleetState(episode=7, tick=1, done=True))
+        line = _line_within(proc, 30)
+        assert line.startswith(OUTCOME_PREFIX), (line, proc.stderr.read())
+    finally:
+        node.destroy_node()
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err
+    messages, _ = read_bag(bag)
+    assert [m.tick for _, m in messages["/fleet/state"]] == [0, 1]
+    assert [m.steps for _, m in messages["/fleet/outcome"]] == [1]
