@@ -219,3 +219,43 @@ def test_lns_rule_runs_through_the_fleet_core_and_the_lifelong_evaluator():
     assert isinstance(runs[0].arbiter.shield, LNSShield)
     rollout(HeuristicBatchPolicy(), runs, shielded=True)
     assert runs[0].goals_reached > 0 and runs[0].recorder.collisions == 0
+
+
+
+
+def test_the_executed_tick_swaps_only_for_or_with_a_stuck_agent():
+    """The siding case of the swap rule (`test_coordination_pibt_variants`): agent 1 must back
+    away and pull agent 0 after it. The `_swap_lns` rule's executed tick asks for that swap only
+    when one of the two has gone `LNS_SWAP_STALL` ticks without coming closer to its goal; its
+    rollout (no tick under way) always."""
+    from test_coordination_pibt_variants import _parse
+
+    grid = _parse(["#####.#", "......."])
+    shield = make_shield("pibt_swap_lns", grid, [(1, 6), (1, 0)])
+    current = [1 * 7 + 2, 1 * 7 + 3]
+    occupied_now, decided = {c: i for i, c in enumerate(current)}, [-1, -1]
+
+    def partner(stuck):
+        shield._stuck = None if stuck is None else np.array(stuck)
+        try:
+            return shield._swap_partner(1, current[0], current, occupied_now, decided)
+        finally:
+            shield._stuck = None
+
+    assert partner(None) == 0  # the rollout: the rule's swap
+    assert partner([False, False]) == -1  # the executed tick, nobody stuck: no swap
+    assert partner([True, False]) == 0 and partner([False, True]) == 0
+
+
+@pytest.mark.parametrize("case", range(4))
+def test_swap_lns_gets_two_agents_past_each_other_in_every_corridor(case):
+    """The swap rule's corridors with a siding, which the anchored PIBT never solves and neither
+    does its plan without swap (`pibt_anchor_lns`): the `_swap_lns` rules get through every one
+    (the stuck pair swaps)."""
+    from test_coordination_pibt_variants import CORRIDORS
+
+    rows, starts, goals, _ = CORRIDORS[case]
+    assert _solve("pibt_anchor_lns", rows, starts, goals) is None
+    for rule in ("pibt_swap_lns", "pibt_anchor_swap_lns"):
+        assert _solve(rule, rows, starts, goals) is not None, rule
+

@@ -22,6 +22,14 @@ aside for another. This rule is WPPL's recipe inside the PIBT rules' shield:
    first moves are conflict-free, so the shield executes them except where the anchor or swap
    overrule; then next tick's plan starts from the rollout alone.
 
+**Swap, where the plan is stuck** (the `_swap_lns` rules). The rollout swaps as the rule does; the
+executed tick swaps only for a robot that has not come closer to its goal for `LNS_SWAP_STALL`
+ticks, or with one. A swap the plan did not make overrules its first moves, and in continuous
+operation that cost throughput (inside POGEMA, lifelong, 32 agents: the plan executed without
+swap moved 2-3 % more goals a step); without any swap in the executed tick, one-shot crowds in
+corridors stay stuck (the paper's 40x40 instances, 64 agents: 0.95 solved against 1.00), which
+is where robots stall (docs/results.md, "A windowed plan repaired every tick").
+
 A path's cost (WPPL's objective): its step costs over the window (1 a move or a wait, or the
 guidance graph's costs; waiting on the goal is free) plus the distance to the goal from where it
 ends. The anchored robot and held robots (fixed, or on a reserved cell) keep the initial plan's
@@ -40,7 +48,7 @@ from mapf_fleet.grid.actions import NUM_ACTIONS, STAY
 
 from .pibt import PIBTShield, ShieldStep
 from .ranking import tie_breakers, validate_rankings
-from .rules import LNS_ITERATIONS, LNS_NEIGHBOURHOOD, LNS_WINDOW
+from .rules import LNS_ITERATIONS, LNS_NEIGHBOURHOOD, LNS_SWAP_STALL, LNS_WINDOW
 
 
 def window_search(start, goal, dist, targets, costs, occ, window, work=None):
@@ -139,25 +147,41 @@ class LNSShield(PIBTShield):
         self._plan: np.ndarray | None = None  # (N, window + 1) flat cells, kept between ticks
         self.improved = 0  # repairs kept in the last tick
         self._work: SearchWork | None = None
+        # per agent: its least distance to its goal so far and the ticks since it got closer
+        # (0 on its goal; a new goal starts it afresh): who the executed tick may swap
+        self._closest = np.full(self.num_agents, np.inf)
+        self._since_closer = np.zeros(self.num_agents, dtype=np.int64)
+        self._stuck: np.ndarray | None = None  # set during the executed tick only
 
     # --- state ----------------------------------------------------------------------------------
     def set_guidance(self, guidance) -> None:
         super().set_guidance(guidance)
         self._plan = None  # its moves may cross a new lane
+        self._closest[:], self._since_closer[:] = np.inf, 0  # distances changed scale
 
     def reset(self) -> None:
         super().reset()
         self._plan = None
+        self._closest[:], self._since_closer[:] = np.inf, 0
+
+    def set_goals(self, goals) -> np.ndarray:
+        changed = super().set_goals(goals)
+        self._closest[changed], self._since_closer[changed] = np.inf, 0
+        return changed
 
     def snapshot(self) -> dict:
         state = super().snapshot()
         state["plan"] = None if self._plan is None else self._plan.copy()
+        state["closest"], state["since_closer"] = self._closest.copy(), self._since_closer.copy()
         return state
 
     def restore(self, state: dict) -> None:
         super().restore(state)
         plan = state.get("plan")
         self._plan = None if plan is None else np.array(plan, dtype=np.int64)
+        if "closest" in state:
+            self._closest = np.array(state["closest"], dtype=np.float64)
+            self._since_closer = np.array(state["since_closer"], dtype=np.int64)
 
     # --- the tick -------------------------------------------------------------------------------
     def step(self, positions, rankings, fixed=None, reserved=()) -> ShieldStep:
@@ -167,9 +191,31 @@ class LNSShield(PIBTShield):
         fixed = self.check_fixed(fixed)
         paths, held = self._planned(positions, asked, fixed, reserved)
         first = self._action_of_delta[paths[:, 1] - paths[:, 0] + self.width]
-        result = self.step_first(positions, asked, first, fixed, reserved, held)
+        self._stuck = self._stalled(paths[:, 0]) >= LNS_SWAP_STALL if self.swap else None
+        try:
+            result = self.step_first(positions, asked, first, fixed, reserved, held)
+        finally:
+            self._stuck = None
         self._plan = paths
         return result
+
+    def _stalled(self, flat) -> np.ndarray:
+        """(N,) ticks since each agent last came closer to its goal, this tick counted (0 on
+        its goal)."""
+        dist = np.fromiter((self._distance_list(i)[c] for i, c in enumerate(flat.tolist())),
+                           dtype=np.float64, count=len(flat))
+        closer = dist < self._closest
+        self._since_closer = np.where(closer | (dist == 0), 0, self._since_closer + 1)
+        self._closest = np.minimum(self._closest, dist)
+        return self._since_closer
+
+    def _swap_partner(self, i: int, target: int, current, occupied_now, decided) -> int:
+        """The rule's swap in the rollout; in the executed tick only for or with a stuck
+        agent (module docstring)."""
+        j = super()._swap_partner(i, target, current, occupied_now, decided)
+        if j >= 0 and self._stuck is not None and not (self._stuck[i] or self._stuck[j]):
+            return -1
+        return j
 
     def plan(self, positions, rankings, fixed=None, reserved=()) -> np.ndarray:
         """(N, window + 1) flat cells: the repaired plan, each agent's cell now first (the state

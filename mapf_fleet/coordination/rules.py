@@ -80,6 +80,9 @@ EPIBT_HORIZON = 3
 LNS_WINDOW = 8
 LNS_ITERATIONS = 64
 LNS_NEIGHBOURHOOD = 8
+# the `_swap_lns` rules' executed tick swaps only for (or with) an agent that has not come closer
+# to its goal for this many ticks (`lns` module docstring; 3 and 8 measured, 8 kept)
+LNS_SWAP_STALL = 8
 # The learned rankings a rule picks by default (`Rule.default_ranking`; chosen by measurement,
 # docs/results.md, "Which ranking under which rule")
 ANCHORED_RANKING = "confidence"
@@ -193,5 +196,5 @@ def parse_rules(values, what: str = "conflict rule") -> list[Rule]:
 
 __all__ = ["Rule", "parse_rules", "rule_arg", "CONFLICT_RULES", "COORDINATED_RULES", "PIBT_RULES", "REVERT",
            "EPIBT_RULES", "EPIBT_HORIZON", "LNS_RULES", "LNS_WINDOW", "LNS_ITERATIONS",
-           "LNS_NEIGHBOURHOOD",
+           "LNS_NEIGHBOURHOOD", "LNS_SWAP_STALL",
            "LACAM", "FLEET_RULE", "FLEET_GUIDANCE", "ANCHOR_PATIENCE", "RULE_OPTIONS"]

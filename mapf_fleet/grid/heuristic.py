@@ -218,8 +218,10 @@ class DistanceTable:
                 self._arrays.move_to_end(goal)
                 return found
         row = self._row(goal)
+        # one new array (a guided row is float64 already: astype without copy=False made a
+        # second, which doubled the -1 array's cost on large maps)
         found = np.where(row >= self.unreachable, UNREACHABLE, row).astype(
-            np.float64 if self.guided else np.int32)
+            np.float64 if self.guided else np.int32, copy=False)
         found.setflags(write=False)
         with self._lock:
             self._keep(self._arrays, goal, found, self._recent_arrays)
