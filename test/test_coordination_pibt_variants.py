@@ -58,6 +58,37 @@ def distance_rankings(shield, positions):
                      for i, (r, c) in enumerate(positions.tolist())])
 
 
+@pytest.mark.parametrize("guided", [False, True])
+def test_distance_rankings_order_moves_by_step_cost_plus_distance_then_the_ticks_hash(guided):
+    """`PIBTShield.distance_rankings` (the anchor's, the plan's rollout's, plain PIBT's ranking
+    everywhere) against its definition from the public distance maps: key = the move's step
+    cost (1, or the guidance's) plus the distance from where it leads, a move off the map, into
+    an obstacle or against a lane last, equal keys by `tie_breakers`."""
+    from mapf_fleet.coordination.ranking import tie_breakers
+    from mapf_fleet.grid.guidance_made import highways
+
+    for seed in range(6):
+        inst = generate_instance(15, 24, 0.3, seed)
+        grid = np.asarray(inst.grid)
+        shield = PIBTShield(grid, inst.goals, guidance=highways(grid) if guided else None)
+        shield.tick = 11 * seed
+        free = np.argwhere(grid == 0)
+        cells = free[np.random.default_rng(seed).integers(len(free), size=len(inst.goals))]
+        flat = cells[:, 0] * grid.shape[1] + cells[:, 1]
+        got = shield.distance_rankings(flat)
+        targets = shield.distances.move_targets()
+        costs = shield.distances.step_costs
+        for i, cell in enumerate(flat.tolist()):
+            dist = shield.distance_map(i)
+            key = [np.inf if t < 0 or dist[t] < 0 else float(dist[t]) +
+                   (1.0 if costs is None else float(costs[cell, a]))
+                   for a, t in enumerate(targets[cell].tolist())]
+            ties = tie_breakers(np.array([i]), shield.tick)[0]
+            want = sorted(range(5), key=lambda a: (key[a], ties[a]))
+            assert got[i].tolist() == want, (seed, i)
+        assert np.array_equal(shield.anchored_ranking(3, int(flat[3])), got[3])
+
+
 # --- rule names ----------------------------------------------------------------------------------
 def test_rule_names_list_every_option_set_in_suffix_order():
     assert PIBT_RULES == ("pibt", "pibt_anchor", "pibt_swap", "pibt_anchor_swap",

@@ -47,7 +47,7 @@ from numba import njit
 from mapf_fleet.grid.actions import NUM_ACTIONS, STAY
 
 from .pibt import PIBTShield, ShieldStep
-from .ranking import tie_breakers, validate_rankings
+from .ranking import validate_rankings
 from .rules import LNS_ITERATIONS, LNS_NEIGHBOURHOOD, LNS_SWAP_STALL, LNS_WINDOW
 
 
@@ -264,22 +264,10 @@ class LNSShield(PIBTShield):
                 pos = PIBTShield.step(self, pos, ranks, fixed=fixed, reserved=reserved).positions
                 paths[:, t] = pos[:, 0] * w + pos[:, 1]
                 if t < self.window:
-                    ranks = self._distance_rankings(paths[:, t], rows)
+                    ranks = self.distance_rankings(paths[:, t])
         finally:
             self.restore(state)
         return paths
-
-    def _distance_rankings(self, flat, rows) -> np.ndarray:
-        """(N, 5) plain PIBT's rankings at flat cells (`PIBTShield.anchored_ranking` for all)."""
-        targets = self._targets[flat]
-        key = np.full(targets.shape, np.inf)
-        for i, row in enumerate(rows):
-            ok = targets[i] >= 0
-            key[i, ok] = row[targets[i, ok]]
-        if self._step_costs is not None:
-            key = key + self._step_costs[flat]
-        ties = tie_breakers(np.arange(len(flat)), self.tick)
-        return np.lexsort((ties, key), axis=-1).astype(np.int64)
 
     def _shifted(self, flat, held, blocked) -> np.ndarray | None:
         """The last tick's plan one tick on (waiting at its end), or None where a robot is not

@@ -256,20 +256,31 @@ class PIBTShield:
         return self.distances.row(self._goal_flat[agent])
 
     def anchored_ranking(self, agent: int, cell: int) -> np.ndarray:
-        """`agent`'s five actions at flat `cell` by distance to its goal (closer first, blocked
-        moves last), equal distances by this tick's hash: plain PIBT's ranking. Under guidance
-        an action's key is its step cost plus the distance from where it leads."""
-        dist = self._distance_list(agent)
-        targets = self._targets[cell].tolist()
-        unreachable = self.distances.unreachable
-        # blocked moves last; plain Python numbers: no integer type to overflow (numpy 2.5
-        # refuses int64's max in an int32 array, and 2.4 wrapped it to -1: blocked moves first)
-        key = [dist[t] if t >= 0 else unreachable for t in targets]
+        """`agent`'s five actions at flat `cell` by distance to its goal: `distance_rankings`'
+        row for one agent (what the anchor ranks by)."""
+        return self.distance_rankings([cell], [agent])[0]
+
+    def distance_rankings(self, flat, agents=None) -> np.ndarray:
+        """(len(flat), 5) plain PIBT's rankings: agent `agents[k]` (default k) at flat cell
+        `flat[k]`, its actions by distance to its goal (closer first, blocked moves last),
+        equal distances by this tick's hash. Under guidance an action's key is its step cost
+        plus the distance from where it leads. One implementation for the anchor, the plan's
+        rollout and every caller of `plan.distance_rankings`."""
+        flat = np.asarray(flat, dtype=np.int64)
+        agents = np.arange(len(flat)) if agents is None else np.asarray(agents, dtype=np.int64)
+        targets = self._targets[flat]
+        # blocked moves at `unreachable`, as far as a cell the goal cannot be reached from
+        key = np.full(targets.shape, float(self.distances.unreachable))
+        for k, agent in enumerate(agents.tolist()):
+            ok = targets[k] >= 0
+            dist = self._distance_list(agent)  # a whole row, or a goal's window (`WindowRow`)
+            cells = targets[k, ok]
+            key[k, ok] = np.asarray(dist)[cells] if isinstance(dist, memoryview) \
+                else [dist[c] for c in cells.tolist()]
         if self._step_costs is not None:
-            costs = self._step_costs[cell].tolist()
-            key = [k + c for k, c in zip(key, costs)]
-        ties = tie_breakers(np.array([agent]), self.tick)[0]
-        return np.lexsort((ties, np.asarray(key))).astype(np.int64)
+            key = key + self._step_costs[flat]
+        ties = tie_breakers(agents, self.tick)
+        return np.lexsort((ties, key), axis=-1).astype(np.int64)
 
     # ------------------------------------------------------------------------------------------
     def check_fixed(self, fixed) -> np.ndarray:

@@ -471,8 +471,7 @@ def distance_rankings(keeper_or_shield, positions) -> np.ndarray:
     shield = getattr(keeper_or_shield, "fallback", keeper_or_shield)
     positions = np.asarray(positions, dtype=np.int64)
     flat = positions[:, 0] * shield.width + positions[:, 1]
-    return np.stack([shield.anchored_ranking(i, int(flat[i])) for i in range(len(flat))]) \
-        if len(flat) else np.zeros((0, NUM_ACTIONS), dtype=np.int64)
+    return shield.distance_rankings(flat)
 
 
 __all__ = ["PlanKeeper", "PlanOptions", "ARBITER", "EXPERT", "DEFAULT_PLANNING_BUDGET",
