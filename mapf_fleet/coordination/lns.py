@@ -264,7 +264,7 @@ class LNSShield(PIBTShield):
                 pos = PIBTShield.step(self, pos, ranks, fixed=fixed, reserved=reserved).positions
                 paths[:, t] = pos[:, 0] * w + pos[:, 1]
                 if t < self.window:
-                    ranks = self.distance_rankings(paths[:, t])
+                    ranks = self.distance_rankings(paths[:, t], rows=rows)
         finally:
             self.restore(state)
         return paths

@@ -260,12 +260,13 @@ class PIBTShield:
         row for one agent (what the anchor ranks by)."""
         return self.distance_rankings([cell], [agent])[0]
 
-    def distance_rankings(self, flat, agents=None) -> np.ndarray:
+    def distance_rankings(self, flat, agents=None, rows=None) -> np.ndarray:
         """(len(flat), 5) plain PIBT's rankings: agent `agents[k]` (default k) at flat cell
         `flat[k]`, its actions by distance to its goal (closer first, blocked moves last),
         equal distances by this tick's hash. Under guidance an action's key is its step cost
         plus the distance from where it leads. One implementation for the anchor, the plan's
-        rollout and every caller of `plan.distance_rankings`."""
+        rollout and every caller of `plan.distance_rankings`. `rows`: each agent's distance row
+        as an array, where the caller has them at hand (the plan's rollout, tick after tick)."""
         flat = np.asarray(flat, dtype=np.int64)
         agents = np.arange(len(flat)) if agents is None else np.asarray(agents, dtype=np.int64)
         targets = self._targets[flat]
@@ -273,8 +274,11 @@ class PIBTShield:
         key = np.full(targets.shape, float(self.distances.unreachable))
         for k, agent in enumerate(agents.tolist()):
             ok = targets[k] >= 0
-            dist = self._distance_list(agent)  # a whole row, or a goal's window (`WindowRow`)
             cells = targets[k, ok]
+            if rows is not None:
+                key[k, ok] = rows[k][cells]
+                continue
+            dist = self._distance_list(agent)  # a whole row, or a goal's window (`WindowRow`)
             key[k, ok] = np.asarray(dist)[cells] if isinstance(dist, memoryview) \
                 else [dist[c] for c in cells.tolist()]
         if self._step_costs is not None:
