@@ -41,7 +41,7 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
-from mapf_fleet.grid.actions import NUM_ACTIONS, actions_between
+from mapf_fleet.grid.actions import actions_between
 
 from .lacam import LaCAM
 from .pibt import PIBTShield, ShieldStep
