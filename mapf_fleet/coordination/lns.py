@@ -186,12 +186,11 @@ class LNSShield(PIBTShield):
     # --- the tick -------------------------------------------------------------------------------
     def step(self, positions, rankings, fixed=None, reserved=()) -> ShieldStep:
         positions = self.check_positions(positions)
-        n = self.num_agents
         asked = validate_rankings(rankings, self.num_agents)
         fixed = self.check_fixed(fixed)
-        paths, held = self._planned(positions, asked, fixed, reserved)
+        paths, held, rows = self._planned(positions, asked, fixed, reserved)
         first = self._action_of_delta[paths[:, 1] - paths[:, 0] + self.width]
-        self._stuck = self._stalled(paths[:, 0]) >= LNS_SWAP_STALL if self.swap else None
+        self._stuck = self._stalled(paths[:, 0], rows) >= LNS_SWAP_STALL if self.swap else None
         try:
             result = self.step_first(positions, asked, first, fixed, reserved, held)
         finally:
@@ -199,10 +198,10 @@ class LNSShield(PIBTShield):
         self._plan = paths
         return result
 
-    def _stalled(self, flat) -> np.ndarray:
+    def _stalled(self, flat, rows) -> np.ndarray:
         """(N,) ticks since each agent last came closer to its goal, this tick counted (0 on
-        its goal)."""
-        dist = np.fromiter((self._distance_list(i)[c] for i, c in enumerate(flat.tolist())),
+        its goal); `rows`: the tick's `_agent_rows`."""
+        dist = np.fromiter((row[c] for row, c in zip(rows, flat.tolist())),
                            dtype=np.float64, count=len(flat))
         closer = dist < self._closest
         self._since_closer = np.where(closer | (dist == 0), 0, self._since_closer + 1)
@@ -225,6 +224,7 @@ class LNSShield(PIBTShield):
         return self._planned(positions, asked, self.check_fixed(fixed), reserved)[0]
 
     def _planned(self, positions, asked, fixed, reserved):
+        """(the repaired plan, the held agents, each agent's distance row)."""
         rows = self._agent_rows()
         held = fixed.copy()
         flat = positions[:, 0] * self.width + positions[:, 1]
@@ -249,7 +249,7 @@ class LNSShield(PIBTShield):
         if top >= 0:
             movable[top] = False
         self._repair(paths, costs, rows, movable, blocked)
-        return paths, held
+        return paths, held, rows
 
     # --- 1. the initial plan --------------------------------------------------------------------
     def _rollout(self, positions, asked, fixed, reserved, rows) -> np.ndarray:

@@ -194,7 +194,7 @@ class BagRecorder:
         self._subscriptions = {}  # topic -> (connection, subscription)
         self._skipped: set[str] = set()
         self.counts: dict[str, int] = {}
-        self._state_topic = self._flush_on[0]
+        self._state_topic = state
         self._last_state = None  # the CDR bytes of the last fleet state written
         self._outcome_written = False
         self.complete = False  # the outcome and the final state are written (`ended`)
