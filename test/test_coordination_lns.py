@@ -59,6 +59,21 @@ def test_lns_rule_names_parse_build_and_reach_the_callers():
     assert check_conflict_rule("pibt_anchor_swap_lns") == "pibt_anchor_swap_lns"
 
 
+def test_the_plan_reads_the_rules_constants_when_built(monkeypatch):
+    """`rules.LNS_*` are the one place the plan's settings live: a shield built after they change
+    takes the new values (they were once bound at import, so changing them did nothing)."""
+    from mapf_fleet.coordination import rules
+
+    grid = np.zeros((4, 4), dtype=np.uint8)
+    goals = np.array([[0, 0], [3, 3]])
+    monkeypatch.setattr(rules, "LNS_WINDOW", 5)
+    monkeypatch.setattr(rules, "LNS_ITERATIONS", 7)
+    monkeypatch.setattr(rules, "LNS_NEIGHBOURHOOD", 3)
+    shield = make_shield("pibt_anchor_swap_lns", grid, goals)
+    assert (shield.window, shield.iterations, shield.neighbourhood) == (5, 7, 3)
+    assert LNSShield(grid, goals, window=2).window == 2  # an argument still wins
+
+
 # --- the space-time search -----------------------------------------------------------------------
 def _search(rows, start, goal, window, occ_paths=(), reserved=()):
     grid = np.array([[c == "#" for c in row] for row in rows])

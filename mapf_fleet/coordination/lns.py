@@ -48,7 +48,7 @@ from mapf_fleet.grid.actions import NUM_ACTIONS, STAY
 
 from .pibt import PIBTShield, ShieldStep
 from .ranking import validate_rankings
-from .rules import LNS_ITERATIONS, LNS_NEIGHBOURHOOD, LNS_SWAP_STALL, LNS_WINDOW
+from . import rules
 
 
 def window_search(start, goal, dist, targets, costs, occ, window, work=None):
@@ -130,10 +130,11 @@ class LNSShield(PIBTShield):
                  hindrance: bool = False, patient: bool = False,
                  anchor_patience: int | None = None, guidance=None, window: int | None = None,
                  iterations: int | None = None, neighbourhood: int | None = None):
-        # None: the rules' constants (read here, not bound at import: one place to change them)
-        window = LNS_WINDOW if window is None else window
-        iterations = LNS_ITERATIONS if iterations is None else iterations
-        neighbourhood = LNS_NEIGHBOURHOOD if neighbourhood is None else neighbourhood
+        # None: the rules' constants, read from `rules` now (not bound at import: one place to
+        # change them, in a process or a test)
+        window = rules.LNS_WINDOW if window is None else window
+        iterations = rules.LNS_ITERATIONS if iterations is None else iterations
+        neighbourhood = rules.LNS_NEIGHBOURHOOD if neighbourhood is None else neighbourhood
         if hindrance:
             raise ValueError("LNS does not combine with hindrance (both order the first moves)")
         super().__init__(grid, goals, anchor=anchor, swap=swap, hindrance=False, patient=patient,
@@ -190,7 +191,7 @@ class LNSShield(PIBTShield):
         fixed = self.check_fixed(fixed)
         paths, held, rows = self._planned(positions, asked, fixed, reserved)
         first = self._action_of_delta[paths[:, 1] - paths[:, 0] + self.width]
-        self._stuck = self._stalled(paths[:, 0], rows) >= LNS_SWAP_STALL if self.swap else None
+        self._stuck = self._stalled(paths[:, 0], rows) >= rules.LNS_SWAP_STALL if self.swap else None
         try:
             result = self.step_first(positions, asked, first, fixed, reserved, held)
         finally:
