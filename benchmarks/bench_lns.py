@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_epibt import tick_ms  # noqa: E402
 
-from mapf_fleet.coordination import lns, rules  # noqa: E402
+from mapf_fleet.coordination import rules  # noqa: E402
 from mapf_fleet.coordination.factory import make_shield  # noqa: E402
 from mapf_fleet.grid.guidance_made import highways  # noqa: E402
 
@@ -46,8 +46,7 @@ def settings_rows(settings: list[str], instances: int, agents: int) -> list[dict
         if len(values) != 3:
             raise SystemExit(f"--settings: WINDOW,REPAIRS,GROUP, got {spec!r}")
         for name, value in zip(SETTINGS, values):
-            setattr(rules, name, value)
-            setattr(lns, name, value)
+            setattr(rules, name, value)  # read by each shield when it is built
         out = Path(f"/tmp/bench_lns_{'_'.join(map(str, values))}.json")
         pogema_bench.main(["--mode", "lifelong", "--instances", str(instances), "--conflict-rule",
                            PLANNED, "--family", "random", "mazes", "--agents", str(agents),

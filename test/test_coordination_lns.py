@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 
 from mapf_fleet.coordination.factory import make_shield
 from mapf_fleet.coordination.lns import LNSShield, window_search
+from mapf_fleet.evaluation.protocol import DEFAULT_TESTSETS
 from mapf_fleet.coordination.rules import (CONFLICT_RULES, EPIBT_RULES, LNS_WINDOW, LNS_RULES,
                                            PIBT_RULES, Rule)
 from mapf_fleet.grid.actions import ACTION_DELTAS, move_targets
@@ -241,7 +242,7 @@ def test_lns_rule_runs_through_the_fleet_core_and_the_lifelong_evaluator():
 def test_the_executed_tick_swaps_only_for_or_with_a_stuck_agent():
     """The siding case of the swap rule (`test_coordination_pibt_variants`): agent 1 must back
     away and pull agent 0 after it. The `_swap_lns` rule's executed tick asks for that swap only
-    when one of the two has gone `LNS_SWAP_STALL` ticks without coming closer to its goal; its
+    when one of the two has spent `LNS_SWAP_STALL` ticks off its goal since it last came closer; its
     rollout (no tick under way) always."""
     from test_coordination_pibt_variants import _parse
 
@@ -260,6 +261,45 @@ def test_the_executed_tick_swaps_only_for_or_with_a_stuck_agent():
     assert partner(None) == 0  # the rollout: the rule's swap
     assert partner([False, False]) == -1  # the executed tick, nobody stuck: no swap
     assert partner([True, False]) == 0 and partner([False, True]) == 0
+
+
+def test_ticks_on_the_goal_neither_count_nor_start_the_stall_count_again():
+    """Two robots whose goals lie in one corridor can push each other off them in turn for ever,
+    each back on its goal every few ticks (the published 40x40 instance 93 with 64 agents, below).
+    Ticks on the goal must not start the count again, or neither is ever stuck and the executed
+    tick never swaps them; a robot resting on its goal is never stuck."""
+    grid = np.zeros((1, 6), dtype=np.uint8)
+    shield = make_shield("pibt_anchor_swap_lns", grid, [(0, 2), (0, 5)])
+    rows = [shield.distances.row(2), shield.distances.row(5)]
+    counts = []
+    # agent 0 reaches its goal, is pushed off, back on, off again ...; agent 1 rests on its goal
+    for cell in (3, 2, 3, 2, 3, 4, 3, 2, 3, 3):
+        counts.append(shield._stalled(np.array([cell, 5]), rows).tolist())
+    assert [c[0] for c in counts] == [0, 0, 1, 1, 2, 3, 4, 4, 5, 6]
+    assert [c[1] for c in counts] == [0] * 10
+    shield.set_goals([(0, 0), (0, 5)])  # a new goal starts the count afresh
+    assert shield._stalled(np.array([3, 5]), rows).tolist()[0] == 0
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not (DEFAULT_TESTSETS / "40length_64agents.npz").is_file(),
+                    reason="published test sets absent")
+def test_the_published_corridor_that_two_robots_circled_is_solved():
+    """Instance 93 of the paper's 40x40 set with 64 agents: under the 16-tick plan two robots
+    circled for ever in a corridor holding both their goals (62 of 64 on goal after 256 ticks)
+    while the stall count restarted on every visit to a goal."""
+    from mapf_fleet.coordination.plan import distance_rankings
+    from mapf_fleet.evaluation.protocol import Scenario, scenario_instances
+
+    inst = scenario_instances(Scenario("40x40", 64, 256, 40, "40length_{agents}agents.npz"), 94)
+    grid, goals = np.asarray(inst.maps[93]), np.asarray(inst.goals[93])
+    shield = make_shield("pibt_anchor_swap_lns", grid, goals)
+    positions = np.asarray(inst.starts[93])
+    for _ in range(256):
+        positions = shield.step(positions, distance_rankings(shield, positions)).positions
+        if (positions == goals).all():
+            break
+    assert (positions == goals).all(), int((positions != goals).any(axis=1).sum())
 
 
 @pytest.mark.parametrize("case", range(4))

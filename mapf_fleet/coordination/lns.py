@@ -23,8 +23,10 @@ aside for another. This rule is WPPL's recipe inside the PIBT rules' shield:
    overrule; then next tick's plan starts from the rollout alone.
 
 **Swap, where the plan is stuck** (the `_swap_lns` rules). The rollout swaps as the rule does; the
-executed tick swaps only for a robot that has not come closer to its goal for `LNS_SWAP_STALL`
-ticks, or with one. A swap the plan did not make overrules its first moves, and in continuous
+executed tick swaps only for a robot that has spent `LNS_SWAP_STALL` ticks off its goal since it
+last came closer to it, or with one (ticks on its goal do not count, nor start the count again: two
+robots whose goals lie in one corridor can push each other off them in turn for ever, each on its
+goal every few ticks). A swap the plan did not make overrules its first moves, and in continuous
 operation that cost throughput (inside POGEMA, lifelong, 32 agents: the plan executed without
 swap moved 2-3 % more goals a step); without any swap in the executed tick, one-shot crowds in
 corridors stay stuck (the paper's 40x40 instances, 64 agents: 0.95 solved against 1.00), which
@@ -148,8 +150,8 @@ class LNSShield(PIBTShield):
         self._plan: np.ndarray | None = None  # (N, window + 1) flat cells, kept between ticks
         self.improved = 0  # repairs kept in the last tick
         self._work: SearchWork | None = None
-        # per agent: its least distance to its goal so far and the ticks since it got closer
-        # (0 on its goal; a new goal starts it afresh): who the executed tick may swap
+        # per agent: its least distance to its goal so far and the ticks it has spent off its
+        # goal since it got closer (a new goal starts it afresh): who the executed tick may swap
         self._closest = np.full(self.num_agents, np.inf)
         self._since_closer = np.zeros(self.num_agents, dtype=np.int64)
         self._stuck: np.ndarray | None = None  # set during the executed tick only
@@ -200,12 +202,13 @@ class LNSShield(PIBTShield):
         return result
 
     def _stalled(self, flat, rows) -> np.ndarray:
-        """(N,) ticks since each agent last came closer to its goal, this tick counted (0 on
-        its goal); `rows`: the tick's `_agent_rows`."""
+        """(N,) ticks each agent has spent off its goal since it last came closer to it, this
+        tick counted (reaching its goal the first time is coming closer; a tick on it adds
+        nothing); `rows`: the tick's `_agent_rows`."""
         dist = np.fromiter((row[c] for row, c in zip(rows, flat.tolist())),
                            dtype=np.float64, count=len(flat))
         closer = dist < self._closest
-        self._since_closer = np.where(closer | (dist == 0), 0, self._since_closer + 1)
+        self._since_closer = np.where(closer, 0, self._since_closer + (dist > 0))
         self._closest = np.minimum(self._closest, dist)
         return self._since_closer
 

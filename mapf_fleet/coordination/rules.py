@@ -48,10 +48,10 @@ LNS = "lns"
 LNS_RULES = tuple(f"{rule}_{LNS}" for rule in PIBT_RULES if "hindrance" not in rule)
 CONFLICT_RULES = (*COORDINATED_RULES, REVERT, *EPIBT_RULES, *LNS_RULES)
 # The fleet's rule: what `mapf-fleet up` runs and `evaluate` measures by default. The windowed
-# plan repaired every tick over the anchored PIBT with swap: with FLEET_GUIDANCE, 1.21x / 1.31x /
+# plan repaired every tick over the anchored PIBT with swap: with FLEET_GUIDANCE, 1.22x / 1.41x /
 # 1.21x plain `pibt_anchor_swap`'s lifelong throughput inside POGEMA (random / mazes / warehouse,
-# maps nothing was tuned on), level with RHCR's published figures on random maps and mazes
-# (docs/results.md, "A windowed plan repaired every tick (LNS)")
+# maps nothing was tuned on); unguided at or above RHCR's published figures at 8 of 9 counts
+# (docs/results.md, "A windowed plan repaired every tick (LNS)" and "A longer plan")
 FLEET_RULE = "pibt_anchor_swap_lns"
 # The fleet's guidance graph (a `grid.guidance_made.GuidanceSource` spelling): what `mapf-fleet
 # up` reads and `evaluate` measures by default, for the heuristic and for a checkpoint that
@@ -76,12 +76,14 @@ ANCHOR_PATIENCE = 32
 EPIBT_HORIZON = 3
 # The `_lns` rules' plan (`lns.LNSShield`): ticks planned ahead, repairs a tick and robots a
 # repair plans again. Chosen by measurement inside POGEMA (docs/results.md, "A windowed plan
-# repaired every tick (LNS)")
-LNS_WINDOW = 8
-LNS_ITERATIONS = 64
+# repaired every tick (LNS)" and "A longer plan"): 16 / 128 moved 0-6 % more goals than 8 / 64
+# (most in the mazes) at 2.5x the tick, within issue 41's 50 ms at 64 agents and 1 s at 2,048
+LNS_WINDOW = 16
+LNS_ITERATIONS = 128
 LNS_NEIGHBOURHOOD = 8
-# the `_swap_lns` rules' executed tick swaps only for (or with) an agent that has not come closer
-# to its goal for this many ticks (`lns` module docstring; 3 and 8 measured, 8 kept)
+# the `_swap_lns` rules' executed tick swaps only for (or with) an agent that has spent this many
+# ticks off its goal since it last came closer to it (`lns` module docstring; 3 and 8 measured,
+# 8 kept)
 LNS_SWAP_STALL = 8
 # The learned rankings a rule picks by default (`Rule.default_ranking`; chosen by measurement,
 # docs/results.md, "Which ranking under which rule")
