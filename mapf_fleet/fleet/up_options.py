@@ -46,7 +46,7 @@ ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST.
 
 The simulator (or the aggregator) arbitrates each tick with `--conflict-rule`: `pibt_anchor_swap_lns`
 (default: PIBT over the robots' ranked actions with the top-priority robot on its distance order
-and lacam3's swap in corridors, each robot's first move taken from a plan of the next 8 ticks
+and lacam3's swap in corridors, each robot's first move taken from a plan of the next 16 ticks
 repaired every tick; nothing is reverted), `pibt_anchor_swap` (the same, one tick at a time),
 `pibt_anchor` (without swap), `pibt_anchor_swap_epibt` (3-move operations),
 `pibt` (CS-PIBT as published), the other `_swap` / `_hindrance` variants, `lacam` (a kept LaCAM
