@@ -12,9 +12,9 @@ from hypothesis import strategies as st
 
 from mapf_fleet.coordination.factory import make_shield
 from mapf_fleet.coordination.lns import LNSShield, window_search
-from mapf_fleet.evaluation.protocol import DEFAULT_TESTSETS
 from mapf_fleet.coordination.rules import (CONFLICT_RULES, EPIBT_RULES, LNS_WINDOW, LNS_RULES,
                                            PIBT_RULES, Rule)
+from mapf_fleet.evaluation.protocol import DEFAULT_TESTSETS
 from mapf_fleet.grid.actions import ACTION_DELTAS, move_targets
 from mapf_fleet.grid.env import resolve_moves
 from mapf_fleet.grid.instance import generate_instance
@@ -278,7 +278,7 @@ def test_ticks_on_the_goal_neither_count_nor_start_the_stall_count_again():
     assert [c[0] for c in counts] == [0, 0, 1, 1, 2, 3, 4, 4, 5, 6]
     assert [c[1] for c in counts] == [0] * 10
     shield.set_goals([(0, 0), (0, 5)])  # a new goal starts the count afresh
-    assert shield._stalled(np.array([3, 5]), rows).tolist()[0] == 0
+    assert shield._stalled(np.array([3, 5]), [shield.distances.row(0), rows[1]]).tolist()[0] == 0
 
 
 @pytest.mark.slow
