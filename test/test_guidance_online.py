@@ -10,6 +10,7 @@ import pickle
 import numpy as np
 import pytest
 
+from mapf_fleet.coordination import rules
 from mapf_fleet.grid.guidance import GuidanceError
 from mapf_fleet.grid.guidance_made import (FEATURES, LOG_COST_CLIP, CongestionFlow, CostModel,
                                            GuidanceSource, highways)
@@ -277,3 +278,37 @@ def test_a_cost_model_state_written_before_the_model_axis_resumes(tmp_path):
     path.write_bytes(pickle.dumps(state))
     assert _optimize(tmp_path, generations=2) == 0
     assert pickle.loads(path.read_bytes())["generation"] == 2
+
+
+def test_optimize_warm_starts_from_a_learned_model_and_names_it(tmp_path):
+    from mapf_fleet.evaluation.guidance_opt import initial_vector
+
+    start = _random_model(5, scale=0.3)
+    path = start.save(tmp_path / "prior.online.json")
+    assert np.array_equal(initial_vector("online", str(path)), start.vector())
+    # a file of the other model, a missing file and a broken one are refused before anything runs
+    assert _optimize(tmp_path / "x", "--model", "cost", "--init", str(path)) == 2
+    assert _optimize(tmp_path / "x", "--model", "online", "--init",
+                     str(tmp_path / "missing.online.json")) == 2
+    (tmp_path / "bad.online.json").write_text("{}")
+    assert _optimize(tmp_path / "x", "--model", "online", "--init",
+                     str(tmp_path / "bad.online.json")) == 2
+    assert not (tmp_path / "x" / "state.pkl").exists()
+    assert _optimize(tmp_path / "w", "--model", "online", "--init", str(path)) == 0
+    state = pickle.loads((tmp_path / "w" / "state.pkl").read_bytes())
+    assert state["start"] == start.vector().tolist()
+    assert state["task"]["plan"] == [rules.LNS_WINDOW, rules.LNS_ITERATIONS,
+                                     rules.LNS_NEIGHBOURHOOD]
+    model = OnlineModel.load(tmp_path / "w" / "online_warehouse_17x17_12.online.json")
+    assert model.meta["plan"] == state["task"]["plan"]
+    card = (tmp_path / "w" / "online_warehouse_17x17_12.md").read_text()
+    assert "the starting point (learned: prior.online.json)" in card
+    assert "over its starting point" in card
+    assert f"plan {rules.LNS_WINDOW} ticks ahead" in card
+
+
+def test_a_run_is_resumed_only_under_the_plan_it_ran(tmp_path, monkeypatch):
+    assert _optimize(tmp_path, "--model", "online", generations=1) == 0
+    monkeypatch.setattr(rules, "LNS_ITERATIONS", rules.LNS_ITERATIONS // 2)
+    assert _optimize(tmp_path, "--model", "online", generations=2) == 2
+    assert pickle.loads((tmp_path / "state.pkl").read_bytes())["generation"] == 1

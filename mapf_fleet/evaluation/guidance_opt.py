@@ -14,7 +14,9 @@ draw for every candidate of a generation) or on one `--map`. The objective is ex
 `lifelong_runs` and `rollout`). CMA-ES starts from `--init`: none (theta = 0, unit costs, the
 default of the cost model) or a hand-made graph the model can express exactly (highways; and for
 `--model online`, whose costs also read recent traffic (`grid.guidance_online.OnlineModel`, Online
-GGO's recipe), congestion or both, its default), so the search begins at the best hand-made point.
+GGO's recipe), congestion or both, its default), so the search begins at the best hand-made point;
+or a model file of the same model (a learned model, warm-started: e.g. under a new plan). Under
+the `_lns` rules the task records their plan (`rules.LNS_*`); a run is resumed only under it.
 
 Rollouts run on Ray's local pool (`--workers N`, nice'd by the caller) or a cluster (`--address`),
 in this process with `--workers 1`. The state (the optimiser, history, best, CPU seconds) is
@@ -38,9 +40,10 @@ import numpy as np
 
 from mapf_fleet.coordination.rules import FLEET_RULE
 from mapf_fleet.files import atomic_write
+from mapf_fleet.grid.guidance import GuidanceError
 from mapf_fleet.grid.guidance_made import (CONGESTION, FEATURES, HIGHWAYS, LOG_COST_CLIP,
-                                           ONLINE, CostModel, GuidanceSource)
-from mapf_fleet.grid.guidance_online import PRESETS, TRAFFIC, OnlineModel
+                                           MODEL_SUFFIX, ONLINE, CostModel, GuidanceSource)
+from mapf_fleet.grid.guidance_online import ONLINE_SUFFIX, PRESETS, TRAFFIC, OnlineModel
 
 KINDS = ("dense", "random", "maze", "rooms", "warehouse")
 MODELS = ("cost", ONLINE)  # what CMA-ES searches: a static CostModel or an OnlineModel
@@ -138,7 +141,17 @@ def model_of(vector, task: dict, meta: dict | None = None):
 
 
 def initial_vector(model: str, init: str) -> np.ndarray:
-    """CMA-ES's first mean: the hand-made graph `init` as the model's parameters."""
+    """CMA-ES's first mean: the hand-made graph `init` as the model's parameters, or the model
+    file `init` of the same model (a learned model trained on, e.g. under another plan)."""
+    if init not in PRESETS:
+        if not init.endswith(ONLINE_SUFFIX if model == ONLINE else MODEL_SUFFIX):
+            raise ValueError(f"--init {init}: neither a preset {PRESETS} nor a "
+                             f"{ONLINE_SUFFIX if model == ONLINE else MODEL_SUFFIX} file "
+                             f"of --model {model}")
+        try:
+            return (OnlineModel if model == ONLINE else CostModel).load(init).vector()
+        except GuidanceError as exc:
+            raise ValueError(str(exc)) from None
     start = OnlineModel.preset(init)
     if model == ONLINE:
         return start.vector()
@@ -181,7 +194,19 @@ def _task(args) -> dict:
     pogema = args.kinds[0] if args.kinds[0] in POGEMA_FAMILIES else None
     return {"kind": args.kinds[0] if not (args.map or pogema) else None, "size": args.size,
             "agents": args.agents, "episodes": args.episodes, "steps": args.steps,
-            "rule": args.conflict_rule, "map": args.map, "pogema": pogema, "model": args.model}
+            "rule": args.conflict_rule, "map": args.map, "pogema": pogema, "model": args.model,
+            "plan": plan_of(args.conflict_rule)}
+
+
+def plan_of(rule: str) -> list[int] | None:
+    """The `_lns` rules' plan the rollouts run under: [ticks ahead, repairs a tick, robots a
+    repair] (`coordination.rules.LNS_*`, read now: a run resumed under another plan is refused,
+    and the model's card names it); None for the other rules."""
+    from mapf_fleet.coordination import rules
+
+    if not rules.Rule.parse(rule).lns:
+        return None
+    return [rules.LNS_WINDOW, rules.LNS_ITERATIONS, rules.LNS_NEIGHBOURHOOD]
 
 
 def optimize(args) -> int:
@@ -210,6 +235,7 @@ def optimize(args) -> int:
         dim = len(mean)
         state = {"task": task, "command": command, "generation": 0, "history": [],
                  "best": None, "cpu_seconds": 0.0, "wall_seconds": 0.0, "init": args.init,
+                 "start": mean.tolist(),  # the point itself: an --init file may move
                  "optimizer": CMA(mean=mean, sigma=args.sigma, seed=args.seed,
                                   population_size=args.popsize,
                                   bounds=np.tile([-args.bound, args.bound], (dim, 1)))}
@@ -264,13 +290,15 @@ def finish(args, state: dict, evaluate, out: Path) -> int:
     model = model_of(state["optimizer"].mean, task, meta={
         "family": _family(task), "agents": task["agents"], "rule": task["rule"],
         "generations": state["generation"], "init": state.get("init", "none"),
-        "command": state["command"]})
+        "plan": task.get("plan"), "command": state["command"]})
     candidates = [("none", GuidanceSource.parse("none")),
                   (HIGHWAYS, GuidanceSource.parse(HIGHWAYS)),
                   (CONGESTION, GuidanceSource.parse(CONGESTION))]
     if state.get("init", "none") not in ("none", HIGHWAYS, CONGESTION):
-        candidates.append(("start", model_of(initial_vector(task["model"], state["init"]),
-                                             task)))
+        start = state.get("start")
+        if start is None:  # a state written before the point was kept: a preset
+            start = initial_vector(task["model"], state["init"])
+        candidates.append(("start", model_of(start, task)))
     rows = {}
     for row, guidance in (*candidates, ("learned", model)):
         value, cpu = throughput(guidance, task, seed, held_out=True)
@@ -302,16 +330,25 @@ ROW_NAMES = {"none": "none (plain PIBT)", HIGHWAYS: "highways (hand-made)",
 
 def card_text(name, task, rows, state, model, args) -> str:
     online = isinstance(model, OnlineModel)
-    # every row but none and the learned one is hand-made (the starting point is a preset)
-    hand = max(v for k, v in rows.items() if k not in ("none", "learned"))
+    init = state.get("init", "none")
+    # every row but none and the learned ones is hand-made: the starting point is, when a preset
+    learned = ("none", "learned") if init in PRESETS else ("none", "learned", "start")
+    hand = max(v for k, v in rows.items() if k not in learned)
     gain = rows["learned"] / rows["none"] - 1 if rows["none"] else float("nan")
     vs_hand = rows["learned"] / hand - 1 if hand else float("nan")
+    vs_start = rows["learned"] / rows["start"] - 1 if rows.get("start") else float("nan")
     theta = ", ".join(f"{f} {v:+.3f}" for f, v in zip(FEATURES, model.theta))
     if online:
         theta += "; traffic: " + ", ".join(f"{f} {v:+.3f}" for f, v in zip(TRAFFIC, model.phi))
         theta += f"; decay {model.decay}, period {model.period}"
-    table = "".join(f"| {ROW_NAMES[k]} | {v:.3f} |\n" for k, v in rows.items())
+    names = dict(ROW_NAMES, start=ROW_NAMES["start"] + ("" if init in PRESETS
+                                                       else f" (learned: {Path(init).name})"))
+    table = "".join(f"| {names[k]} | {v:.3f} |\n" for k, v in rows.items())
     updated = f", costs recomputed from recent traffic every {model.period} ticks" if online else ""
+    plan = task.get("plan")
+    if plan:
+        updated += (f"; the rule's plan {plan[0]} ticks ahead, {plan[1]} repairs a tick of "
+                    f"{plan[2]} robots")
     return (f"# Guidance {'online model' if online else 'cost model'} `{name}`\n\n"
             f"Learned by CMA-ES against lifelong throughput of plain PIBT under `{task['rule']}`"
             f"{updated}.\n\n"
@@ -324,7 +361,8 @@ def card_text(name, task, rows, state, model, args) -> str:
             f"{state['wall_seconds'] / 3600:.2f} h wall\n"
             f"- parameters: {theta}; wait {model.wait:+.3f}\n\n"
             f"| guidance | throughput (goals/step, held-out draws) |\n|---|---:|\n{table}\n"
-            f"Learned over none: {gain:+.1%}; over the best hand-made graph: {vs_hand:+.1%}.\n\n"
+            f"Learned over none: {gain:+.1%}; over the best hand-made graph: {vs_hand:+.1%}"
+            f"{'' if init in PRESETS else f'; over its starting point: {vs_start:+.1%}'}.\n\n"
             f"Command: `{state['command']}`\n")
 
 
@@ -349,10 +387,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="cost: edge costs from the map (*.costmodel.json, default); online: "
                         "from the map and recent traffic, updated as the fleet moves "
                         "(*.online.json)")
-    o.add_argument("--init", choices=PRESETS,
+    o.add_argument("--init",
                    help="CMA-ES's starting point, a hand-made graph the model expresses "
                         "exactly: none, highways; congestion and both (highways and congestion) "
-                        "with --model online (default: none for cost, both for online)")
+                        "with --model online (default: none for cost, both for online); or a "
+                        "model file of --model (*.costmodel.json, *.online.json), e.g. one "
+                        "learned under another plan")
     o.add_argument("--kinds", nargs=1, default=["dense"], choices=KINDS + POGEMA_FAMILIES,
                    help="map family (default dense: random maps of 17-21 cells; pogema-*: the "
                         "POGEMA benchmark's maps after its first 32, which stay held out)")
