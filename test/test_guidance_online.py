@@ -312,3 +312,19 @@ def test_a_run_is_resumed_only_under_the_plan_it_ran(tmp_path, monkeypatch):
     monkeypatch.setattr(rules, "LNS_ITERATIONS", rules.LNS_ITERATIONS // 2)
     assert _optimize(tmp_path, "--model", "online", generations=2) == 2
     assert pickle.loads((tmp_path / "state.pkl").read_bytes())["generation"] == 1
+
+
+@pytest.mark.slow
+def test_optimize_on_rays_pool_is_the_run_in_this_process(tmp_path):
+    """The candidates and the held-out rows on Ray's local pool give the in-process figures."""
+    for out, workers in (("one", "1"), ("pool", "2")):
+        assert _optimize(tmp_path / out, "--model", "online", "--workers", workers,
+                         generations=2) == 0
+    import ray
+
+    ray.shutdown()
+    one, pool = (pickle.loads((tmp_path / d / "state.pkl").read_bytes()) for d in ("one", "pool"))
+    assert one["history"] == pool["history"]
+    models = [OnlineModel.load(tmp_path / d / "online_warehouse_17x17_12.online.json")
+              for d in ("one", "pool")]
+    assert models[0].meta["held_out_throughput"] == models[1].meta["held_out_throughput"]

@@ -22,9 +22,9 @@ Rollouts run on Ray's local pool (`--workers N`, nice'd by the caller) or a clus
 in this process with `--workers 1`. The state (the optimiser, history, best, CPU seconds) is
 written atomically after every generation to `OUT/state.pkl`; the same command resumes it after
 Ctrl-C or kill -9 (at most one generation lost). At the end the CMA-ES mean is measured on held-out
-seeds beside no guidance and the hand-made graphs, and written as `OUT/NAME.costmodel.json`
-(`OUT/NAME.online.json` for `--model online`) plus its card `OUT/NAME.md` (family, agents,
-throughput before and after, CPU-hours, command).
+seeds beside no guidance and the hand-made graphs (a row a rollout process), and written as
+`OUT/NAME.costmodel.json` (`OUT/NAME.online.json` for `--model online`) plus its card `OUT/NAME.md`
+(family, agents, throughput before and after, CPU-hours, command).
 """
 
 from __future__ import annotations
@@ -161,8 +161,9 @@ def initial_vector(model: str, init: str) -> np.ndarray:
     return np.append(start.theta, start.wait)
 
 
-def _remote_throughput(vector, task, seed):
-    return throughput(np.asarray(vector), task, seed)
+def _remote_throughput(vector, task, seed, held_out=False):
+    guidance = np.asarray(vector) if isinstance(vector, list) else vector
+    return throughput(guidance, task, seed, held_out=held_out)
 
 
 class Evaluator:
@@ -184,6 +185,13 @@ class Evaluator:
             return [throughput(np.asarray(v), task, seed) for v in vectors]
         return self.ray.get([self.remote.remote(list(map(float, v)), task, seed)
                              for v in vectors])
+
+    def held_out(self, guidances, task, seed) -> list[tuple[float, float]]:
+        """The held-out rows' (throughput, CPU seconds): one guidance (a `GuidanceSource` or a
+        model) a row, the rows side by side on the pool."""
+        if self.ray is None:
+            return [throughput(g, task, seed, held_out=True) for g in guidances]
+        return self.ray.get([self.remote.remote(g, task, seed, True) for g in guidances])
 
 
 def _save(path: Path, state: dict) -> None:
@@ -299,9 +307,10 @@ def finish(args, state: dict, evaluate, out: Path) -> int:
         if start is None:  # a state written before the point was kept: a preset
             start = initial_vector(task["model"], state["init"])
         candidates.append(("start", model_of(start, task)))
+    candidates.append(("learned", model))
     rows = {}
-    for row, guidance in (*candidates, ("learned", model)):
-        value, cpu = throughput(guidance, task, seed, held_out=True)
+    for (row, _), (value, cpu) in zip(candidates, evaluate.held_out(
+            [guidance for _, guidance in candidates], task, seed)):
         rows[row] = value
         state["cpu_seconds"] += cpu
     name = args.name or f"{'online_' if online else ''}{_family(task).replace(' ', '_')}_" \
