@@ -233,6 +233,21 @@ def test_evaluate_lifelong_runs_with_and_without_guidance(tmp_path):
     assert first["guidance"] == "highways" and first["goals"] == rows[1]["goals"]
 
 
+def test_evaluate_lifelong_on_workers_gives_the_figures_of_one_process(tmp_path):
+    """`--workers 2` splits each row's episodes between two processes: the same goals, episode
+    by episode, in the same order (each episode keeps its goal stream); --workers 0 is refused."""
+    from mapf_fleet.evaluation.lifelong import main
+
+    common = ["--lifelong", "--steps", "24", "--instances", "3", "--agents", "10", "--quiet",
+              "--guidance", "none", "congestion", "--kinds", "dense", "--sizes", "17"]
+    for out, workers in (("one", "1"), ("two", "2")):
+        assert main(common + ["--workers", workers, "--json", str(tmp_path / f"{out}.json")]) == 0
+    one, two = (json.loads((tmp_path / f"{n}.json").read_text())["results"] for n in ("one", "two"))
+    assert [r["goals"] for r in one] == [r["goals"] for r in two]
+    assert len(one) == 2 and all(len(r["goals"]) == 3 and sum(r["goals"]) > 0 for r in one)
+    assert main(common + ["--workers", "0"]) == 2
+
+
 def test_a_checkpoint_is_evaluated_under_the_guidance_it_was_trained_on(tmp_path):
     """One default everywhere: a checkpoint records the guidance its heuristic channels were
     trained on (metadata guidance); `evaluate` without --guidance runs it there, the heuristic

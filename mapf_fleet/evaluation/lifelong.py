@@ -18,6 +18,10 @@ changes the robots follow the plan; where a call leaves agents without a plan (t
 agents' moves come from plain PIBT over the same state for that tick (counted as `fallbacks`).
 Its figure is what a time-limited centralized planner reaches, not an optimum.
 
+`--workers N` splits each row's episodes among N processes (as the one-shot evaluator does its
+chunks; the figures do not depend on it: every episode is its own run and goal stream, seeded by
+its index in the row), and a row's `seconds` sums its chunks' rollouts.
+
 Published figures (not measured here) are named constants with their source (`PUBLISHED`) and
 printed as such.
 """
@@ -46,8 +50,9 @@ from mapf_fleet.fleet.tasks import LifelongTasks
 from mapf_fleet.grid.guidance_made import GuidanceSource
 from mapf_fleet.models.policy import DEVICE_HELP, device_arg
 
-from .policies import parse_policy, unique_names, with_conflict_rule
+from .policies import PolicySpec, parse_policy, unique_names, with_conflict_rule
 from .protocol import InstanceSet
+from .runner import cached_policy, init_worker
 
 # Published lifelong throughputs (goals per step), not measured here: pogema-benchmark's raw data
 # for lifelong MAPF (ICLR 2025 release, `raw_data_LMAPF`), and the League of Robot Runners 2023.
@@ -116,12 +121,13 @@ def lifelong_instances(kind: str, size: int, num_agents: int, count: int, seed: 
 
 def lifelong_runs(instances: InstanceSet, steps: int, rule: str, seed: int,
                   series=("overridden",), planning_budget: float | None = None,
-                  guidance=None) -> list[FleetRun]:
-    """One lifelong `FleetRun` per instance; episode k's goal generator is seeded (seed, k).
-    guidance: a `GuidanceSource` (or a value it parses; None: none), its graph per map."""
+                  guidance=None, first: int = 0) -> list[FleetRun]:
+    """One lifelong `FleetRun` per instance; episode k's goal generator is seeded (seed, first +
+    k) (`first`: where a chunk of a scenario's episodes begins). guidance: a `GuidanceSource` (or
+    a value it parses; None: none), its graph per map."""
     source = GuidanceSource.parse(guidance)
     return [FleetRun(instances.maps[k], instances.starts[k],
-                     LifelongTasks(grid=instances.maps[k], seed=episode_seed(seed, k)),
+                     LifelongTasks(grid=instances.maps[k], seed=episode_seed(seed, first + k)),
                      instances.goals[k], rule=rule, max_steps=steps, series=series,
                      planning_budget=planning_budget, guidance=source.for_map(instances.maps[k]),
                      flow=source.flow(instances.maps[k]))
@@ -265,6 +271,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="--conflict-rule lacam: seconds per re-plan (default 1)")
     p.add_argument("--device", default="auto", type=device_arg,
                    help=f"torch device of learned policies: {DEVICE_HELP}")
+    p.add_argument("--workers", type=int, default=1,
+                   help="rollout processes: each row's episodes split among them (default 1: "
+                        "this process; the figures do not depend on it)")
     p.add_argument("--json", metavar="OUT")
     p.add_argument("--csv", metavar="OUT")
     p.add_argument("--markdown", metavar="OUT")
@@ -301,10 +310,51 @@ def scenarios(args) -> list[tuple[str, InstanceSet]]:
     return out
 
 
-def evaluate_lifelong(args) -> list[LifelongResult]:
-    from .policies import build_policy
+@dataclass(frozen=True)
+class LifelongJob:
+    """A chunk of one row's episodes (picklable: it runs in this process or a worker's)."""
 
-    results = []
+    spec: PolicySpec
+    rule: str  # the rule the runs step under
+    instances: InstanceSet  # the chunk's episodes
+    first: int  # the chunk's first episode in the row (its goal streams' seeds)
+    steps: int
+    seed: int
+    guidance: GuidanceSource
+    planning_budget: float | None
+    planner_time_limit: float
+
+
+def run_lifelong_job(job: LifelongJob) -> dict:
+    """The chunk's per-episode goals, collisions and overridden moves, lacam's fallbacks and the
+    rollout's seconds."""
+    began = time.perf_counter()
+    planner = job.spec.is_planner
+    # a plan's moves are conflict-free: plain PIBT passes them unchanged (the anchor would put the
+    # top agent on its distance order instead of its plan)
+    runs = lifelong_runs(job.instances, job.steps, "pibt" if planner else job.rule, job.seed,
+                         planning_budget=job.planning_budget, guidance=job.guidance,
+                         first=job.first)
+    fallbacks = 0
+    if planner:
+        fallbacks = lacam_rollout(runs, job.planner_time_limit)
+    else:
+        rollout(cached_policy(job.spec), runs, shielded=job.rule != REVERT)
+    return {"goals": [run.goals_reached for run in runs],
+            "collisions": [run.recorder.collisions for run in runs],
+            "overridden": [run.recorder.overridden for run in runs], "fallbacks": fallbacks,
+            "seconds": time.perf_counter() - began}
+
+
+def evaluate_lifelong(args) -> list[LifelongResult]:
+    """Every row (policy, rule, guidance, scenario) of the command, its episodes in chunks run
+    in this process (`--workers 1`) or on `--workers` processes (one chunk a process and row);
+    the figures do not depend on the split (each episode is its own run and goal stream)."""
+    # one torch thread: on a shared machine a second thread's barrier waits for a core another
+    # process holds, and a step takes many times longer (docs/results.md, "Performance (2-core
+    # machine, no GPU)"); every worker is set up the same way
+    init_worker()
+    rows = []  # (result, its chunks)
     for name in dict.fromkeys(args.checkpoint):
         base = parse_policy(name, device=args.device,
                             planner_time_limit=args.planner_time_limit)
@@ -313,47 +363,51 @@ def evaluate_lifelong(args) -> list[LifelongResult]:
         for rule in rules:
             spec = base if base.is_planner else with_conflict_rule(base, rule, args.ranking)
             spec = unique_names([spec])[0]
-            if spec.kind == "checkpoint":
-                # one torch thread: on a shared machine a second thread's barrier waits for a
-                # core another process holds, and a step takes many times longer
-                # (docs/results.md, "Performance (2-core machine, no GPU)")
-                import torch
-
-                torch.set_num_threads(1)
-            policy = None if base.is_planner else build_policy(spec)
+            if not base.is_planner:
+                cached_policy(spec)  # a bad checkpoint refused here, before any rollout
             # not given: the spec's own (`PolicySpec.default_guidance`: the checkpoint's recorded
             # guidance, else the fleet's, as `up` runs it)
             given = args.guidance if args.guidance is not None else [spec.default_guidance]
-            for label, instances, guidance in ((label, instances, guidance)
-                                               for guidance in dict.fromkeys(
-                                                   map(GuidanceSource.parse, given))
-                                               for label, instances in scenarios(args)):
-                began = time.perf_counter()
-                # a plan's moves are conflict-free: plain PIBT passes them unchanged (the anchor
-                # would put the top agent on its distance order instead of its plan)
-                rule_of_run = "pibt" if base.is_planner else rule
-                runs = lifelong_runs(instances, args.steps, rule_of_run, args.seed,
-                                     planning_budget=args.planning_budget, guidance=guidance)
-                result = LifelongResult(spec.name, label.rsplit(" ", 1)[0],
-                                        instances.starts.shape[1], args.steps,
-                                        guidance=guidance.label)
-                if not base.is_planner and rule != REVERT:
-                    result.ranking = spec.resolved_ranking
-                if base.is_planner:
-                    result.fallbacks = lacam_rollout(runs, args.planner_time_limit)
-                else:
-                    rollout(policy, runs, shielded=rule != REVERT)
-                result.goals = [run.goals_reached for run in runs]
-                result.collisions = [run.recorder.collisions for run in runs]
-                result.overridden = [run.recorder.overridden for run in runs]
-                result.seconds = time.perf_counter() - began
-                results.append(result)
-                if not args.quiet:
-                    row = result.row()
-                    print(f"[lifelong] {row['policy']} ({guidance.label} guidance) on {label}: throughput "
-                          f"{row['throughput']:.3f} ({row['seconds']:.1f} s)", file=sys.stderr,
-                          flush=True)
-    return results
+            for guidance in dict.fromkeys(map(GuidanceSource.parse, given)):
+                for label, instances in scenarios(args):
+                    result = LifelongResult(spec.name, label.rsplit(" ", 1)[0],
+                                            instances.starts.shape[1], args.steps,
+                                            guidance=guidance.label)
+                    if not base.is_planner and rule != REVERT:
+                        result.ranking = spec.resolved_ranking
+                    splits = np.array_split(np.arange(len(instances)),
+                                            min(args.workers, len(instances)))
+                    rows.append((result, [LifelongJob(
+                        spec, rule, instances.subset(index), int(index[0]), args.steps,
+                        args.seed, guidance, args.planning_budget, args.planner_time_limit)
+                        for index in splits]))
+    if args.workers == 1:
+        outputs = (map(run_lifelong_job, chunks) for _, chunks in rows)
+        return [_finish(result, chunks, args) for (result, _), chunks in zip(rows, outputs)]
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(args.workers, mp_context=multiprocessing.get_context("spawn"),
+                             initializer=init_worker) as pool:
+        futures = [[pool.submit(run_lifelong_job, job) for job in chunks] for _, chunks in rows]
+        return [_finish(result, (f.result() for f in mine), args)
+                for (result, _), mine in zip(rows, futures)]
+
+
+def _finish(result: LifelongResult, outputs, args) -> LifelongResult:
+    """The row from its chunks' outputs, in episode order; printed unless --quiet."""
+    for out in outputs:
+        result.goals += out["goals"]
+        result.collisions += out["collisions"]
+        result.overridden += out["overridden"]
+        result.fallbacks += out["fallbacks"]
+        result.seconds += out["seconds"]  # rollout seconds, summed over the chunks
+    if not args.quiet:
+        row = result.row()
+        print(f"[lifelong] {row['policy']} ({result.guidance} guidance) on {row['scenario']} "
+              f"{row['agents']}: throughput {row['throughput']:.3f} ({row['seconds']:.1f} s)",
+              file=sys.stderr, flush=True)
+    return result
 
 
 def markdown(results: list[LifelongResult]) -> str:
@@ -379,9 +433,9 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    if args.steps < 1 or args.instances < 1 or min(args.agents) < 1:
-        print("mapf-fleet evaluate --lifelong: --steps, --instances and --agents must be "
-              "positive", file=sys.stderr)
+    if args.steps < 1 or args.instances < 1 or min(args.agents) < 1 or args.workers < 1:
+        print("mapf-fleet evaluate --lifelong: --steps, --instances, --agents and --workers "
+              "must be positive", file=sys.stderr)
         return 2
     try:
         results = evaluate_lifelong(args)

@@ -174,7 +174,8 @@ class Job:
 _POLICY_CACHE: dict[PolicySpec, object] = {}
 
 
-def _init_worker() -> None:
+def init_worker() -> None:
+    """A rollout process's settings: one torch thread, ROS discovery on this machine."""
     # Evaluation never imports rclpy, but a worker must not reach other machines if something does.
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     try:
@@ -185,10 +186,16 @@ def _init_worker() -> None:
         pass
 
 
-def run_job(job: Job) -> tuple[list[EpisodeRecord], float, float | None, int]:
-    policy = _POLICY_CACHE.get(job.spec)
+def cached_policy(spec: PolicySpec):
+    """`build_policy(spec)`, built once a process (a worker runs many chunks of one policy)."""
+    policy = _POLICY_CACHE.get(spec)
     if policy is None:
-        policy = _POLICY_CACHE[job.spec] = build_policy(job.spec)
+        policy = _POLICY_CACHE[spec] = build_policy(spec)
+    return policy
+
+
+def run_job(job: Job) -> tuple[list[EpisodeRecord], float, float | None, int]:
+    policy = cached_policy(job.spec)
     began = time.perf_counter()
     if job.spec.is_planner:
         records, plan_time, failures = run_planner(policy, job.instances, job.scenario.max_steps)
@@ -227,7 +234,7 @@ def evaluate(
     jobs = make_jobs(specs, scenarios, batch_size, workers)
     outputs: dict[int, tuple] = {}
     if workers == 1:
-        _init_worker()
+        init_worker()
         for i, job in enumerate(jobs):
             outputs[i] = run_job(job)
             if progress:
@@ -237,7 +244,7 @@ def evaluate(
 
         # Large agent counts first, so the longest jobs do not end up last on one core.
         order = sorted(range(len(jobs)), key=lambda i: -jobs[i].scenario.num_agents * jobs[i].scenario.max_steps)
-        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_init_worker) as pool:
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=init_worker) as pool:
             futures = {pool.submit(run_job, jobs[i]): i for i in order}
             from concurrent.futures import as_completed
 
