@@ -314,3 +314,15 @@ def test_swap_lns_gets_two_agents_past_each_other_in_every_corridor(case):
     for rule in ("pibt_swap_lns", "pibt_anchor_swap_lns"):
         assert _solve(rule, rows, starts, goals) is not None, rule
 
+
+
+def test_a_parsed_rule_reads_the_window_when_asked(monkeypatch):
+    """The window is read when a shield is built, as the repairs are: a rule parsed before the
+    constant changed plans with the new window."""
+    from mapf_fleet.coordination import rules
+
+    rule = Rule.parse("pibt_anchor_swap_lns")
+    monkeypatch.setattr(rules, "LNS_WINDOW", 3)
+    grid = np.zeros((6, 6), dtype=np.uint8)
+    shield = make_shield(rule, grid, np.array([[0, 0], [5, 5]]))
+    assert rule.window == 3 and shield.window == 3

@@ -102,7 +102,7 @@ class Rule:
     hindrance: bool = False
     patient: bool = False
     horizon: int = 0  # EPIBT's moves per operation; 0: one-step PIBT (not an `_epibt` rule)
-    window: int = 0  # the `_lns` rules' ticks planned; 0: not an `_lns` rule
+    plan: bool = False  # an `_lns` rule: a windowed plan repaired by LNS (`window` ticks)
 
     @classmethod
     def parse(cls, value: "Rule | str", what: str = "conflict rule") -> "Rule":
@@ -119,7 +119,7 @@ class Rule:
         return cls(value, "pibt", anchor="anchor" in parts or patient, swap="swap" in parts,
                    hindrance="hindrance" in parts, patient=patient,
                    horizon=EPIBT_HORIZON if EPIBT in parts else 0,
-                   window=LNS_WINDOW if LNS in parts else 0)
+                   plan=LNS in parts)
 
     @classmethod
     def pibt(cls, anchor: bool = False, swap: bool = False, hindrance: bool = False,
@@ -150,7 +150,13 @@ class Rule:
     @property
     def lns(self) -> bool:
         """A PIBT rule under a windowed plan repaired by LNS (`lns.LNSShield`)."""
-        return self.window > 0
+        return self.plan
+
+    @property
+    def window(self) -> int:
+        """The `_lns` rules' ticks planned, `LNS_WINDOW` read now (as `LNSShield` reads the
+        repairs when built: one place to change the plan); 0: not an `_lns` rule."""
+        return LNS_WINDOW if self.plan else 0
 
     @property
     def is_lacam(self) -> bool:
