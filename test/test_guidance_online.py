@@ -301,8 +301,12 @@ def test_optimize_warm_starts_from_a_learned_model_and_names_it(tmp_path):
                                      rules.LNS_NEIGHBOURHOOD]
     model = OnlineModel.load(tmp_path / "w" / "online_warehouse_17x17_12.online.json")
     assert model.meta["plan"] == state["task"]["plan"]
+    # the hand-made highways x congestion is measured beside the learned starting point
+    assert set(model.meta["held_out_throughput"]) == {"none", "highways", "congestion", "both",
+                                                       "start", "learned"}
     card = (tmp_path / "w" / "online_warehouse_17x17_12.md").read_text()
     assert "the starting point (learned: prior.online.json)" in card
+    assert "highways x congestion (hand-made, online)" in card
     assert "over its starting point" in card
     assert f"plan {rules.LNS_WINDOW} ticks ahead" in card
 

@@ -51,6 +51,7 @@ MODELS = ("cost", ONLINE)  # what CMA-ES searches: a static CostModel or an Onli
 TASK_DEFAULTS = {"model": "cost"}
 # held-out draws are this far from the training seeds (never drawn by a generation)
 HELD_OUT_OFFSET = 1_000_003
+BOTH = "both"  # the online model's preset: highways' costs times congestion's
 
 
 # POGEMA's benchmark families (evaluation/pogema_bench.py's data): CMA-ES draws its maps from the
@@ -302,7 +303,11 @@ def finish(args, state: dict, evaluate, out: Path) -> int:
     candidates = [("none", GuidanceSource.parse("none")),
                   (HIGHWAYS, GuidanceSource.parse(HIGHWAYS)),
                   (CONGESTION, GuidanceSource.parse(CONGESTION))]
-    if state.get("init", "none") not in ("none", HIGHWAYS, CONGESTION):
+    init = state.get("init", "none")
+    if online and init not in PRESETS:
+        # from a learned model: the best hand-made point of the model is measured all the same
+        candidates.append((BOTH, model_of(initial_vector(ONLINE, BOTH), task)))
+    if init not in ("none", HIGHWAYS, CONGESTION):
         start = state.get("start")
         if start is None:  # a state written before the point was kept: a preset
             start = initial_vector(task["model"], state["init"])
@@ -333,7 +338,8 @@ def _family(task: dict) -> str:
 
 
 ROW_NAMES = {"none": "none (plain PIBT)", HIGHWAYS: "highways (hand-made)",
-             CONGESTION: "congestion (hand-made, online)", "start": "the starting point",
+             CONGESTION: "congestion (hand-made, online)",
+             BOTH: "highways x congestion (hand-made, online)", "start": "the starting point",
              "learned": "learned (this model)"}
 
 
