@@ -332,3 +332,24 @@ def test_optimize_on_rays_pool_is_the_run_in_this_process(tmp_path):
     models = [OnlineModel.load(tmp_path / d / "online_warehouse_17x17_12.online.json")
               for d in ("one", "pool")]
     assert models[0].meta["held_out_throughput"] == models[1].meta["held_out_throughput"]
+
+
+def test_every_shipped_guidance_model_loads_and_has_its_card():
+    """models/guidance: each learned model loads (the refusals of a bad file) and its card beside
+    it gives the held-out figures its meta records; the hand-made point is the preset `both`."""
+    from pathlib import Path
+
+    from mapf_fleet.grid.guidance_made import CostModel
+
+    folder = Path(__file__).resolve().parents[1] / "models" / "guidance"
+    learned = sorted(folder.glob("*.online.json")) + sorted(folder.glob("*.costmodel.json"))
+    assert len(learned) >= 6
+    for path in learned:
+        if path.name == "hand_both.online.json":
+            assert np.array_equal(OnlineModel.load(path).vector(),
+                                  OnlineModel.preset("both").vector())
+            continue
+        model = (OnlineModel if path.name.endswith(".online.json") else CostModel).load(path)
+        card = path.with_name(path.name.split(".")[0] + ".md").read_text()
+        rows = model.meta["held_out_throughput"]
+        assert f"{rows['learned']:.3f}" in card and f"{rows['none']:.3f}" in card, path.name
