@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mapf_fleet.coordination import rules
 from mapf_fleet.coordination.rules import FLEET_RULE
 from mapf_fleet.files import atomic_write
 from mapf_fleet.grid.guidance import GuidanceError
@@ -162,11 +163,6 @@ def initial_vector(model: str, init: str) -> np.ndarray:
     return np.append(start.theta, start.wait)
 
 
-def _remote_throughput(vector, task, seed, held_out=False):
-    guidance = np.asarray(vector) if isinstance(vector, list) else vector
-    return throughput(guidance, task, seed, held_out=held_out)
-
-
 class Evaluator:
     """Candidates' throughputs, on Ray (`workers` > 1 or an `address`) or in this process."""
 
@@ -179,7 +175,7 @@ class Evaluator:
 
             init_ray(address, workers)
             self.ray = ray
-            self.remote = ray.remote(num_cpus=1)(_remote_throughput)
+            self.remote = ray.remote(num_cpus=1)(throughput)
 
     def __call__(self, vectors, task, seed) -> list[tuple[float, float]]:
         if self.ray is None:
@@ -211,8 +207,6 @@ def plan_of(rule: str) -> list[int] | None:
     """The `_lns` rules' plan the rollouts run under: [ticks ahead, repairs a tick, robots a
     repair] (`coordination.rules.LNS_*`, read now: a run resumed under another plan is refused,
     and the model's card names it); None for the other rules."""
-    from mapf_fleet.coordination import rules
-
     if not rules.Rule.parse(rule).lns:
         return None
     return [rules.LNS_WINDOW, rules.LNS_ITERATIONS, rules.LNS_NEIGHBOURHOOD]
@@ -306,7 +300,7 @@ def finish(args, state: dict, evaluate, out: Path) -> int:
     init = state.get("init", "none")
     if online and init not in PRESETS:
         # from a learned model: the best hand-made point of the model is measured all the same
-        candidates.append((BOTH, model_of(initial_vector(ONLINE, BOTH), task)))
+        candidates.append((BOTH, OnlineModel.preset(BOTH)))
     if init not in ("none", HIGHWAYS, CONGESTION):
         start = state.get("start")
         if start is None:  # a state written before the point was kept: a preset
@@ -347,8 +341,8 @@ def card_text(name, task, rows, state, model, args) -> str:
     online = isinstance(model, OnlineModel)
     init = state.get("init", "none")
     # every row but none and the learned ones is hand-made: the starting point is, when a preset
-    learned = ("none", "learned") if init in PRESETS else ("none", "learned", "start")
-    hand = max(v for k, v in rows.items() if k not in learned)
+    not_hand = ("none", "learned") if init in PRESETS else ("none", "learned", "start")
+    hand = max(v for k, v in rows.items() if k not in not_hand)
     gain = rows["learned"] / rows["none"] - 1 if rows["none"] else float("nan")
     vs_hand = rows["learned"] / hand - 1 if hand else float("nan")
     vs_start = rows["learned"] / rows["start"] - 1 if rows.get("start") else float("nan")
