@@ -52,7 +52,7 @@ from mapf_fleet.models.policy import DEVICE_HELP, device_arg
 
 from .policies import PolicySpec, parse_policy, unique_names, with_conflict_rule
 from .protocol import InstanceSet
-from .runner import cached_policy, init_worker
+from .runner import cached_policy, init_worker, process_pool
 
 # Published lifelong throughputs (goals per step), not measured here: pogema-benchmark's raw data
 # for lifelong MAPF (ICLR 2025 release, `raw_data_LMAPF`), and the League of Robot Runners 2023.
@@ -384,11 +384,7 @@ def evaluate_lifelong(args) -> list[LifelongResult]:
     if args.workers == 1:
         outputs = (map(run_lifelong_job, chunks) for _, chunks in rows)
         return [_finish(result, chunks, args) for (result, _), chunks in zip(rows, outputs)]
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
-
-    with ProcessPoolExecutor(args.workers, mp_context=multiprocessing.get_context("spawn"),
-                             initializer=init_worker) as pool:
+    with process_pool(args.workers) as pool:
         futures = [[pool.submit(run_lifelong_job, job) for job in chunks] for _, chunks in rows]
         return [_finish(result, (f.result() for f in mine), args)
                 for (result, _), mine in zip(rows, futures)]

@@ -186,6 +186,15 @@ def init_worker() -> None:
         pass
 
 
+def process_pool(workers: int) -> ProcessPoolExecutor:
+    """`workers` rollout processes, each set up by `init_worker`. Spawned, not forked: a fork
+    would copy the parent's torch threads and the locks they hold."""
+    import multiprocessing
+
+    return ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=init_worker)
+
+
 def cached_policy(spec: PolicySpec):
     """`build_policy(spec)`, built once a process (a worker runs many chunks of one policy)."""
     policy = _POLICY_CACHE.get(spec)
@@ -240,11 +249,9 @@ def evaluate(
             if progress:
                 progress(len(outputs), len(jobs), job)
     else:
-        import multiprocessing
-
         # Large agent counts first, so the longest jobs do not end up last on one core.
         order = sorted(range(len(jobs)), key=lambda i: -jobs[i].scenario.num_agents * jobs[i].scenario.max_steps)
-        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=init_worker) as pool:
+        with process_pool(workers) as pool:
             futures = {pool.submit(run_job, jobs[i]): i for i in order}
             from concurrent.futures import as_completed
 
