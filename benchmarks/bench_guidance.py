@@ -6,9 +6,10 @@ BFS; a tick at 64 agents <= 50 ms, at 2,048 agents lifelong <= 1 s, guidance inc
 
 Per map side (random maps, density 0.2): median milliseconds per new goal, fresh tables each
 time (no cache hits), without guidance (BFS) and under the hand-made highways and a cost model
-(`grid.guided_kernel`), three ways: `array` (the -1 array, as the fleet's goal choices read
-it), `row` (the table's row, as the conflict rules read it) and `search` (the table's searcher
-alone, its row and bits dropped: no new memory kept); and scipy's Dijkstra on the same graph
+(`grid.guided_kernel`), three ways: `row` (the table's row, as the conflict rules and the
+fleet's goal choices read it), `array` (the row and `DistanceTable.array`'s -1 copy of it, which
+nothing in the fleet reads per goal any more) and `search` (the table's searcher alone, its row
+and bits dropped: no new memory kept); and scipy's Dijkstra on the same graph
 with the array built from it as `DistanceTable.array` builds it (the guided search before
 `guided_kernel`; its bits cost more on top). Then the plain PIBT tick (fleet rule, distance
 rankings) at 64 and 2,048 agents.

@@ -145,6 +145,27 @@ def test_any_robot_tasks_go_to_the_nearest_idle_robot_by_path_distance():
     assert run.finish()["success"]
 
 
+def test_any_robot_tasks_go_to_the_nearest_idle_robot_by_guided_cost():
+    """Under guidance the nearest idle robot is the one with the least guided cost, not the
+    fewest steps; the choice reads the table's rows (no -1 array made for it)."""
+    from mapf_fleet.grid.guidance import Guidance
+
+    grid = np.zeros((3, 7), dtype=np.uint8)
+    costs = np.ones((3, 7, 5))
+    costs[..., 3] = 5.0  # moving left costs 5: robot 1 is 2 steps away but costs 10, robot 0 4
+    starts = np.array([[0, 0], [0, 6]])
+    run = FleetRun(grid, starts, ExternalTasks(), rule="pibt", max_steps=0,
+                   guidance=Guidance.from_costs(grid, costs))
+    run.submit_task(Task(((0, 4),), None, "a", "service"))
+    run.apply_requests()
+    assert run.active.tolist() == [True, False]
+    assert not run.distances._arrays  # the goal choice read the row itself
+    unguided = FleetRun(grid, starts, ExternalTasks(), rule="pibt", max_steps=0)
+    unguided.submit_task(Task(((0, 4),), None, "a", "service"))
+    unguided.apply_requests()
+    assert unguided.active.tolist() == [False, True]
+
+
 def test_tasks_wait_for_an_idle_robot():
     run = FleetRun(OPEN, np.array([[0, 0]]), ExternalTasks(), rule="pibt", max_steps=0)
     run.submit_task(Task(((0, 3),), None, "a", "service"))

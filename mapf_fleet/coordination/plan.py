@@ -291,8 +291,9 @@ class PlanKeeper:
                 used.add(flat[i])
         out = goals.copy()
         for i in losers:
-            d = self.planner.table.array(now[i] if cut_off[i] else flat[i])
-            cells = np.flatnonzero(d >= 0)
+            # the table's own row, no -1 copy (a guided copy is float64, a new goal's cost twice)
+            d = self.planner.table.whole(now[i] if cut_off[i] else flat[i])
+            cells = np.flatnonzero(d < far)
             for cell in cells[np.argsort(d[cells], kind="stable")].tolist():
                 if cell not in used:
                     used.add(cell)

@@ -158,6 +158,18 @@ class FleetRun(RunReport):
         h, w = self.grid.shape
         return self.distances.array(int(cell[0]) * w + int(cell[1])).reshape(h, w)
 
+    def _costs_to(self, cell) -> tuple[np.ndarray, float]:
+        """(row, unreachable): the guided costs (or steps) to `cell`, flat, as the table keeps
+        them (no -1 copy: the goal choices below read a new goal's row as the rules do), and the
+        value at which a cell cannot reach it."""
+        return (self.distances.whole(int(cell[0]) * self.grid.shape[1] + int(cell[1])),
+                self.distances.unreachable)
+
+    def _reaches(self, here, cell) -> bool:
+        """Whether a robot at `here` can reach `cell`."""
+        row, far = self._costs_to(cell)
+        return bool(row[int(here[0]) * self.grid.shape[1] + int(here[1])] < far)
+
     def steps_to(self, cell) -> np.ndarray:
         """(H, W) BFS steps to `cell` (-1 unreachable), whatever the guidance: what a robot has
         left to drive, in cells (a guided distance is a cost, not a length)."""
@@ -179,7 +191,7 @@ class FleetRun(RunReport):
             return f"cell ({r}, {c}) is an obstacle"
         if robot is not None:
             here = self.positions[int(robot)]
-            if self.distance_to((r, c))[here[0], here[1]] < 0:
+            if not self._reaches(here, (r, c)):
                 return (f"cell ({r}, {c}) is unreachable from robot {int(robot)}'s cell "
                         f"({int(here[0])}, {int(here[1])})")
         for j in range(self.num_robots):
@@ -374,7 +386,7 @@ class FleetRun(RunReport):
         here = self.positions[robot]
         for task in self.queue:
             first = task.goals[0]
-            if task.robot not in (None, robot) or self.distance_to(first)[here[0], here[1]] < 0 \
+            if task.robot not in (None, robot) or not self._reaches(here, first) \
                     or self.goal_problem(None, first).startswith("robot "):
                 continue
             self.queue.remove(task)
@@ -395,9 +407,9 @@ class FleetRun(RunReport):
         idle = [i for i in np.flatnonzero(~self.active).tolist() if i not in self._requests]
         if not idle:
             return None
-        dist = self.distance_to(first)
-        d = dist[self.positions[idle, 0], self.positions[idle, 1]]
-        reachable = d >= 0
+        row, far = self._costs_to(first)
+        d = row[self.positions[idle, 0] * self.grid.shape[1] + self.positions[idle, 1]]
+        reachable = d < far
         if not reachable.any():
             return None
         best = np.flatnonzero(reachable)[np.argmin(d[reachable])]  # argmin: the lower id on ties
@@ -458,8 +470,9 @@ class FleetRun(RunReport):
     def _parking_cell(self, here, avoid) -> tuple[int, int] | None:
         """The nearest reachable free cell off `avoid`, at a junction (3+ free neighbours)
         where there is one: a corridor or dead-end cell would be on the busy robot's way in."""
-        dist = self.distance_to(here)
-        free = (dist > 0)
+        row, far = self._costs_to(here)
+        dist = row.reshape(self.grid.shape)
+        free = (dist > 0) & (dist < far)
         for cell in avoid:
             free[cell] = False
         if not free.any():
@@ -467,7 +480,7 @@ class FleetRun(RunReport):
         if (free & (self._free_neighbours >= 3)).any():
             free &= self._free_neighbours >= 3
         flat = np.flatnonzero(free.ravel())
-        best = flat[np.argmin(dist.ravel()[flat])]  # the nearest; ties: the first in row order
+        best = flat[np.argmin(row[flat])]  # the nearest; ties: the first in row order
         return int(best // dist.shape[1]), int(best % dist.shape[1])
 
     def note(self, events) -> None:

@@ -90,8 +90,9 @@ class DistanceTable:
         self._arrays: OrderedDict[int, np.ndarray] = OrderedDict()
         row_bytes = 8 if self.guided else np.dtype(self._searcher.dtype).itemsize
         self.keep = max(16, RECENT_BYTES // (row_bytes * self.size))
-        # -1 arrays and bits are handed on (to the observations, the goal checks), not read
-        # tick after tick as rows are: the last batch's and `RECENT_BYTES`' worth are kept
+        # -1 arrays and bits are handed on (bits to the observations, -1 arrays to callers that
+        # want -1; the fleet's own goal choices read rows), not read tick after tick as rows
+        # are: the last batch's and `RECENT_BYTES`' worth are kept
         self._recent_arrays = self.keep
         self._recent_bits = max(16, RECENT_BYTES // self.size)
         # goals searched only around one cell so far (unguided: bounded searches)
