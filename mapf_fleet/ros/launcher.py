@@ -88,13 +88,14 @@ def prepare(argv: list[str]):
     if args.real_robots and args.single_process:
         raise UpError("--real-robots runs the aggregator in its own process; drop "
                       "--single-process")
-    problem = checkpoint_problem(checkpoint)
+    problem, metadata = checked_checkpoint(checkpoint)
     if problem:  # before anything starts: the policy processes would die one by one
         raise UpError(problem)
     sim = plan.sim
     if plan.origin[plan.sim_name]["guidance"] == "default":
-        # the guidance the checkpoint was trained for, as `evaluate` reads it (one default)
-        recorded = recorded_guidance(checkpoint)
+        # the guidance the checkpoint was trained for (metadata field guidance,
+        # `models.checkpoint`), as `evaluate` reads it (one default); none: the fleet's
+        recorded = None if metadata.get("guidance") is None else str(metadata["guidance"])
         if recorded is not None:
             problem = P.GUIDANCE.problem(recorded)
             if problem:
@@ -161,25 +162,22 @@ def prepare(argv: list[str]):
     return args, plan, num_robots
 
 
-def checkpoint_problem(path: str) -> str:
-    """"" when `path` loads as a policy (as the policy nodes load it), else the reason, e.g.
-    "bad.pt: not a readable checkpoint (corrupt, truncated or not weights-only): ..."."""
+def checked_checkpoint(path: str) -> tuple[str, dict]:
+    """("", its metadata) when `path` loads as a policy (as the policy nodes load it), else
+    (the reason, {}), e.g. "bad.pt: not a readable checkpoint (corrupt, truncated or not
+    weights-only): ..."; the file is read once."""
     from mapf_fleet.models.checkpoint import load_checkpoint
 
     try:
-        load_checkpoint(path)
+        _, metadata = load_checkpoint(path)
     except (ValueError, OSError) as exc:  # CheckpointError is a ValueError
-        return str(exc).strip().splitlines()[0] if str(exc).strip() else repr(exc)
-    return ""
+        return (str(exc).strip().splitlines()[0] if str(exc).strip() else repr(exc)), {}
+    return "", metadata
 
 
-def recorded_guidance(path: str) -> str | None:
-    """The guidance checkpoint `path` records it was trained for (metadata field guidance,
-    `models.checkpoint`), None where it records none (the fleet's default applies)."""
-    from mapf_fleet.models.checkpoint import read_checkpoint
-
-    value = read_checkpoint(path)[1].get("guidance")
-    return None if value is None else str(value)
+def checkpoint_problem(path: str) -> str:
+    """`checked_checkpoint`'s reason alone ("" when `path` loads)."""
+    return checked_checkpoint(path)[0]
 
 
 START_MARGIN_S = 120.0  # a process's own start-up (imports, DDS) on a loaded machine
