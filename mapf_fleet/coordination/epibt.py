@@ -184,16 +184,11 @@ class EPIBTShield(PIBTShield):
         held = fixed.copy()
         # occ[t]: {cell: agent} at step t of the chosen operations (-2: a reserved cell)
         occ: list[dict[int, int]] = [dict() for _ in range(h + 1)]
-        for cell in reserved:
-            r, c = int(cell[0]), int(cell[1])
-            if not (0 <= r < self.height and 0 <= c < w):
-                continue
-            occupant = occupied_now.get(r * w + c, -1)
-            if occupant >= 0:
-                held[occupant] = True
-            else:
-                for t in range(1, h + 1):
-                    occ[t][r * w + c] = -2
+        holders, kept_free = self.split_reserved(reserved, occupied_now)
+        held[holders] = True
+        for cell in kept_free:
+            for t in range(1, h + 1):
+                occ[t][cell] = -2
         chosen: list[list[int] | None] = [None] * n
         stay = [0] * (h + 1)
         for i in np.flatnonzero(held).tolist():

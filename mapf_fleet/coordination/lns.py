@@ -233,14 +233,8 @@ class LNSShield(PIBTShield):
         held = fixed.copy()
         flat = positions[:, 0] * self.width + positions[:, 1]
         occupant = {c: i for i, c in enumerate(flat.tolist())}
-        blocked = []
-        for cell in reserved:
-            r, c = int(cell[0]), int(cell[1])
-            if 0 <= r < self.height and 0 <= c < self.width:
-                if r * self.width + c in occupant:
-                    held[occupant[r * self.width + c]] = True
-                else:
-                    blocked.append(r * self.width + c)
+        holders, blocked = self.split_reserved(reserved, occupant)
+        held[holders] = True
         paths = self._rollout(positions, asked, fixed, reserved, rows)
         costs = self._costs(paths, rows)
         kept = self._shifted(flat, held, blocked)

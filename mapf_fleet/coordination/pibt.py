@@ -295,6 +295,21 @@ class PIBTShield:
             raise ValueError(f"fixed must have shape ({n},), got {fixed.shape}")
         return fixed
 
+    def split_reserved(self, reserved, occupant: dict[int, int]) -> tuple[list[int], list[int]]:
+        """The reserved (row, col) cells on the map, flat: (the agents standing on one, which
+        hold: it is theirs already, nobody else enters; the free ones, which nobody enters).
+        `occupant`: flat cell -> the agent on it. Cells off the map are ignored."""
+        held, free = [], []
+        for cell in reserved:
+            r, c = int(cell[0]), int(cell[1])
+            if 0 <= r < self.height and 0 <= c < self.width:
+                flat = r * self.width + c
+                if flat in occupant:
+                    held.append(occupant[flat])
+                else:
+                    free.append(flat)
+        return held, free
+
     def check_positions(self, positions) -> np.ndarray:
         positions = np.asarray(positions)
         if positions.shape != (self.num_agents, 2):
@@ -355,15 +370,10 @@ class PIBTShield:
         occupied_next: dict[int, int] = {}
         decided = [-1] * n  # next flat cell per agent, -1 undecided
         fixed = fixed.copy()
-        for cell in reserved:
-            r, c = int(cell[0]), int(cell[1])
-            if not (0 <= r < self.height and 0 <= c < w):
-                continue
-            occupant = occupied_now.get(r * w + c, -1)
-            if occupant >= 0:
-                fixed[occupant] = True  # it is there already: it holds, nobody else enters
-            else:
-                occupied_next[r * w + c] = -2  # nobody's: kept free
+        holders, kept_free = self.split_reserved(reserved, occupied_now)
+        fixed[holders] = True
+        for cell in kept_free:
+            occupied_next[cell] = -2  # nobody's
         for i in np.flatnonzero(fixed).tolist():
             occupied_next[current[i]] = i
             decided[i] = current[i]
