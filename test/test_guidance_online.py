@@ -253,6 +253,9 @@ def test_optimize_online_resumes_and_is_deterministic(tmp_path, capsys):
         "none", "highways", "congestion", "start", "learned"}
     card = (tmp_path / "a" / "online_warehouse_17x17_12.md").read_text()
     assert "contraflow" in card and "the starting point" in card
+    # the resumed run's card names the command that finished it (--generations 2, not 1)
+    resumed = (tmp_path / "b" / "online_warehouse_17x17_12.md").read_text()
+    assert "--generations 2" in resumed and "--generations 1" not in resumed
     # a run of the other model in the same directory is refused
     assert _optimize(tmp_path / "a", "--model", "cost", generations=3) == 2
 

@@ -233,6 +233,9 @@ def optimize(args) -> int:
             return 2
         print(f"[guidance] resuming {state_path} at generation {state['generation']}",
               file=sys.stderr, flush=True)
+        # the card names the command that finishes the run: a resumed run may be given other
+        # --generations (or --workers) than it started with, and the last one says where it ended
+        state["command"] = command
     else:
         mean = initial_vector(args.model, args.init)
         dim = len(mean)
