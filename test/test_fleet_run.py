@@ -159,7 +159,7 @@ def test_any_robot_tasks_go_to_the_nearest_idle_robot_by_guided_cost():
     run.submit_task(Task(((0, 4),), None, "a", "service"))
     run.apply_requests()
     assert run.active.tolist() == [True, False]
-    assert not run.distances._arrays  # the goal choice read the row itself
+    assert not run.map.table._arrays  # the goal choice read the row itself
     unguided = FleetRun(grid, starts, ExternalTasks(), rule="pibt", max_steps=0)
     unguided.submit_task(Task(((0, 4),), None, "a", "service"))
     unguided.apply_requests()
@@ -441,9 +441,9 @@ def test_steps_to_a_cell_are_cells_whatever_the_guidance():
     grid = np.zeros((9, 9), dtype=np.uint8)
     run = FleetRun(grid, np.array([[0, 0]]), InstanceTasks(), np.array([[8, 8]]),
                    guidance=highways(grid))
-    steps = run.steps_to((8, 8))
+    steps = run.map.steps_to((8, 8))
     np.testing.assert_array_equal(steps, bfs_distances(grid, (8, 8)))
-    assert (run.distance_to((8, 8)) > steps).any()  # the guided costs differ: lanes
+    assert (run.map.distance_to((8, 8)) > steps).any()  # the guided costs differ: lanes
 
 
 @pytest.mark.parametrize("rule", ["pibt_anchor_swap", "pibt_anchor_swap_epibt"])

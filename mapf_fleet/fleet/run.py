@@ -25,8 +25,9 @@ Goal rules (a request is rejected with the reason, the run goes on): the robot m
 cell must be on the map, free, and reachable from the robot's cell; and no other robot may
 already be headed for it (an active goal, or one requested this tick), since two robots cannot
 both stop on one cell. Goals drawn by the lifelong source are exempt from the last rule (module
-`tasks`). "Any robot" tasks go to the nearest idle robot by path distance (BFS over the map;
-ties: the lower id), and wait in a queue while no robot is idle.
+`tasks`). "Any robot" tasks go to the nearest idle robot by path distance (the map's distances
+under the guidance, `fleet_map.FleetMap`; ties: the lower id), and wait in a queue while no
+robot is idle.
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ from collections import deque
 import numpy as np
 
 from .arbiter import DEFAULT_CONFLICT_RULE, Resolution, TickArbiter
+from .fleet_map import FleetMap
 from .outcome import RunReport
 from .record import Decisions, GoalEvent, RunRecorder
 from .tasks import Task, TaskSource, batch_problems
@@ -81,16 +83,11 @@ class FleetRun(RunReport):
         self._requests: dict[int, tuple[tuple[int, int] | None, str, str]] = {}  # robot -> req
         # every distance of the run (goal checks, "any robot" tasks, the rule) from the map's
         # shared table under the guidance graph
-        from mapf_fleet.grid.heuristic import distance_table
-
         self.guidance = guidance
         self.flow = flow
-        self.distances = distance_table(self.grid, guidance)
+        self.map = FleetMap(self.grid, guidance)
         self._counted: set[str] = set()  # one-shot goals whose arrival was counted
         self._evacuating: dict[int, tuple[int, int]] = {}  # idle robot -> cell it clears to
-        padded = np.pad(~self.grid, 1)
-        self._free_neighbours = (padded[:-2, 1:-1].astype(int) + padded[2:, 1:-1]
-                                 + padded[1:-1, :-2] + padded[1:-1, 2:])
         self.arbiter = TickArbiter(self.grid, self.goals, rule, planning_budget, guidance)
         self.recorder = RunRecorder(episode, self.num_robots, self.max_steps, series=series,
                                     conflict_rule=rule, task_source=tasks.name)
@@ -146,37 +143,9 @@ class FleetRun(RunReport):
     # ---- goals at run time --------------------------------------------------------------------
     def set_guidance(self, guidance) -> None:
         """Every distance of the run (the rule's, goal checks) under `guidance` from now on."""
-        from mapf_fleet.grid.heuristic import distance_table
-
         self.guidance = guidance
-        self.distances = distance_table(self.grid, guidance)
+        self.map.set_guidance(guidance)
         self.arbiter.set_guidance(guidance)
-
-    def distance_to(self, cell) -> np.ndarray:
-        """(H, W) distances to `cell` (-1 unreachable): BFS steps, or guided costs under the
-        run's guidance (`DistanceTable`, cached per cell)."""
-        h, w = self.grid.shape
-        return self.distances.array(int(cell[0]) * w + int(cell[1])).reshape(h, w)
-
-    def _costs_to(self, cell) -> tuple[np.ndarray, float]:
-        """(row, unreachable): the guided costs (or steps) to `cell`, flat, as the table keeps
-        them (no -1 copy: the goal choices below read a new goal's row as the rules do), and the
-        value at which a cell cannot reach it."""
-        return (self.distances.whole(int(cell[0]) * self.grid.shape[1] + int(cell[1])),
-                self.distances.unreachable)
-
-    def _reaches(self, here, cell) -> bool:
-        """Whether a robot at `here` can reach `cell`."""
-        row, far = self._costs_to(cell)
-        return bool(row[int(here[0]) * self.grid.shape[1] + int(here[1])] < far)
-
-    def steps_to(self, cell) -> np.ndarray:
-        """(H, W) BFS steps to `cell` (-1 unreachable), whatever the guidance: what a robot has
-        left to drive, in cells (a guided distance is a cost, not a length)."""
-        from mapf_fleet.grid.heuristic import distance_table
-
-        h, w = self.grid.shape
-        return distance_table(self.grid).array(int(cell[0]) * w + int(cell[1])).reshape(h, w)
 
     def goal_problem(self, robot, cell, *, ignore_robot: int | None = None) -> str:
         """Why `cell` cannot be `robot`'s goal now ("" when it can); robot None: any robot."""
@@ -191,7 +160,7 @@ class FleetRun(RunReport):
             return f"cell ({r}, {c}) is an obstacle"
         if robot is not None:
             here = self.positions[int(robot)]
-            if not self._reaches(here, (r, c)):
+            if not self.map.reaches(here, (r, c)):
                 return (f"cell ({r}, {c}) is unreachable from robot {int(robot)}'s cell "
                         f"({int(here[0])}, {int(here[1])})")
         for j in range(self.num_robots):
@@ -386,7 +355,7 @@ class FleetRun(RunReport):
         here = self.positions[robot]
         for task in self.queue:
             first = task.goals[0]
-            if task.robot not in (None, robot) or not self._reaches(here, first) \
+            if task.robot not in (None, robot) or not self.map.reaches(here, first) \
                     or self.goal_problem(None, first).startswith("robot "):
                 continue
             self.queue.remove(task)
@@ -407,13 +376,7 @@ class FleetRun(RunReport):
         idle = [i for i in np.flatnonzero(~self.active).tolist() if i not in self._requests]
         if not idle:
             return None
-        row, far = self._costs_to(first)
-        d = row[self.positions[idle, 0] * self.grid.shape[1] + self.positions[idle, 1]]
-        reachable = d < far
-        if not reachable.any():
-            return None
-        best = np.flatnonzero(reachable)[np.argmin(d[reachable])]  # argmin: the lower id on ties
-        return int(idle[best])
+        return self.map.nearest(idle, self.positions[idle], first)  # ties: the lower id
 
     def _set_goal(self, robot: int, cell, source: str, goal_id: str,
                   announce_previous: bool = True) -> None:
@@ -460,28 +423,12 @@ class FleetRun(RunReport):
                 target = None
                 del self._evacuating[i]
             if target is None and here in busy_goals:
-                target = self._parking_cell(here, busy_goals | occupied)
+                target = self.map.parking_cell(here, busy_goals | occupied)
                 if target is not None:
                     self._evacuating[i] = target
                     boost.append(i)
             self.goals[i] = target if target is not None else here
         return boost
-
-    def _parking_cell(self, here, avoid) -> tuple[int, int] | None:
-        """The nearest reachable free cell off `avoid`, at a junction (3+ free neighbours)
-        where there is one: a corridor or dead-end cell would be on the busy robot's way in."""
-        row, far = self._costs_to(here)
-        dist = row.reshape(self.grid.shape)
-        free = (dist > 0) & (dist < far)
-        for cell in avoid:
-            free[cell] = False
-        if not free.any():
-            return None
-        if (free & (self._free_neighbours >= 3)).any():
-            free &= self._free_neighbours >= 3
-        flat = np.flatnonzero(free.ravel())
-        best = flat[np.argmin(row[flat])]  # the nearest; ties: the first in row order
-        return int(best // dist.shape[1]), int(best % dist.shape[1])
 
     def note(self, events) -> None:
         """Record events decided outside the run (a goal the ROS side refused before asking)."""

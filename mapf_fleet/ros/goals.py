@@ -305,7 +305,7 @@ class GoalServer:
     def _feedback(self, goal: _ActionGoal) -> None:
         run = self.run
         here = run.positions[goal.robot]
-        cells = int(run.steps_to(goal.cell)[here[0], here[1]])  # cells, not guided costs
+        cells = int(run.map.steps_to(goal.cell)[here[0], here[1]])  # cells, not guided costs
         fb = goal.action.Feedback()
         fb.current_pose = common.cell_pose(int(here[0]), int(here[1]), self.geometry)
         fb.distance_remaining = float(max(cells, 0) * self.geometry.resolution)
