@@ -39,7 +39,6 @@ from pathlib import Path
 import numpy as np
 
 from mapf_fleet.coordination import rules
-from mapf_fleet.coordination.rules import FLEET_RULE
 from mapf_fleet.files import atomic_write
 from mapf_fleet.grid.guidance import GuidanceError
 from mapf_fleet.grid.guidance_made import (CONGESTION, FEATURES, HIGHWAYS, LOG_COST_CLIP,
@@ -421,7 +420,7 @@ def build_parser() -> argparse.ArgumentParser:
     o.add_argument("--bound", type=float, default=LOG_COST_CLIP,
                    help="each parameter within [-B, B] (default: the model's log-cost clip, "
                         f"{LOG_COST_CLIP}: beyond it a cost no longer changes)")
-    o.add_argument("--conflict-rule", default=FLEET_RULE)
+    o.add_argument("--conflict-rule", default=rules.FLEET_RULE)
     o.add_argument("--seed", type=int, default=0)
     o.add_argument("--workers", type=int, default=1, help="rollout processes (Ray when > 1)")
     o.add_argument("--address", help="a Ray cluster's address (default: a local Ray)")
@@ -440,9 +439,7 @@ def main(argv: list[str] | None = None) -> int:
     args.argv = argv
     if args.action == "make":
         return make(args)
-    from mapf_fleet.coordination.rules import Rule
-
-    args.conflict_rule = Rule.parse(args.conflict_rule, "--conflict-rule").name
+    args.conflict_rule = rules.Rule.parse(args.conflict_rule, "--conflict-rule").name
     if args.init is None:
         args.init = "both" if args.model == ONLINE else "none"
     try:

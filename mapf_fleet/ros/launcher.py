@@ -27,7 +27,7 @@ from mapf_fleet.ros.layout_choice import (available_memory_mb, choose_layout,
 
 # `up`'s API (its options live in fleet.up_options, re-exported here)
 __all__ = ["DATA_ROOT", "DEFAULT_CHECKPOINT", "MAX_DISCOVERED_PROCESSES", "MAX_NODES_PER_PROCESS",
-           "UpError", "build_parser", "checkpoint_problem", "default_checkpoint",
+           "UpError", "build_parser", "checked_checkpoint", "default_checkpoint",
            "layout_problem", "layout_warning", "main", "policy_processes", "prepare", "report"]
 
 # where models/ lives: the install's share/mapf_fleet, else the checkout
@@ -173,11 +173,6 @@ def checked_checkpoint(path: str) -> tuple[str, dict]:
     except (ValueError, OSError) as exc:  # CheckpointError is a ValueError
         return (str(exc).strip().splitlines()[0] if str(exc).strip() else repr(exc)), {}
     return "", metadata
-
-
-def checkpoint_problem(path: str) -> str:
-    """`checked_checkpoint`'s reason alone ("" when `path` loads)."""
-    return checked_checkpoint(path)[0]
 
 
 START_MARGIN_S = 120.0  # a process's own start-up (imports, DDS) on a loaded machine

@@ -275,14 +275,15 @@ def test_stop_request_sends_once_the_child_catches_it_and_counts_the_grace_from_
 
 # ---- up's checks and report ----
 def test_up_checks_the_checkpoint_before_anything_starts(tmp_path):
-    from mapf_fleet.ros.launcher import checkpoint_problem, default_checkpoint
+    from mapf_fleet.ros.launcher import checked_checkpoint, default_checkpoint
 
     good = default_checkpoint()
-    assert good and checkpoint_problem(good) == ""
+    problem, metadata = checked_checkpoint(good)
+    assert good and problem == "" and metadata.get("algorithm") in ("dcc", "dhc")
     bad = tmp_path / "bad.pt"
     bad.write_bytes(open(good, "rb").read(1000))  # head -c 1000 models/default.pt > bad.pt
-    problem = checkpoint_problem(str(bad))
-    assert "not a readable checkpoint" in problem and str(bad) in problem
+    problem, metadata = checked_checkpoint(str(bad))
+    assert "not a readable checkpoint" in problem and str(bad) in problem and metadata == {}
     assert "\n" not in problem
 
 
