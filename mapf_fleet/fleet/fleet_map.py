@@ -26,8 +26,7 @@ class FleetMap:
         self.set_guidance(guidance)
 
     def set_guidance(self, guidance) -> None:
-        """Every distance under `guidance` from now on."""
-        self.guidance = guidance
+        """Every distance under `guidance` from now on (the run keeps which guidance it is)."""
         self.table = distance_table(self.grid, guidance)
 
     def _flat(self, cell) -> int:
